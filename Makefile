@@ -1,0 +1,21 @@
+# Two user-facing targets: `make demo` and `make test` (see README.md). Both bootstrap .venv first.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+export MPLBACKEND := Agg
+export PYVISTA_OFF_SCREEN := true
+
+.PHONY: demo test venv reproduce
+
+venv:
+	@tools/bootstrap.sh $(PYTHON)
+
+demo: venv
+	@$(BIN)/python tools/demo.py
+
+test: venv
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+reproduce: venv
+	$(BIN)/python tools/reproduce.py

@@ -1,0 +1,44 @@
+"""``detector`` command line. Each subcommand is a thin module under ``detector/commands/`` (parse, call, print)."""
+
+from __future__ import annotations
+
+import click
+
+from detector import __version__
+from mpchair.clitools import LazyGroup, run_cli
+
+COMMANDS = {
+    "train": "detector.commands.train:train",
+    "eval": "detector.commands.eval:eval_cmd",
+    "bench": "detector.commands.bench:bench",
+    "ops": "detector.commands.ops:ops",
+    "viz-sparsity": "detector.commands.viz:viz_sparsity",
+}
+
+
+@click.group(
+    cls=LazyGroup,
+    lazy_commands=COMMANDS,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
+)
+@click.version_option(__version__, prog_name="detector")
+def cli() -> None:
+    """Train, evaluate and time dense PointPillars vs Sparse PointPillars on KITTI-format datasets.
+
+    \b
+    Typical use:
+      detector train --config configs/models/mpchair_dense.yaml --data dataset/ --out runs/dense
+      detector eval --config configs/models/mpchair_dense.yaml --data dataset/ --checkpoint runs/dense/last.pt
+      detector bench --config configs/models/mpchair_dense.yaml \\
+        --config configs/models/mpchair_sparse.yaml --data dataset/
+    Distributed: torchrun --nproc-per-node=2 -m detector train ...
+    """
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console-script entry point (also ``python -m detector``)."""
+    run_cli(cli, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""Shared command-line plumbing for the ``mpchair`` and ``detector`` console scripts.
+
+* :class:`LazyGroup` registers subcommands by ``"module:attribute"`` so a command imports only what it needs
+  (``mpchair houses`` never imports torch). ``--help`` lists every registered command.
+* :func:`run_cli` turns :class:`mpchair.errors.InputError` into one ``error: ...`` line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+
+import click
+
+from mpchair.errors import InputError
+
+
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use from ``{name: "package.module:attr"}``."""
+
+    def __init__(self, *args, lazy_commands: dict[str, str] | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.lazy_commands = dict(lazy_commands or {})
+
+    def _available(self) -> dict[str, str]:
+        # A registered command whose module is absent (e.g. a partial install) is left out rather than crashing --help.
+        return {
+            name: target
+            for name, target in self.lazy_commands.items()
+            if importlib.util.find_spec(target.split(":")[0]) is not None
+        }
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(self._available()))
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        target = self._available().get(cmd_name)
+        if target is not None:
+            module_name, attr = target.split(":")
+            return getattr(importlib.import_module(module_name), attr)
+        return super().get_command(ctx, cmd_name)
+
+
+def run_cli(group: click.Group, args: list[str] | None = None) -> None:
+    """Run ``group`` as a console script: :class:`InputError` → ``error: <message>`` on stderr and exit 2.
+
+    Click's usage errors keep click's message and exit status 2; Ctrl-C exits 130 without a traceback.
+    """
+    try:
+        rv = group.main(args=args, standalone_mode=False)
+    except InputError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo("interrupted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except click.exceptions.Exit as e:
+        sys.exit(e.exit_code)
+    sys.exit(rv if isinstance(rv, int) else 0)
