@@ -9,9 +9,20 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+_UMASK_LOCK = threading.Lock()
+
+
+def _default_file_mode() -> int:
+    """0o666 minus the process umask: what ``open(path, "w")`` would give (mkstemp alone gives 0o600)."""
+    with _UMASK_LOCK:  # os.umask can only be read by setting it
+        mask = os.umask(0)
+        os.umask(mask)
+    return 0o666 & ~mask
 
 
 @contextlib.contextmanager
@@ -32,6 +43,7 @@ def atomic_open(path: str | Path, mode: str = "w", fsync: bool = False) -> Itera
             if fsync:
                 f.flush()
                 os.fsync(f.fileno())
+        os.chmod(tmp, _default_file_mode())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

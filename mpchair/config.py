@@ -46,7 +46,7 @@ def load_config(cls: type[T], path: str | Path) -> T:
 def from_dict(cls: type[T], data: dict, source: str = "<config>", prefix: str = "") -> T:
     """Build dataclass ``cls`` from a mapping; raise :class:`InputError` naming ``source`` and the dotted key."""
     if not isinstance(data, dict):
-        raise InputError(f"{prefix or 'config'}: expected a mapping, got {type(data).__name__}", source)
+        raise InputError(f"{prefix.rstrip('.') or 'config'}: expected a mapping, got {type(data).__name__}", source)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - set(fields))

@@ -1,0 +1,54 @@
+"""Frames, boxes and pillars: the geometry both ``mpchair`` and ``detector`` share. Boxes are ``(N, 7)`` float64
+``[x, y, z, l, w, h, yaw]`` (geometric centre, ``l`` along the heading, yaw CCW about +z from +x) in the sensor frame
+(x forward, y left, z up, metres) unless a docstring says world frame (Matterport, z up, metres). ``frames`` holds
+angle wrapping and rigid 4×4 transforms, ``boxes`` corners / BEV polygons / point membership, ``camera`` the
+conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule. See
+``docs/conventions.md``.
+"""
+
+from mpchair.geometry.boxes import bev_polygons, box_corners, points_in_boxes
+from mpchair.geometry.camera import (
+    BOX_EDGES,
+    NEAR_PLANE,
+    boxes_to_kitti_camera,
+    fov_mask,
+    kitti_camera_to_boxes,
+    labels_to_boxes,
+    project_boxes_to_image,
+)
+from mpchair.geometry.frames import (
+    SENSOR_TO_CAMERA,
+    invert_rigid,
+    make_tr_velo_to_cam,
+    rigid_from,
+    transform_boxes,
+    transform_points,
+    wrap_angle,
+    yaw_matrix,
+    yaw_of,
+)
+from mpchair.geometry.pillars import grid_size, pillar_coords
+
+__all__ = [
+    "BOX_EDGES",
+    "NEAR_PLANE",
+    "SENSOR_TO_CAMERA",
+    "bev_polygons",
+    "box_corners",
+    "boxes_to_kitti_camera",
+    "fov_mask",
+    "grid_size",
+    "invert_rigid",
+    "kitti_camera_to_boxes",
+    "labels_to_boxes",
+    "make_tr_velo_to_cam",
+    "pillar_coords",
+    "points_in_boxes",
+    "project_boxes_to_image",
+    "rigid_from",
+    "transform_boxes",
+    "transform_points",
+    "wrap_angle",
+    "yaw_matrix",
+    "yaw_of",
+]
