@@ -1,0 +1,16 @@
+"""Synthetic houses in the exact Matterport3D release format: procedural multi-room homes (doors, windows, stairs,
+holes) furnished with chairs of five styles and non-chair distractors, written as ``v1/scans/<id>/house_segmentations``
+(extracted or zipped) so the one reader in :mod:`mpchair.matterport` serves real and synthetic data. The construction
+record (:class:`SyntheticHouse`) carries the ground-truth objects and aligned boxes the reader must reproduce.
+"""
+
+from mpchair.synth.house import (
+    SyntheticHouse,
+    SynthObject,
+    plan_houses,
+    synthesize_house,
+    write_house,
+    write_synthetic_houses,
+)
+
+__all__ = ["SynthObject", "SyntheticHouse", "plan_houses", "synthesize_house", "write_house", "write_synthetic_houses"]

@@ -1,0 +1,857 @@
+"""Procedural homes in the Matterport3D release format, and the construction record tests compare the reader with.
+
+Recipe (all lengths in metres): a grid of 2-3 x 2 rooms (each at least 3.4 m across) per level, walls 0.12 m thick
+built from closed boxes with door openings between rooms, an entry door and windows in the outer walls, floor and
+ceiling slabs, optionally a second level reached by a straight stair through a floor opening with a railing, and an
+unreconstructed hole in a top-level ceiling. Rooms are furnished by type (dining, kitchen, living, office, bedroom,
+bath, hallway): tables with chairs around them (some pushed under), sofas, cabinets, beds, stools, benches and chairs
+of five styles against walls or free-standing at random yaw. A few junk fragments are left unlabelled. The house is
+then rotated by a random yaw and shifted by a random offset, so nothing is axis-aligned to the world.
+
+:func:`synthesize_house` returns a :class:`SyntheticHouse`: the records, the mesh with its per-face fields and the
+ground-truth objects (with the aligned boxes they were built with); :meth:`SyntheticHouse.files` encodes the four
+``house_segmentations`` files. :func:`write_synthetic_houses` writes ``ROOT/v1/scans/<id>/house_segmentations/...``
+(or the release zip). Everything is a pure function of the seed.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Polygon
+from shapely.geometry import box as shapely_box
+
+from mpchair.atomic import atomic_open, write_bytes
+from mpchair.geometry.frames import wrap_angle
+from mpchair.matterport.boxes import obb_from_aligned
+from mpchair.matterport.categories import mpcat40_color, mpcat40_name
+from mpchair.matterport.housefile import (
+    CategoryRecord,
+    HouseFile,
+    HouseHeader,
+    ImageRecord,
+    LevelRecord,
+    ObjectRecord,
+    PanoramaRecord,
+    PortalRecord,
+    RegionRecord,
+    SegmentRecord,
+    SurfaceRecord,
+    VertexRecord,
+    format_house,
+)
+from mpchair.matterport.jsonfiles import encode_fsegs, encode_semseg
+from mpchair.matterport.ply import encode_ply
+from mpchair.synth import furniture as fu
+from mpchair.synth.primitives import Mesh, box, cbox, rect_minus_rect, rotate_z
+
+#: Raw categories used (category_mapping index, raw name with spaces, mpcat40 index). Indices below 2000 are the
+#: real ``category_mapping.tsv`` rows named in the format notes; rows from 2001 on are synthetic stand-ins for
+#: non-chair classes whose real row numbers we do not ship. Names containing "chair" that are NOT mpcat40 chair are
+#: listed on purpose (traps for name-based filters).
+CATEGORY_ROWS: tuple[tuple[int, str, int], ...] = (
+    (7, "chair", 3), (25, "dining chair", 3), (29, "sofa chair", 3), (34, "armchair", 3), (85, "office chair", 3),
+    (134, "desk chair", 3), (142, "swivel chair", 3), (227, "easy chair", 3), (228, "lounge chair", 3),
+    (427, "recliner", 3), (488, "chaise", 3), (490, "desk and chairs", 40), (511, "row of theater chairs", 40),
+    (581, "folding chair", 3), (609, "chair pillow", 8), (1466, "chair rail", 40),
+    (2001, "wall", 1), (2002, "wall \\other room", 1), (2003, "floor", 2), (2004, "ceiling", 17), (2005, "window", 9),
+    (2006, "stairs", 16), (2007, "railing", 30), (2008, "table", 5), (2009, "dining table", 5), (2010, "desk", 5),
+    (2011, "coffee table", 5), (2012, "stool", 19), (2013, "bar stool", 19), (2014, "ottoman", 19), (2015, "sofa", 10),
+    (2016, "couch", 10), (2017, "cabinet", 7), (2018, "kitchen cabinet", 7), (2019, "bed", 11), (2020, "bench", 34),
+)  # fmt: skip
+_MAPPING = {name: (idx, mp) for idx, name, mp in CATEGORY_ROWS}
+
+WALL_T = 0.12  # wall thickness
+SLAB = 0.1  # floor / ceiling slab thickness
+DOOR_W, DOOR_H = 0.9, 2.05
+MIN_CHAIRS, MAX_CHAIRS = 10, 30
+
+
+@dataclass(frozen=True, eq=False)
+class SynthObject:
+    """Ground truth of one synthetic object: O ``index``, ``region``, ``raw_category`` (spaces), category_mapping
+    ``mapping_index``, ``mpcat40_index``/``mpcat40_name``, ``style`` (e.g. ``"office"`` for chairs, ``"wall"``) and the
+    ``aligned_box (7,)`` [x, y, z_center, l, w, h, yaw] it was built with (world frame, yaw in [-pi/2, pi/2))."""
+
+    index: int
+    region: int
+    raw_category: str
+    mapping_index: int
+    mpcat40_index: int
+    mpcat40_name: str
+    style: str
+    aligned_box: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticHouse:
+    """A synthetic house as built: records, mesh (world frame, metres) with per-face release fields, ground truth.
+
+    ``material_id``/``segment_id``/``category_id`` are the per-face ``.ply`` fields; ``mismatched_faces`` faces carry a
+    deliberately wrong ``category_id`` (annotation drift, as in real data) so the reader's cross-check has something to
+    find; ``unlabelled_faces`` belong to no object.
+    """
+
+    id: str
+    seed: int
+    house_file: HouseFile
+    vertices: np.ndarray
+    faces: np.ndarray
+    material_id: np.ndarray
+    segment_id: np.ndarray
+    category_id: np.ndarray
+    colors: np.ndarray
+    objects: tuple[SynthObject, ...]
+    seg_groups: tuple[dict, ...]
+    n_levels: int
+    global_yaw: float
+    global_offset: np.ndarray
+    mismatched_faces: int
+    unlabelled_faces: int
+
+    def files(self) -> dict[str, bytes]:
+        """The four ``house_segmentations`` files as ``{suffix: bytes}`` (``.house``, ``.ply``, ``.fsegs.json``,
+        ``.semseg.json``), in the release format."""
+        return {
+            ".house": format_house(self.house_file).encode("utf-8"),
+            ".ply": encode_ply(self.vertices, self.faces, self.material_id, self.segment_id, self.category_id,
+                               colors=self.colors),  # fmt: skip
+            ".fsegs.json": encode_fsegs(self.material_id, self.id),
+            ".semseg.json": encode_semseg(self.id, list(self.seg_groups)),
+        }
+
+
+# ------------------------------------------------------------------------------------------------ scene building
+
+
+@dataclass
+class _Obj:
+    raw: str
+    region: int
+    style: str
+    frame_yaw: float  # house frame yaw of the object's own axes (aligned box is computed in this frame)
+    frame_pos: np.ndarray
+    segs: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _Room:
+    region: int
+    level: int
+    label: str
+    rect: tuple[float, float, float, float]  # interior x0 y0 x1 y1 (house frame)
+    z: float  # floor top
+    obstacles: list = field(default_factory=list)
+
+    @property
+    def poly(self) -> Polygon:
+        return shapely_box(*self.rect)
+
+
+class _Scene:
+    """Accumulates parts (house frame), segments and objects."""
+
+    def __init__(self) -> None:
+        self.parts: list[tuple[np.ndarray, np.ndarray, int]] = []
+        self.seg_obj: list[int] = []  # object position per segment (-1 junk)
+        self.seg_region: list[int] = []
+        self.objs: list[_Obj] = []
+
+    def add(self, raw: str, region: int, style: str, parts: list[fu.Part], yaw: float, pos, z: float = 0.0) -> int:
+        """Add an object built in its local frame, placed at ``pos`` (x, y) / floor ``z`` with ``yaw``."""
+        p = np.array([pos[0], pos[1], z], dtype=np.float64)
+        obj = _Obj(raw, region, style, yaw, p)
+        k = len(self.objs)
+        self.objs.append(obj)
+        groups: dict[int, int] = {}
+        for g, v, f in parts:
+            if g not in groups:
+                groups[g] = len(self.seg_obj)
+                self.seg_obj.append(k)
+                self.seg_region.append(region)
+                obj.segs.append(groups[g])
+            self.parts.append((rotate_z(v, yaw) + p, f, groups[g]))
+        return k
+
+    def add_static(self, raw: str, region: int, style: str, meshes: list[Mesh]) -> int:
+        """Add an object whose meshes are already in the house frame (axes aligned with the house grid)."""
+        return self.add(raw, region, style, [(0, v, f) for v, f in meshes], 0.0, (0.0, 0.0))
+
+    def add_junk(self, region: int, meshes: list[Mesh]) -> None:
+        """Unlabelled geometry: a segment that belongs to no object."""
+        s = len(self.seg_obj)
+        self.seg_obj.append(-1)
+        self.seg_region.append(region)
+        for v, f in meshes:
+            self.parts.append((v, f, s))
+
+    def count(self, mpcat40: int) -> int:
+        return sum(1 for o in self.objs if _MAPPING[o.raw][1] == mpcat40)
+
+
+def _local_bounds(parts: list[fu.Part]) -> tuple[np.ndarray, np.ndarray]:
+    allv = np.vstack([v for _, v, _ in parts])
+    return allv.min(axis=0), allv.max(axis=0)
+
+
+def _footprint(lo: np.ndarray, hi: np.ndarray, yaw: float, pos) -> Polygon:
+    c = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]], dtype=np.float64)
+    w = rotate_z(c, yaw)
+    return Polygon(w[:, :2] + np.asarray(pos[:2]))
+
+
+def _fits(room: _Room, poly: Polygon, ignore: tuple = ()) -> bool:
+    if not room.poly.buffer(1e-9).contains(poly):
+        return False
+    return all(poly.intersection(o).area < 1e-6 for k, o in enumerate(room.obstacles) if k not in ignore)
+
+
+_SIDE_YAW = (math.pi / 2, math.pi, -math.pi / 2, 0.0)  # facing into the room from walls y0, x1, y1, x0
+
+
+def _wall_pose(room: _Room, lo, hi, side: int, u: float, gap: float) -> tuple[float, np.ndarray]:
+    """Pose that puts the object's back (local -x face) against wall ``side`` at fraction ``u`` along it."""
+    x0, y0, x1, y1 = room.rect
+    yaw = _SIDE_YAW[side]
+    half_w = (hi[1] - lo[1]) / 2
+    if side in (0, 2):
+        along = x0 + half_w + u * max(0.0, (x1 - x0) - 2 * half_w)
+        target = np.array([along, y0 + gap if side == 0 else y1 - gap])
+    else:
+        along = y0 + half_w + u * max(0.0, (y1 - y0) - 2 * half_w)
+        target = np.array([x1 - gap if side == 1 else x0 + gap, along])
+    back_mid = rotate_z(np.array([[lo[0], (lo[1] + hi[1]) / 2, 0.0]]), yaw)[0, :2]
+    return yaw, target - back_mid
+
+
+def _place_wall(scene, room, rng, raw, style, parts, gap=0.03, tries=25, register=True) -> int | None:
+    lo, hi = _local_bounds(parts)
+    for _ in range(tries):
+        side = int(rng.integers(4))
+        yaw, pos = _wall_pose(room, lo, hi, side, float(rng.random()), gap)
+        poly = _footprint(lo, hi, yaw, pos)
+        if _fits(room, poly):
+            if register:
+                room.obstacles.append(poly)
+            return scene.add(raw, room.region, style, parts, yaw, pos, room.z)
+    return None
+
+
+def _place_free(scene, room, rng, raw, style, parts, tries=25, yaw=None, near=None) -> int | None:
+    lo, hi = _local_bounds(parts)
+    x0, y0, x1, y1 = room.rect
+    for _ in range(tries):
+        a = float(rng.uniform(0, 2 * math.pi)) if yaw is None else yaw
+        if near is None:
+            c = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+        else:
+            c = np.asarray(near) + rng.normal(0, 0.3, 2)
+        pos = c - rotate_z(np.array([[(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0]]), a)[0, :2]
+        poly = _footprint(lo, hi, a, pos)
+        if _fits(room, poly):
+            room.obstacles.append(poly)
+            return scene.add(raw, room.region, style, parts, a, pos, room.z)
+    return None
+
+
+def _random_chair(rng: np.random.Generator, style: str | None = None) -> tuple[str, str, list[fu.Part]]:
+    names = list(fu.CHAIR_STYLES)
+    if style is None:
+        w = np.array([fu.CHAIR_STYLES[n][1] for n in names])
+        style = names[int(rng.choice(len(names), p=w / w.sum()))]
+    builder, _, raws = fu.CHAIR_STYLES[style]
+    raw = raws[int(rng.integers(len(raws)))][1]
+    return style, raw, builder(rng)
+
+
+def _chair_room_left(scene: _Scene) -> bool:
+    return scene.count(3) < MAX_CHAIRS
+
+
+def _table_with_chairs(scene, room, rng, kind="dining", n_chairs=(4, 7), chair_style="dining") -> None:
+    parts = fu.table(rng, kind)
+    lo, hi = _local_bounds(parts)
+    x0, y0, x1, y1 = room.rect
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+    base_yaw = float(rng.choice([0.0, math.pi / 2])) + float(rng.uniform(-0.35, 0.35))
+    t_idx = _place_free(scene, room, rng, "dining table" if kind == "dining" else "table", "table", parts,
+                        yaw=base_yaw, near=centre)  # fmt: skip
+    if t_idx is None:
+        return
+    t_obj = scene.objs[t_idx]
+    t_poly_k = len(room.obstacles) - 1
+    tl, tw = hi[0] - lo[0], hi[1] - lo[1]
+    n = int(rng.integers(n_chairs[0], n_chairs[1] + 1))
+    slots = []
+    per_side = max(1, min(3, int(tl / 0.6)))
+    for sgn in (-1, 1):
+        for k in range(per_side):
+            slots.append((sgn, (k + 0.5) / per_side - 0.5))
+    if tl > 1.3:
+        slots += [(2, 0.0), (-2, 0.0)]  # ends
+    order = rng.permutation(len(slots))
+    for k in order[:n]:
+        if not _chair_room_left(scene):
+            return
+        side, frac = slots[k]
+        style, raw, cparts = _random_chair(rng, str(rng.choice([chair_style, chair_style, "armchair", "office"])))
+        clo, chi = _local_bounds(cparts)
+        depth = chi[0] - clo[0]
+        pushed = rng.random() < 0.45
+        if abs(side) == 1:
+            normal = np.array([0.0, float(side)])  # table-local direction from the table to the chair
+            along = np.array([frac * tl, 0.0])
+            edge = tw / 2
+        else:
+            normal = np.array([float(np.sign(side)), 0.0])
+            along = np.array([0.0, 0.0])
+            edge = tl / 2
+        # Distance of the chair's AABB centre from the table centre: in front of the edge, or pushed under it.
+        dist = edge - depth * float(rng.uniform(0.15, 0.35)) + depth / 2 if pushed else edge + depth / 2 + 0.08
+        c_local = along + normal * dist + np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2])
+        c_house = rotate_z(np.array([[c_local[0], c_local[1], 0.0]]), t_obj.frame_yaw)[0, :2] + t_obj.frame_pos[:2]
+        face_dir = -normal
+        yaw = t_obj.frame_yaw + math.atan2(face_dir[1], face_dir[0]) + float(rng.uniform(-0.15, 0.15))
+        pos = c_house - rotate_z(np.array([[(clo[0] + chi[0]) / 2, (clo[1] + chi[1]) / 2, 0.0]]), yaw)[0, :2]
+        poly = _footprint(clo, chi, yaw, pos)
+        if _fits(room, poly, ignore=(t_poly_k,) if pushed else ()):
+            room.obstacles.append(poly)
+            scene.add(raw, room.region, style, cparts, yaw, pos, room.z)
+
+
+def _wall_chair(scene, room, rng, style=None) -> None:
+    if _chair_room_left(scene):
+        style, raw, parts = _random_chair(rng, style)
+        _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
+
+
+def _free_chair(scene, room, rng, style=None) -> None:
+    if _chair_room_left(scene):
+        style, raw, parts = _random_chair(rng, style)
+        # A room too full for a free-standing chair may still have a free stretch of wall.
+        if _place_free(scene, room, rng, raw, style, parts) is None:
+            _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
+
+
+def _furnish(scene: _Scene, room: _Room, rng: np.random.Generator) -> None:
+    lab = room.label
+    if lab == "d":
+        _table_with_chairs(scene, room, rng, "dining", (4, 8))
+        _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng))
+        if rng.random() < 0.6:
+            x0, y0, x1, y1 = room.rect
+            span = min(x1 - x0, y1 - y0) - 1.4
+            _place_wall(scene, room, rng, "chair rail", "rail", fu.chair_rail(span), gap=0.0, register=False)
+        _wall_chair(scene, room, rng)
+    elif lab == "k":
+        for _ in range(int(rng.integers(1, 3))):
+            _place_wall(scene, room, rng, "kitchen cabinet", "cabinet", fu.cabinet(rng, tall=rng.random() < 0.3))
+        if rng.random() < 0.6:
+            _table_with_chairs(scene, room, rng, "dining", (2, 4))
+        for _ in range(int(rng.integers(1, 3))):
+            _place_free(scene, room, rng, "bar stool", "stool", fu.stool(rng, "bar"))
+    elif lab in ("l", "f"):
+        _place_wall(scene, room, rng, str(rng.choice(["sofa", "couch"])), "sofa", fu.sofa(rng))
+        _place_free(scene, room, rng, "coffee table", "table", fu.table(rng, "coffee"))
+        for _ in range(int(rng.integers(1, 3))):
+            _free_chair(scene, room, rng, "armchair")
+        for _ in range(int(rng.integers(1, 3))):
+            _free_chair(scene, room, rng, "lounge")
+        if rng.random() < 0.5:
+            _place_free(scene, room, rng, "ottoman", "stool", fu.stool(rng, "ottoman"))
+        _wall_chair(scene, room, rng)
+    elif lab == "o":
+        desk = [(g, rotate_z(v, math.pi / 2), f) for g, v, f in fu.table(rng, "desk")]
+        d_idx = _place_wall(scene, room, rng, "desk", "table", desk, gap=0.02)
+        if d_idx is not None and _chair_room_left(scene):
+            d = scene.objs[d_idx]
+            style, raw, parts = _random_chair(rng, "office")
+            clo, chi = _local_bounds(parts)
+            dlo, dhi = _local_bounds(desk)
+            # Facing the desk, its seat partly under the desk top.
+            reach = dhi[0] + (chi[0] - clo[0]) * float(rng.uniform(0.1, 0.45))
+            c = rotate_z(np.array([[reach, 0.0, 0.0]]), d.frame_yaw)[0, :2] + d.frame_pos[:2]
+            yaw = d.frame_yaw + math.pi + float(rng.uniform(-0.4, 0.4))
+            pos = c - rotate_z(np.array([[(clo[0] + chi[0]) / 2, (clo[1] + chi[1]) / 2, 0.0]]), yaw)[0, :2]
+            poly = _footprint(clo, chi, yaw, pos)
+            if _fits(room, poly, ignore=(len(room.obstacles) - 1,)):
+                room.obstacles.append(poly)
+                scene.add(raw, room.region, style, parts, yaw, pos, room.z)
+        _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng, tall=True))
+        if rng.random() < 0.5:
+            _free_chair(scene, room, rng, "office")
+        _wall_chair(scene, room, rng, "folding" if rng.random() < 0.4 else None)
+    elif lab == "b":
+        _place_wall(scene, room, rng, "bed", "bed", fu.bed(rng), gap=0.01)
+        _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng, tall=rng.random() < 0.5))
+        _wall_chair(scene, room, rng, str(rng.choice(["armchair", "dining", "folding"])))
+    elif lab == "a":
+        _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng))
+        _place_free(scene, room, rng, "stool", "stool", fu.stool(rng, "bar"))
+    elif lab == "h":
+        _place_wall(scene, room, rng, "bench", "bench", fu.bench(rng))
+        _wall_chair(scene, room, rng, "folding" if rng.random() < 0.5 else None)
+
+
+# ------------------------------------------------------------------------------------------------ structure
+
+
+@dataclass
+class _Opening:
+    u0: float
+    u1: float
+    z0: float
+    z1: float
+    kind: str  # door | window
+
+
+def _wall_meshes(orient: str, coord: float, a0: float, a1: float, z: float, height: float, openings) -> list[Mesh]:
+    """Closed boxes for one wall (centred on grid line ``coord``) from ``a0`` to ``a1``, minus its openings."""
+    t = WALL_T / 2
+    spans = []  # (u0, u1, z0, z1) in edge coordinates
+    cur = a0 - t
+    for op in sorted(openings, key=lambda o: o.u0):
+        spans.append((cur, op.u0, 0.0, height))
+        if op.z0 > 0:
+            spans.append((op.u0, op.u1, 0.0, op.z0))
+        if op.z1 < height:
+            spans.append((op.u0, op.u1, op.z1, height))
+        cur = op.u1
+    spans.append((cur, a1 + t, 0.0, height))
+    out = []
+    for u0, u1, z0, z1 in spans:
+        if u1 - u0 < 1e-6 or z1 - z0 < 1e-6:
+            continue
+        if orient == "v":  # x = coord, running along y
+            out.append(box((coord - t, u0, z + z0), (coord + t, u1, z + z1)))
+        else:
+            out.append(box((u0, coord - t, z + z0), (u1, coord + t, z + z1)))
+    return out
+
+
+def _window_meshes(orient: str, coord: float, op: _Opening, z: float) -> list[Mesh]:
+    """A window frame inside the wall opening: sill (protruding), head and two jambs."""
+    t = WALL_T / 2 + 0.02
+    f = 0.05
+    pieces = [
+        (op.u0, op.u1, op.z0 - 0.0, op.z0 + 0.04, t + 0.04),
+        (op.u0, op.u1, op.z1 - f, op.z1, t),
+        (op.u0, op.u0 + f, op.z0, op.z1, t),
+        (op.u1 - f, op.u1, op.z0, op.z1, t),
+    ]
+    out = []
+    for u0, u1, z0, z1, th in pieces:
+        if orient == "v":
+            out.append(box((coord - th, u0, z + z0), (coord + th, u1, z + z1)))
+        else:
+            out.append(box((u0, coord - th, z + z0), (u1, coord + th, z + z1)))
+    return out
+
+
+def _hex_id(rng: np.random.Generator, n: int = 32) -> str:
+    return "".join("0123456789abcdef"[int(k)] for k in rng.integers(0, 16, n))
+
+
+_ID_CHARS = "0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
+
+
+def make_house_id(rng: np.random.Generator) -> str:
+    """An 11-character scan id like the real ones (e.g. ``17DRP5sb8fy``)."""
+    return "".join(_ID_CHARS[int(k)] for k in rng.integers(0, len(_ID_CHARS), 11))
+
+
+def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | None = None) -> SyntheticHouse:
+    """Build one procedural house from ``seed`` (see module docstring). ``levels`` forces 1 or 2 levels.
+
+    Deterministic: the same ``seed``, ``house_id`` and ``levels`` give the same house, bit for bit.
+    """
+    rng = np.random.default_rng(seed)
+    if house_id is None:
+        house_id = make_house_id(rng)
+    n_levels = int(levels) if levels is not None else int(rng.integers(1, 3))
+    if n_levels not in (1, 2):
+        raise ValueError("levels must be 1 or 2")
+    nc, nr = int(rng.integers(2, 4)), 2
+    cw = rng.uniform(3.4, 5.2, nc)
+    rd = rng.uniform(3.4, 4.8, nr)
+    stair_cell = (int(rng.integers(nc)), int(rng.integers(nr)))
+    if n_levels == 2 and max(cw[stair_cell[0]], rd[stair_cell[1]]) < 4.2:
+        cw[stair_cell[0]] = rng.uniform(4.2, 4.8)
+    xs = np.concatenate([[0.0], np.cumsum(cw)])
+    ys = np.concatenate([[0.0], np.cumsum(rd)])
+    ceil_h = float(rng.uniform(2.5, 2.8))
+    level_h = ceil_h + 0.3
+    level_z = [0.0, level_h][:n_levels]
+
+    scene = _Scene()
+    rooms: list[_Room] = []
+    labels0 = list(rng.permutation(["d", "l", "k", "o", "f", "d"]))
+    labels1 = list(rng.permutation(["b", "b", "a", "o", "b", "l"]))
+    cell_region: dict[tuple[int, int, int], int] = {}
+    for lv in range(n_levels):
+        pool = labels0 if lv == 0 else labels1
+        for j in range(nr):
+            for i in range(nc):
+                if n_levels == 2 and (i, j) == stair_cell:
+                    lab = "s" if lv == 0 else "h"
+                else:
+                    lab = str(pool.pop(0))
+                m = WALL_T / 2
+                rect = (xs[i] + m, ys[j] + m, xs[i + 1] - m, ys[j + 1] - m)
+                cell_region[(lv, i, j)] = len(rooms)
+                rooms.append(_Room(len(rooms), lv, lab, rect, level_z[lv]))
+
+    # Stair run (house frame) inside the stair cell, along the cell's longer side, against one wall.
+    stair = None
+    if n_levels == 2:
+        si, sj = stair_cell
+        r0 = rooms[cell_region[(0, si, sj)]]
+        x0, y0, x1, y1 = r0.rect
+        n_steps = 15
+        rise = level_h / n_steps
+        along_x = (x1 - x0) >= (y1 - y0)
+        span = (x1 - x0) if along_x else (y1 - y0)
+        going = min(0.26, (span - 0.4) / n_steps)
+        sw = 0.95
+        steps = []
+        for k in range(n_steps):
+            a = 0.2 + k * going
+            if along_x:
+                steps.append(box((x0 + a, y0, 0.0), (x0 + a + going, y0 + sw, (k + 1) * rise)))
+            else:
+                steps.append(box((x0, y0 + a, 0.0), (x0 + sw, y0 + a + going, (k + 1) * rise)))
+        end = 0.2 + n_steps * going
+        hole = (x0 + 0.2, y0 - 0.1, x0 + end, y0 + sw + 0.05) if along_x else (x0 - 0.1, y0 + 0.2, x0 + sw + 0.05,
+                                                                                y0 + end)  # fmt: skip
+        stair = (steps, hole, along_x)
+        scene.add_static("stairs", r0.region, "stairs", steps)
+        r0.obstacles.append(shapely_box(hole[0], hole[1], hole[2], hole[3]).buffer(0.6))
+        r1 = rooms[cell_region[(1, si, sj)]]
+        r1.obstacles.append(shapely_box(*hole).buffer(0.3))
+        # Railing along the open long side of the floor opening on the upper level.
+        z1 = level_z[1]
+        if along_x:
+            rail = [box((hole[0], hole[3], z1 + 0.95), (hole[2], hole[3] + 0.05, z1 + 1.0))]
+            rail += [box((x, hole[3], z1), (x + 0.04, hole[3] + 0.04, z1 + 0.95)) for x in
+                     np.linspace(hole[0], hole[2] - 0.04, 5)]  # fmt: skip
+        else:
+            rail = [box((hole[2], hole[1], z1 + 0.95), (hole[2] + 0.05, hole[3], z1 + 1.0))]
+            rail += [box((hole[2], y, z1), (hole[2] + 0.04, y + 0.04, z1 + 0.95)) for y in
+                     np.linspace(hole[1], hole[3] - 0.04, 5)]  # fmt: skip
+        scene.add_static("railing", r1.region, "railing", rail)
+
+    # Walls, doors, windows (per level).
+    portals: list[tuple[int, int, np.ndarray]] = []  # (region0, region1, house-frame AABB lo/hi (2,3))
+    wall_raw_trap_done = False
+    for lv in range(n_levels):
+        z = level_z[lv]
+        edges = []
+        for i in range(nc + 1):
+            for j in range(nr):
+                cells = [c for c in ((i - 1, j), (i, j)) if 0 <= c[0] < nc]
+                edges.append(("v", xs[i], ys[j], ys[j + 1], cells))
+        for j in range(nr + 1):
+            for i in range(nc):
+                cells = [c for c in ((i, j - 1), (i, j)) if 0 <= c[1] < nr]
+                edges.append(("h", ys[j], xs[i], xs[i + 1], cells))
+        exterior = [k for k, e in enumerate(edges) if len(e[4]) == 1]
+        entry = int(rng.choice(exterior)) if lv == 0 else -1
+        for k, (orient, coord, a0, a1, cells) in enumerate(edges):
+            length = a1 - a0
+            ops: list[_Opening] = []
+            if len(cells) == 2 or k == entry:
+                u = float(rng.uniform(a0 + 0.6 + DOOR_W / 2, a1 - 0.6 - DOOR_W / 2))
+                ops.append(_Opening(u - DOOR_W / 2, u + DOOR_W / 2, 0.0, DOOR_H, "door"))
+            elif rng.random() < 0.7:
+                ww = float(rng.uniform(1.0, min(1.8, length - 1.4)))
+                u = float(rng.uniform(a0 + 0.6 + ww / 2, a1 - 0.6 - ww / 2))
+                ops.append(_Opening(u - ww / 2, u + ww / 2, 0.9, min(2.1, ceil_h - 0.25), "window"))
+            regions = [cell_region[(lv, c[0], c[1])] for c in cells]
+            raw = "wall"
+            if not wall_raw_trap_done and len(cells) == 1:
+                raw, wall_raw_trap_done = "wall \\other room", True
+            scene.add_static(raw, regions[0], "wall", _wall_meshes(orient, coord, a0, a1, z, ceil_h, ops))
+            for op in ops:
+                t = WALL_T / 2
+                if orient == "v":
+                    lo, hi = (coord - t, op.u0, z + op.z0), (coord + t, op.u1, z + op.z1)
+                else:
+                    lo, hi = (op.u0, coord - t, z + op.z0), (op.u1, coord + t, z + op.z1)
+                if op.kind == "door":
+                    portals.append((regions[0], regions[1] if len(regions) > 1 else -1, np.array([lo, hi])))
+                    for c, rg in zip(cells, regions):
+                        # Keep the floor in front of each door free.
+                        room = rooms[rg]
+                        if orient == "v":
+                            side = 1 if c[0] == int(np.searchsorted(xs, coord)) - 1 else -1
+                            zone = shapely_box(min(coord, coord - side * 1.0), op.u0 - 0.1, max(coord, coord - side *
+                                               1.0), op.u1 + 0.1)  # fmt: skip
+                        else:
+                            side = 1 if c[1] == int(np.searchsorted(ys, coord)) - 1 else -1
+                            zone = shapely_box(op.u0 - 0.1, min(coord, coord - side * 1.0), op.u1 + 0.1,
+                                               max(coord, coord - side * 1.0))  # fmt: skip
+                        room.obstacles.append(zone)
+                else:
+                    scene.add_static("window", regions[0], "window", _window_meshes(orient, coord, op, z))
+
+    # Floors and ceilings; the stair opening cuts the upper floor and the lower ceiling; a top-level ceiling has an
+    # unreconstructed hole (rays escape through it, like holes in real scans).
+    top_rooms = [r for r in rooms if r.level == n_levels - 1 and r.label != "h"]
+    hole_room = top_rooms[int(rng.integers(len(top_rooms)))].region
+    for room in rooms:
+        i, j = next((c[1], c[2]) for c, rg in cell_region.items() if rg == room.region)
+        cell = (xs[i], ys[j], xs[i + 1], ys[j + 1])
+        z = room.z
+        floor_rects = [cell]
+        ceil_rects = [cell]
+        if stair is not None and (i, j) == stair_cell:
+            if room.level == 1:
+                floor_rects = rect_minus_rect(cell, stair[1])
+            else:
+                ceil_rects = rect_minus_rect(cell, stair[1])
+        if room.region == hole_room:
+            x0, y0, x1, y1 = room.rect
+            hw, hd = rng.uniform(0.7, 1.4, 2)
+            hx = float(rng.uniform(x0 + 0.5, x1 - 0.5 - hw))
+            hy = float(rng.uniform(y0 + 0.5, y1 - 0.5 - hd))
+            ceil_rects = [r for c in ceil_rects for r in rect_minus_rect(c, (hx, hy, hx + hw, hy + hd))]
+        floors = [box((a, b, z - SLAB), (c, d, z)) for a, b, c, d in floor_rects]
+        scene.add_static("floor", room.region, "floor", floors)
+        scene.add_static("ceiling", room.region, "ceiling",
+                         [box((a, b, z + ceil_h), (c, d, z + ceil_h + SLAB)) for a, b, c, d in ceil_rects])  # fmt: skip
+
+    # Furniture, then top up chairs to the minimum with chairs against walls.
+    for room in rooms:
+        if room.label != "s":
+            _furnish(scene, room, rng)
+    furnishable = [r for r in rooms if r.label != "s"]
+    for _ in range(60):
+        if scene.count(3) >= MIN_CHAIRS:
+            break
+        room = furnishable[int(rng.integers(len(furnishable)))]
+        if rng.random() < 0.5:
+            _wall_chair(scene, room, rng)
+        else:
+            _free_chair(scene, room, rng)
+
+    # Junk: a few unlabelled fragments (floating debris and a loose panel), as real scans have.
+    for _ in range(int(rng.integers(2, 5))):
+        room = rooms[int(rng.integers(len(rooms)))]
+        x0, y0, x1, y1 = room.rect
+        c = np.array([rng.uniform(x0 + 0.3, x1 - 0.3), rng.uniform(y0 + 0.3, y1 - 0.3), room.z + rng.uniform(1.9, 2.3)])
+        s = rng.uniform(0.05, 0.2, 3)
+        scene.add_junk(room.region, [cbox(*c, *s)])
+
+    return _finish(scene, rooms, portals, rng, house_id, int(seed), n_levels, ceil_h)
+
+
+def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed: int, n_levels: int,
+            ceil_h: float) -> SyntheticHouse:  # fmt: skip
+    """Apply the global pose and turn the scene into records, mesh arrays and ground truth."""
+    gyaw = float(rng.uniform(0, 2 * math.pi))
+    goff = np.array([rng.uniform(-25, 25), rng.uniform(-25, 25), rng.uniform(-1.5, 1.5)])
+
+    def to_world(p: np.ndarray) -> np.ndarray:
+        return rotate_z(np.asarray(p, dtype=np.float64).reshape(-1, 3), gyaw) + goff
+
+    def aabb(p: np.ndarray) -> np.ndarray:
+        return np.concatenate([p.min(axis=0), p.max(axis=0)])
+
+    def box_corners_world(lo, hi) -> np.ndarray:
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        return to_world(c)
+
+    # Mesh arrays.
+    counts = [len(v) for v, _, _ in scene.parts]
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    vertices = to_world(np.vstack([v for v, _, _ in scene.parts]))
+    faces = np.vstack([f + o for (_, f, _), o in zip(scene.parts, offsets)]).astype(np.int64)
+    face_seg = np.concatenate([np.full(len(f), s, dtype=np.int64) for _, f, s in scene.parts])
+
+    # Categories: C records sorted by category_mapping index.
+    rows = sorted(CATEGORY_ROWS)
+    c_of_raw = {name: k for k, (_, name, _) in enumerate(rows)}
+    categories = tuple(CategoryRecord(k, idx, name, mp, mpcat40_name(mp)) for k, (idx, name, mp) in enumerate(rows))
+
+    # Segment ids: region * 1_000_000 + running number (habitat's reading of the ids; opaque to the reader).
+    per_region: dict[int, int] = {}
+    seg_ids = np.zeros(len(scene.seg_obj), dtype=np.int64)
+    for s, rg in enumerate(scene.seg_region):
+        per_region[rg] = per_region.get(rg, 0) + 1
+        seg_ids[s] = rg * 1_000_000 + per_region[rg]
+    material_id = seg_ids[face_seg]
+    seg_obj = np.array(scene.seg_obj, dtype=np.int64)
+    face_obj = seg_obj[face_seg]
+    obj_mapping = np.array([_MAPPING[o.raw][0] for o in scene.objs] + [-1], dtype=np.int64)
+    segment_id = face_obj.copy()  # O indices equal object positions here
+    category_id = obj_mapping[face_obj]
+    # Annotation drift: a few faces of one floor carry a wrong category_id (the reader reports the rate).
+    floor_obj = next(k for k, o in enumerate(scene.objs) if o.style == "floor")
+    drift = np.flatnonzero(face_obj == floor_obj)[:6]
+    category_id[drift] = _MAPPING["ceiling"][0]
+
+    # Objects: aligned boxes in each object's own frame, then the world pose.
+    objects, o_recs, groups = [], [], []
+    tri = vertices[faces]
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    part_vert_seg = np.concatenate([np.full(n, s, dtype=np.int64) for n, (_, _, s) in zip(counts, scene.parts)])
+    house_verts = np.vstack([v for v, _, _ in scene.parts])
+    for k, o in enumerate(scene.objs):
+        mask = np.isin(part_vert_seg, o.segs)
+        local = rotate_z(house_verts[mask] - o.frame_pos, -o.frame_yaw)
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        ext = hi - lo
+        centre = rotate_z(((lo + hi) / 2)[None], o.frame_yaw)[0] + o.frame_pos
+        yaw = o.frame_yaw if ext[0] >= ext[1] else o.frame_yaw + math.pi / 2
+        l, w = max(ext[0], ext[1]), min(ext[0], ext[1])
+        yaw_w = float(wrap_angle(yaw + gyaw, offset=0.5, period=math.pi))
+        c_w = to_world(centre)[0]
+        abox = np.array([c_w[0], c_w[1], c_w[2], l, w, ext[2], yaw_w])
+        idx, mp = _MAPPING[o.raw]
+        objects.append(SynthObject(k, o.region, o.raw, idx, mp, mpcat40_name(mp), o.style, abox))
+        center, axes, radii = obb_from_aligned(abox)
+        o_recs.append(ObjectRecord(k, o.region, c_of_raw[o.raw], center, axes[0], axes[1], radii))
+        groups.append({
+            "id": k, "objectId": k, "label": o.raw, "segments": [int(seg_ids[s]) for s in o.segs],
+            "obb": {"centroid": [float(v) for v in center], "axesLengths": [float(2 * r) for r in radii],
+                    "normalizedAxes": [float(v) for v in axes.ravel()], "dominantNormal": [float(v) for v in axes[2]]},
+        })  # fmt: skip
+
+    e_recs = []
+    for s in range(len(seg_ids)):
+        fm = face_seg == s
+        vm = part_vert_seg == s
+        pts = vertices[vm]
+        e_recs.append(SegmentRecord(s, int(seg_obj[s]), int(seg_ids[s]), float(areas[fm].sum()), pts.mean(axis=0),
+                                    aabb(pts)))  # fmt: skip
+
+    # Regions, floor polygons, levels.
+    r_recs, s_recs, v_recs, pano_recs, img_recs = [], [], [], [], []
+    for room in rooms:
+        x0, y0, x1, y1 = room.rect
+        corners = box_corners_world((x0, y0, room.z), (x1, y1, room.z + ceil_h))
+        centre = to_world(np.array([(x0 + x1) / 2, (y0 + y1) / 2, room.z]))[0]
+        r_recs.append(RegionRecord(room.region, room.level, room.label, centre, aabb(corners), ceil_h))
+        poly = to_world(np.array([[x0, y0, room.z], [x1, y0, room.z], [x1, y1, room.z], [x0, y1, room.z]]))
+        s_recs.append(SurfaceRecord(room.region, room.region, 4, "F", centre, np.array([0.0, 0.0, 1.0]), aabb(poly)))
+        for p in poly:
+            v_recs.append(VertexRecord(len(v_recs), room.region, "F", p, np.array([0.0, 0.0, 1.0])))
+        # One panorama per region, with 3 cameras x 2 yaw steps of images.
+        pc = to_world(np.array([(x0 + x1) / 2 + rng.uniform(-0.3, 0.3), (y0 + y1) / 2 + rng.uniform(-0.3, 0.3),
+                                room.z + 1.55]))[0]  # fmt: skip
+        pano = PanoramaRecord(_hex_id(rng), len(pano_recs), room.region, pc)
+        pano_recs.append(pano)
+        for cam in range(3):
+            for yi in range(2):
+                a = gyaw + yi * math.pi + cam * 0.4
+                pitch = (cam - 1) * math.radians(30)
+                # Camera-to-world pose: camera x right, y down, z forward (Matterport convention).
+                fwd = np.array([math.cos(a) * math.cos(pitch), math.sin(a) * math.cos(pitch), math.sin(pitch)])
+                right = np.array([math.sin(a), -math.cos(a), 0.0])
+                down = np.cross(fwd, right)
+                ext = np.eye(4)
+                ext[:3, 0], ext[:3, 1], ext[:3, 2], ext[:3, 3] = right, down, fwd, pc
+                intr = np.array([[1075.5, 0, 629.7], [0, 1075.5, 511.9], [0, 0, 1.0]])
+                img_recs.append(ImageRecord(len(img_recs), pano.index, f"{pano.name}_i{cam}_{yi}.jpg", cam, yi, ext,
+                                            intr, 1280, 1024, pc))  # fmt: skip
+    l_recs = []
+    for lv in range(n_levels):
+        regs = [r for r in r_recs if r.level == lv]
+        bb = np.concatenate([np.min([r.bbox[:3] for r in regs], axis=0), np.max([r.bbox[3:] for r in regs], axis=0)])
+        l_recs.append(LevelRecord(lv, len(regs), "-", (bb[:3] + bb[3:]) / 2, bb))
+    p_recs = [
+        PortalRecord(k, a, b, "door", aabb(box_corners_world(lohi[0], lohi[1])))
+        for k, (a, b, lohi) in enumerate(portals)
+    ]
+
+    header = HouseHeader(
+        name=house_id, label="", n_images=len(img_recs), n_panoramas=len(pano_recs), n_vertices=len(v_recs),
+        n_surfaces=len(s_recs), n_segments=len(e_recs), n_objects=len(o_recs), n_categories=len(categories),
+        n_regions=len(r_recs), n_portals=len(p_recs), n_levels=len(l_recs), bbox=aabb(vertices),
+    )  # fmt: skip
+    hf = HouseFile(
+        version="1.1", header=header, levels=tuple(l_recs), regions=tuple(r_recs), portals=tuple(p_recs),
+        surfaces=tuple(s_recs), vertices=tuple(v_recs), panoramas=tuple(pano_recs), images=tuple(img_recs),
+        categories=categories, objects=tuple(o_recs), segments=tuple(e_recs),
+    )  # fmt: skip
+    palette = np.array([mpcat40_color(_MAPPING[o.raw][1]) for o in scene.objs] + [(128, 128, 128)], dtype=np.uint8)
+    colors = palette[seg_obj[part_vert_seg]]
+    return SyntheticHouse(
+        id=house_id, seed=seed, house_file=hf, vertices=vertices, faces=faces, material_id=material_id,
+        segment_id=segment_id, category_id=category_id, colors=colors, objects=tuple(objects),
+        seg_groups=tuple(groups), n_levels=n_levels, global_yaw=gyaw, global_offset=goff,
+        mismatched_faces=len(drift), unlabelled_faces=int(np.count_nonzero(face_obj < 0)),
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------ writing
+
+
+def house_seed(seed: int, k: int) -> int:
+    """The seed of house ``k`` of a set generated with ``seed`` (independent streams per house)."""
+    return int(np.random.SeedSequence([int(seed), int(k)]).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def plan_houses(n: int, seed: int) -> list[tuple[str, int, int]]:
+    """``(id, house seed, levels)`` of the ``n`` houses of a set: house 0 has two levels, house 1 one, the rest
+    random; ids are unique 11-character strings."""
+    out, seen = [], set()
+    for k in range(n):
+        hs = house_seed(seed, k)
+        rng = np.random.default_rng([hs, 1])
+        hid = make_house_id(rng)
+        while hid in seen:
+            hid = make_house_id(rng)
+        seen.add(hid)
+        levels = 2 if k == 0 else 1 if k == 1 else int(rng.integers(1, 3))
+        out.append((hid, hs, levels))
+    return out
+
+
+def _zip_bytes(house_id: str, files: dict[str, bytes]) -> bytes:
+    """A ``house_segmentations.zip`` as the download script fetches it (fixed timestamps: deterministic bytes)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for suffix, data in files.items():
+            name = f"{house_id}/house_segmentations/{house_id}{suffix}"
+            info = zipfile.ZipInfo(name, date_time=(2017, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, data, compresslevel=6)
+    return buf.getvalue()
+
+
+def write_house(out_root: str | Path, house: SyntheticHouse, zip_files: bool = False) -> Path:
+    """Write one house under ``out_root/v1/scans/<id>/`` (extracted ``house_segmentations/`` or the zip)."""
+    scan = Path(out_root) / "v1" / "scans" / house.id
+    files = house.files()
+    if zip_files:
+        with atomic_open(scan / "house_segmentations.zip", "wb") as f:
+            f.write(_zip_bytes(house.id, files))
+        return scan / "house_segmentations.zip"
+    folder = scan / "house_segmentations"
+    for suffix, data in files.items():
+        write_bytes(folder / f"{house.id}{suffix}", data)
+    return folder
+
+
+def write_synthetic_houses(
+    out_root: str | Path, n: int, seed: int, zip_files: bool = False, progress=None
+) -> list[str]:
+    """Write ``n`` synthetic houses (seeded by ``seed``) under ``out_root`` in the download layout; return their ids.
+
+    ``progress`` is an optional callable invoked once per written house (e.g. a tqdm ``update``).
+    """
+    ids = []
+    for hid, hs, levels in plan_houses(n, seed):
+        write_house(out_root, synthesize_house(hs, hid, levels=levels), zip_files=zip_files)
+        ids.append(hid)
+        if progress is not None:
+            progress(1)
+    return ids
