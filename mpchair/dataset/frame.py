@@ -1,0 +1,316 @@
+"""One frame: pick a viewpoint, decide the labels, cast the scan, write the KITTI files and the frame record.
+
+A frame is a pure function of ``(seed, house id, frame index)``: its generator is
+``numpy.random.default_rng([seed, crc32(house_id), index])`` and draws viewpoint candidates until one is valid and
+(unless ``keep_empty``) keeps at least one box, within ``max_attempts`` candidates.
+
+Frames: the scan and boxes are in the sensor frame (x forward, y left, z up, metres); the pose is sensor → world
+(Matterport, z up, metres).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import zlib
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from mpchair.atomic import write_bytes, write_text
+from mpchair.errors import InputError
+from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
+from mpchair.kitti import DONTCARE, Calib, Labels, frame_paths, write_calib, write_labels, write_velodyne
+from mpchair.labels.filters import LabelFilters
+from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
+from mpchair.labels.visibility import ObjectScenes, covering_boxes
+from mpchair.matterport.categories import resolve_category
+from mpchair.matterport.house import House
+from mpchair.scan.raycast import Raycaster, make_raycaster
+from mpchair.scan.sensors import SensorConfig, camera_calib, range_of
+from mpchair.scan.viewpoints import (
+    FloorArea,
+    FloorSampler,
+    Viewpoint,
+    ViewpointParams,
+    face_normals_z,
+    viewpoint_stream,
+)
+
+#: Region labels whose floors are never sampled: junk (mirror ghosts), outdoor, stairs, unlabelled.
+SKIP_REGION_LABELS = ("Z", "x", "s", "-")
+#: The constant 4th velodyne channel (the sensor has no intensity; KITTI readers expect 4 floats per point).
+REFLECTANCE = 1.0
+
+
+def kitti_name(mpcat40_name: str) -> str:
+    """KITTI type of an mpcat40 class: capitalised first letter, no spaces (``chair`` → ``Chair``)."""
+    s = mpcat40_name.replace(" ", "_")
+    return s[:1].upper() + s[1:]
+
+
+def floor_areas(house: House, skip_labels: tuple[str, ...] = SKIP_REGION_LABELS) -> list[FloorArea]:
+    """Floor polygons of the house's regions (world frame), skipping ``skip_labels`` regions.
+
+    Houses without region floor polygons fall back to their upward-facing ``floor``-category faces, one triangle each.
+    """
+    areas = [
+        FloorArea(r.floor_polygon, float(r.floor_z), r.level, r.index)
+        for r in house.regions
+        if r.label not in skip_labels and len(r.floor_polygon) >= 3
+    ]
+    if areas:
+        return areas
+    floor = resolve_category("floor")
+    nz = face_normals_z(house.vertices, house.faces)
+    for f in np.flatnonzero((house.face_category == floor) & (nz > 0.9)):
+        tri = house.vertices[house.faces[f]]
+        areas.append(FloorArea(tri[:, :2].copy(), float(tri[:, 2].mean())))
+    return areas
+
+
+@dataclasses.dataclass
+class HouseContext:
+    """Everything a worker needs to make frames of one house; the raycasting scene is built once here."""
+
+    house: House
+    raycaster: Raycaster
+    sampler: FloorSampler
+    floor_ok: np.ndarray
+    normal_z: np.ndarray
+    class_objects: np.ndarray
+    class_boxes: np.ndarray
+    cover_boxes: np.ndarray
+    scenes: ObjectScenes
+
+
+def build_context(house: House, categories: frozenset[int], backend: str = "embree") -> HouseContext:
+    """Scene, floor sampler and class objects of ``house`` (``categories``: mpcat40 indices to label).
+
+    A house with no object of the classes, or without any floor to stand on, is an :class:`InputError`.
+    """
+    objs = np.array([i for i, o in enumerate(house.objects) if o.mpcat40_index in categories], dtype=np.int64)
+    if len(objs) == 0:
+        from mpchair.matterport.categories import mpcat40_name
+
+        names = ", ".join(sorted(mpcat40_name(c) for c in categories))
+        raise InputError(f"house {house.id} has no object of class {names} (it has: "
+                         f"{', '.join(f'{k} {v}' for k, v in house.objects_by_category().items()) or 'no objects'})")
+    areas = floor_areas(house)
+    if not areas:
+        raise InputError(f"house {house.id} has no floor polygon and no floor faces to place the robot on")
+    try:
+        sampler = FloorSampler(areas)
+    except ValueError as e:
+        raise InputError(f"house {house.id}: {e}") from None
+    floor = resolve_category("floor")
+    floor_ok = (house.face_category == floor) | (house.face_object < 0)
+    boxes = np.stack([house.objects[i].aligned_box for i in objs]).astype(np.float64)
+    return HouseContext(
+        house=house,
+        raycaster=make_raycaster(house.vertices, house.faces, backend),
+        sampler=sampler,
+        floor_ok=floor_ok,
+        normal_z=face_normals_z(house.vertices, house.faces),
+        class_objects=objs,
+        class_boxes=boxes,
+        cover_boxes=covering_boxes(house.vertices, house.faces, house.face_object, objs, boxes),
+        scenes=ObjectScenes(house.vertices, house.faces, house.face_object, backend),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameSettings:
+    """What every frame of a run shares: sensor profile, viewpoint parameters, seed and acceptance rules."""
+
+    sensor: SensorConfig
+    viewpoints: ViewpointParams
+    seed: int
+    keep_empty: bool = False
+    max_attempts: int = 400
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameResult:
+    """One accepted frame: its ``viewpoint``, box ``decisions``, ``points`` (M,4) float32 sensor frame
+    ``[x, y, z, 1]``, ``views_tried`` (valid viewpoints evaluated, the last one accepted), ``rays`` cast in total."""
+
+    viewpoint: Viewpoint
+    decisions: BoxDecisions
+    points: np.ndarray
+    views_tried: int
+    rays: int
+
+
+def frame_rng(seed: int, house_id: str, index: int) -> np.random.Generator:
+    """The generator of frame ``index`` of ``house_id``: ``default_rng([seed, crc32(house_id), index])``."""
+    return np.random.default_rng([seed, zlib.crc32(house_id.encode("utf-8")), index])
+
+
+def cast_scan(sensor: SensorConfig, directions: np.ndarray, pose: np.ndarray, raycaster: Raycaster) -> np.ndarray:
+    """Cast the scan from ``pose`` (sensor → world); (M,4) float32 sensor-frame points ``[x, y, z, REFLECTANCE]``.
+
+    Misses are dropped (the original wrote them at the origin), as are hits outside ``[min_range, max_range]``
+    (planar or Euclidean, per profile) and outside the ``z_min < z < z_max`` crop.
+    """
+    R, p = pose[:3, :3], pose[:3, 3]
+    t, face = raycaster.cast(p, directions @ R.T)
+    ok = face >= 0
+    rng_ = range_of(sensor, directions, np.where(ok, t, 0.0))
+    ok &= (rng_ >= sensor.min_range) & (rng_ <= sensor.max_range)
+    pts = t[ok, None] * directions[ok]
+    keep = np.ones(len(pts), dtype=bool)
+    if sensor.z_min is not None:
+        keep &= pts[:, 2] > sensor.z_min
+    if sensor.z_max is not None:
+        keep &= pts[:, 2] < sensor.z_max
+    out = np.empty((int(keep.sum()), 4), dtype=np.float32)
+    out[:, :3] = pts[keep]
+    out[:, 3] = REFLECTANCE
+    return out
+
+
+def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, directions: np.ndarray) -> FrameResult:
+    """Frame ``index`` of ``ctx.house`` (see the module docstring); raises :class:`InputError` when no candidate in
+    ``settings.max_attempts`` gives a valid viewpoint (or a kept box), saying how many valid viewpoints were found."""
+    sensor = settings.sensor
+    camera = sensor.camera
+    calib = camera_calib(camera)
+    filters: LabelFilters = sensor.filters
+    rng = frame_rng(settings.seed, ctx.house.id, index)
+    views = 0
+    rays = 0
+    for vp in viewpoint_stream(rng, ctx.sampler, ctx.raycaster, ctx.floor_ok, ctx.normal_z, settings.viewpoints,
+                               settings.max_attempts):
+        views += 1
+        pose = vp.pose()
+        dec = decide_boxes(ctx.class_boxes, ctx.class_objects, pose, ctx.raycaster, ctx.house.face_object, camera,
+                           calib, filters, ctx.scenes, ctx.cover_boxes)
+        rays += dec.dense_rays
+        if not dec.kept.any() and not settings.keep_empty:
+            continue
+        points = cast_scan(sensor, directions, pose, ctx.raycaster)
+        rays += len(directions)
+        dec = apply_scan_points(dec, points, filters)
+        if not dec.kept.any() and not settings.keep_empty:
+            continue
+        return FrameResult(vp, dec, points, views, rays)
+    if views == 0:
+        raise InputError(f"house {ctx.house.id}: found 0 valid viewpoints in {settings.max_attempts} attempts "
+                         f"(frame {index}); the floor has no spot with {settings.viewpoints.robot_radius} m clearance")
+    raise InputError(f"house {ctx.house.id}: found {views} valid viewpoints in {settings.max_attempts} attempts "
+                     f"(frame {index}) but none keeps a box; use --keep-empty or a house with more objects")
+
+
+def depth_image(points: np.ndarray, calib: Calib, size: tuple[int, int], max_range: float) -> np.ndarray:
+    """(H,W) uint8 image_2: the scan's points projected through ``P2``; 0 = no point, else
+    ``1 + round(254 * (1 - depth / max_range))`` (brighter = nearer; depth = camera z, metres), nearest point wins."""
+    W, H = size
+    img = np.zeros((H, W), dtype=np.uint8)
+    if len(points) == 0:
+        return img
+    M = calib.velo_to_image()
+    uvw = points[:, :3].astype(np.float64) @ M[:, :3].T + M[:, 3]
+    z = uvw[:, 2]
+    front = z > 1e-6
+    u = np.floor(uvw[front, 0] / z[front]).astype(np.int64)
+    v = np.floor(uvw[front, 1] / z[front]).astype(np.int64)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    val = 1 + np.rint(254 * (1 - np.clip(z[front][inside] / max_range, 0, 1))).astype(np.int64)
+    flat = np.zeros(H * W, dtype=np.int64)
+    np.maximum.at(flat, v[inside] * W + u[inside], val)
+    return flat.reshape(H, W).astype(np.uint8)
+
+
+def frame_labels(result: FrameResult, names: list[str], calib: Calib, size: tuple[int, int]) -> Labels:
+    """KITTI labels of the kept boxes (``names`` = KITTI type per candidate); one DontCare row when none is kept.
+
+    2D box = projection clipped to the image, truncation = fraction of the projected box outside it (both from
+    ``mpchair.geometry``), occluded from the dense visible fraction, alpha / rotation_y from the box conversion.
+    """
+    dec = result.decisions
+    k = np.flatnonzero(dec.kept)
+    if len(k) == 0:
+        # OpenPCDet's info builder crashes on an empty label file: a DontCare row loads as zero boxes.
+        return Labels(np.array([DONTCARE]), [-1.0], [-1], [-10.0], np.zeros((1, 4)), -np.ones((1, 3)),
+                      np.full((1, 3), -1000.0), [-10.0])
+    boxes = dec.boxes[k]
+    loc, dims, ry, alpha = boxes_to_kitti_camera(boxes, calib)
+    bbox, trunc = project_boxes_to_image(boxes, calib, size)
+    return Labels(np.array([names[i] for i in k]), trunc, dec.occluded[k], alpha, bbox, dims, loc, ry)
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """Deterministic PNG encoding of an 8-bit grey image (fast zlib level; no timestamps in PNG)."""
+    buf = io.BytesIO()
+    Image.fromarray(img, mode="L").save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
+def _r(x: float, nd: int = 6) -> float | None:
+    return None if not np.isfinite(x) else round(float(x), nd)
+
+
+def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dict:
+    """The frame's manifest entry (plain JSON data, no paths or times): house, pose, points, kept/rejected boxes."""
+    dec = result.decisions
+    pose = result.viewpoint.pose()
+    kept, rejected = [], []
+    for j, obj in enumerate(dec.objects):
+        o = house.objects[int(obj)]
+        entry = {"object": int(o.index), "id": o.id, "class": o.mpcat40_name}
+        if dec.reasons[j] == "":
+            entry.update(
+                box=[_r(v) for v in dec.boxes[j]],
+                visible_pixels=int(dec.visible_pixels[j]),
+                points_in_box=int(dec.points_in_box[j]),
+                in_box_fraction=_r(dec.in_box_fraction[j]),
+                scan_points=int(dec.scan_points[j]),
+                visible_fraction=_r(dec.visible_fraction[j]),
+                occluded=int(dec.occluded[j]),
+            )
+            kept.append(entry)
+        else:
+            entry["reason"] = dec.reasons[j]
+            if dec.visible_pixels[j] >= 0:
+                entry.update(visible_pixels=int(dec.visible_pixels[j]), points_in_box=int(dec.points_in_box[j]))
+            rejected.append(entry)
+    return {
+        "frame": fid,
+        "house": house.id,
+        "index": index,
+        "attempt": result.viewpoint.attempt,
+        "views_tried": result.views_tried,
+        "pose": [[_r(v, 9) for v in row] for row in pose[:3]],
+        "yaw": _r(result.viewpoint.yaw, 9),
+        "points": len(result.points),
+        "rays": result.rays,
+        "kept": kept,
+        "rejected": rejected,
+    }
+
+
+def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResult, sensor: SensorConfig) -> dict:
+    """Write one frame's KITTI files (velodyne, label_2, calib, image_2, pose), then its record (``.frames/``, last:
+    a record on disk means the whole frame is). Returns the record."""
+    camera = sensor.camera
+    calib = camera_calib(camera)
+    size = (camera.width, camera.height)
+    names = [kitti_name(house.objects[int(o)].mpcat40_name) for o in result.decisions.objects]
+    paths = frame_paths(out, fid)
+    write_velodyne(paths.velodyne, result.points)
+    write_labels(paths.label_2, frame_labels(result, names, calib, size))
+    write_calib(paths.calib, calib)
+    write_bytes(paths.image_2, png_bytes(depth_image(result.points, calib, size, sensor.max_range)))
+    pose = result.viewpoint.pose()
+    write_text(out / "training" / "pose" / f"{fid}.txt", " ".join(f"{v:.9e}" for v in pose[:3].reshape(-1)) + "\n")
+    record = frame_record(fid, house, index, result)
+    write_text(record_path(out, fid), json.dumps(record, sort_keys=True) + "\n")
+    return record
+
+
+def record_path(out: Path, fid: str) -> Path:
+    """Where the frame record of ``fid`` lives (``DIR/.frames/NNNNNN.json``)."""
+    return Path(out) / ".frames" / f"{fid}.json"

@@ -1,0 +1,354 @@
+"""``mpchair generate`` as a library call: houses in, a KITTI-format Matterport-Chair dataset out.
+
+Layout written under ``out``::
+
+    training/{velodyne,label_2,calib,image_2,pose}/NNNNNN.*   one frame each (see mpchair.dataset.frame)
+    ImageSets/{train,val,test}.txt                          written when every frame exists
+    manifest.json                                           written last
+    .frames/NNNNNN.json                                     per-frame records (a frame is done iff its record exists)
+    .generate.json                                          the run's settings; a re-run must match them
+
+Determinism: frame ``g`` (global id = house position * frames + index) depends only on ``(seed, house, index)`` and
+the settings, never on ``workers`` or ``shard``; every file is written atomically; the manifest holds no times and no
+absolute paths. So an interrupted run (even SIGKILL) re-run with the same arguments resumes and ends byte-identical to
+an uninterrupted one, and ``--shard i/N`` jobs (frames with ``g % N == i``) can fill one folder in any order: the job
+that finds every frame present writes ImageSets and the manifest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from collections import Counter
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from mpchair import __version__
+from mpchair.atomic import write_text
+from mpchair.config import to_dict
+from mpchair.dataset.frame import (
+    FrameSettings,
+    build_context,
+    frame_rng,  # noqa: F401  (re-exported for callers that reproduce one frame's viewpoint)
+    make_frame,
+    record_path,
+    write_frame,
+)
+from mpchair.dataset.splits import split_frames
+from mpchair.errors import InputError
+from mpchair.kitti import write_imageset
+from mpchair.matterport.categories import mpcat40_name, resolve_categories
+from mpchair.matterport.house import House, objects_of, read_house
+from mpchair.matterport.source import HouseSource, find_houses
+from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
+from mpchair.scan.viewpoints import ViewpointParams
+
+MANIFEST_FORMAT = "mpchair-kitti/1"
+FRAME_DIRS = ("velodyne", "label_2", "calib", "image_2", "pose")
+
+
+@dataclasses.dataclass(frozen=True)
+class GenerateRequest:
+    """Arguments of one ``generate`` run. ``frames`` is per house; ``shard`` is ``(i, N)``; ``sensor`` a profile name
+    or YAML path; ``height`` / ``robot_radius`` metres; ``categories`` mpcat40 names or indices."""
+
+    root: Path
+    houses: tuple[str, ...]
+    frames: int
+    out: Path
+    sensor: str = "mp3d-depth90"
+    seed: int = 0
+    height: float = 1.0
+    robot_radius: float = 0.25
+    categories: tuple[str, ...] = ("chair",)
+    keep_empty: bool = False
+    split_mode: str = "frame"
+    backend: str = "embree"
+    workers: int = 1
+    shard: tuple[int, int] = (0, 1)
+    max_attempts: int = 400
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class GenerateSummary:
+    """What a run did: ``frames`` in the dataset, ``made`` by this run, ``resumed`` (already present), ``complete``
+    (manifest written), boxes ``kept`` and ``rejected`` by reason (frames made now), mean ``points`` per frame,
+    ``rays`` cast, ``seconds`` wall time and ``frames_per_second``."""
+
+    out: str
+    frames: int
+    made: int
+    resumed: int
+    complete: bool
+    kept: int
+    rejected: dict[str, int]
+    points: float
+    rays: int
+    seconds: float
+    frames_per_second: float
+    splits: dict[str, int]
+
+    def line(self) -> str:
+        """One-line human summary."""
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "none"
+        state = "complete" if self.complete else "incomplete (other shards pending)"
+        return (f"{self.out}: {self.frames} frames ({state}); this run made {self.made} in {self.seconds:.1f} s "
+                f"({self.frames_per_second:.1f} frames/s), resumed {self.resumed}; boxes kept {self.kept}, "
+                f"rejected: {rej}; {self.points:.0f} points/frame; splits "
+                + " ".join(f"{k} {v}" for k, v in self.splits.items()))
+
+
+def sha256_of(source: HouseSource, suffix: str) -> str:
+    """Hex sha256 of one house file's bytes (``suffix`` like ``.house``)."""
+    return hashlib.sha256(source.read_bytes(suffix)).hexdigest()
+
+
+def _versions(backend: str) -> dict[str, str]:
+    out = {"mpchair": __version__, "python": platform.python_version()}
+    names = ["numpy", "trimesh", "embreex", "shapely", "pillow"] + (["open3d-cpu", "open3d"] if backend == "open3d"
+                                                                    else [])
+    for name in names:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParams, cats: list[str]) -> dict:
+    """The deterministic part of a run (what the output depends on); stored in ``.generate.json``."""
+    return {
+        "houses": list(req.houses),
+        "frames_per_house": req.frames,
+        "sensor": to_dict(sensor),
+        "viewpoints": to_dict(params),
+        "seed": req.seed,
+        "categories": cats,
+        "keep_empty": req.keep_empty,
+        "split_mode": req.split_mode,
+        "backend": req.backend,
+        "max_attempts": req.max_attempts,
+    }
+
+
+# Per-process state of pool workers (fork start method: inherited from the parent, never pickled).
+_STATE: dict = {}
+
+
+def _init_state(houses: dict[str, House], settings: FrameSettings, cats: frozenset[int], backend: str,
+                out: Path) -> None:
+    _STATE.clear()
+    _STATE.update(houses=houses, settings=settings, cats=cats, backend=backend, out=out, ctx={},
+                  dirs=scan_directions(settings.sensor))
+
+
+def _work(task: tuple[int, str, int]) -> dict:
+    """Make and write one frame (runs in a worker or in-process); returns its record."""
+    g, house_id, index = task
+    ctx = _STATE["ctx"].get(house_id)
+    if ctx is None:  # the scene is built once per house and process, then reused for all its frames
+        ctx = build_context(_STATE["houses"][house_id], _STATE["cats"], _STATE["backend"])
+        _STATE["ctx"][house_id] = ctx
+    settings: FrameSettings = _STATE["settings"]
+    result = make_frame(ctx, settings, index, _STATE["dirs"])
+    return write_frame(_STATE["out"], f"{g:06d}", ctx.house, index, result, settings.sensor)
+
+
+def _remove_stale_temps(out: Path, fids: set[str]) -> None:
+    """Delete temp files (``.<name>.*.tmp``) a killed run left for frames this run owns."""
+    for sub in [out / "training" / d for d in FRAME_DIRS] + [out / ".frames"]:
+        if not sub.is_dir():
+            continue
+        for p in sub.iterdir():
+            if p.name.startswith(".") and p.name.endswith(".tmp") and p.name[1:7] in fids:
+                p.unlink(missing_ok=True)
+
+
+def _check_settings(out: Path, settings: dict) -> None:
+    path = out / ".generate.json"
+    text = json.dumps(settings, sort_keys=True, indent=1) + "\n"
+    if path.is_file():
+        if path.read_text(encoding="utf-8") != text:
+            old = json.loads(path.read_text(encoding="utf-8"))
+            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            raise InputError(f"holds a dataset made with other settings ({', '.join(diff)} differ); use a new --out "
+                             "or the same arguments to resume", path)
+        return
+    if out.exists() and any(p for p in out.iterdir() if p.name != ".generate.json"):
+        raise InputError("exists and is not an mpchair dataset folder (no .generate.json); choose an empty --out",
+                         out)
+    write_text(path, text)
+
+
+def generate(req: GenerateRequest) -> GenerateSummary:
+    """Generate (or resume) the dataset described by ``req``; see the module docstring.
+
+    Bad input (unknown house: the available ones are listed; house without objects of the class; unknown sensor;
+    too few valid viewpoints; an ``out`` made with other settings) raises :class:`InputError` before any frame file
+    is written, or, for viewpoints, when the failing frame is reached.
+    """
+    t0 = time.perf_counter()
+    if req.frames < 1:
+        raise InputError(f"--frames must be >= 1, got {req.frames}")
+    if req.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {req.workers}")
+    si, sn = req.shard
+    if not (sn >= 1 and 0 <= si < sn):
+        raise InputError(f"--shard must be i/N with 0 <= i < N, got {si}/{sn}")
+    if not req.houses:
+        raise InputError("give at least one --house")
+    if len(set(req.houses)) != len(req.houses):
+        raise InputError("a --house is repeated")
+    sensor = load_sensor(req.sensor)
+    try:
+        params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    cat_idx = resolve_categories(list(req.categories))
+    cats = sorted(mpcat40_name(c) for c in cat_idx)
+    if req.split_mode == "house" and len(req.houses) < 3:
+        raise InputError(f"--split-mode house needs at least 3 houses, got {len(req.houses)}")
+
+    found = find_houses(req.root)
+    unknown = [h for h in req.houses if h not in found]
+    if unknown:
+        raise InputError(f"unknown house {unknown[0]!r} (available: {', '.join(sorted(found))})", req.root)
+    houses: dict[str, House] = {}
+    hashes: dict[str, dict[str, str]] = {}
+    for hid in req.houses:
+        house = read_house(found[hid])
+        if not objects_of(house, cat_idx):
+            have = ", ".join(f"{k} {v}" for k, v in house.objects_by_category().items()) or "no objects"
+            raise InputError(f"house {hid} has no object of class {', '.join(cats)} (it has: {have})",
+                             found[hid].describe(".house"))
+        houses[hid] = house
+        src = found[hid]
+        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in (".house", ".ply", ".fsegs.json", ".semseg.json")
+                       if src.exists(s)}
+
+    out = Path(req.out)
+    settings = _settings(req, sensor, params, cats)
+    _check_settings(out, settings)
+    fs = FrameSettings(sensor=sensor, viewpoints=params, seed=req.seed, keep_empty=req.keep_empty,
+                       max_attempts=req.max_attempts)
+
+    n_total = len(req.houses) * req.frames
+    tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
+    mine = [t for t in tasks if t[0] % sn == si]
+    pending = [t for t in mine if not record_path(out, f"{t[0]:06d}").is_file()]
+    _remove_stale_temps(out, {f"{t[0]:06d}" for t in pending})
+    resumed = len(mine) - len(pending)
+
+    kept = 0
+    rejected: Counter[str] = Counter()
+    points: list[int] = []
+    rays = 0
+    t_frames = time.perf_counter()
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(mine), initial=resumed, unit="frame", disable=not req.progress, file=sys.stderr,
+               dynamic_ncols=True, desc="generate")
+
+    def account(rec: dict) -> None:
+        nonlocal kept, rays
+        kept += len(rec["kept"])
+        rejected.update(r["reason"] for r in rec["rejected"])
+        points.append(rec["points"])
+        rays += rec["rays"]
+        bar.update(1)
+        bar.set_postfix(kept=kept, rejected=sum(rejected.values()), refresh=False)
+
+    try:
+        if req.workers == 1 or len(pending) <= 1:
+            _init_state(houses, fs, cat_idx, req.backend, out)
+            for task in pending:
+                account(_work(task))
+        else:
+            ctx = multiprocessing.get_context("fork")  # workers inherit the parsed houses instead of re-reading them
+            with ctx.Pool(min(req.workers, len(pending)), initializer=_init_state,
+                          initargs=(houses, fs, cat_idx, req.backend, out)) as pool:
+                for rec in pool.imap(_work, pending, chunksize=1):
+                    account(rec)
+    finally:
+        bar.close()
+    made_seconds = time.perf_counter() - t_frames
+
+    complete = all(record_path(out, f"{g:06d}").is_file() for g in range(n_total))
+    splits_count: dict[str, int] = {}
+    if complete:
+        splits_count = _assemble(out, req, settings, hashes, houses, cats, n_total)
+    seconds = time.perf_counter() - t0
+    made = len(pending)
+    return GenerateSummary(
+        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, kept=kept,
+        rejected=dict(rejected), points=float(np.mean(points)) if points else 0.0, rays=rays, seconds=seconds,
+        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
+    )  # fmt: skip
+
+
+def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, houses: dict[str, House],
+              cats: list[str], n_total: int) -> dict[str, int]:
+    """Write ImageSets and then ``manifest.json`` (last) from the frame records."""
+    for p in [out, out / "ImageSets"]:  # temps a killed assembly left behind
+        if p.is_dir():
+            for q in p.iterdir():
+                if q.name.startswith(".") and q.name.endswith(".tmp"):
+                    q.unlink(missing_ok=True)
+    records = [json.loads(record_path(out, f"{g:06d}").read_text(encoding="utf-8")) for g in range(n_total)]
+    splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
+    for name, ids in splits.items():
+        write_imageset(out / "ImageSets" / f"{name}.txt", ids)
+    reasons: Counter[str] = Counter(r["reason"] for rec in records for r in rec["rejected"])
+    command = ["mpchair", "generate", "--root", Path(req.root).name]
+    for h in req.houses:
+        command += ["--house", h]
+    command += ["--frames", str(req.frames), "--sensor", settings["sensor"]["name"], "--seed", str(req.seed),
+                "--height", repr(req.height), "--robot-radius", repr(req.robot_radius), "--split-mode", req.split_mode,
+                "--backend", req.backend, "--max-attempts", str(req.max_attempts)]
+    for c in cats:
+        command += ["--category", c]
+    if req.keep_empty:
+        command.append("--keep-empty")
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "command": command,
+        "config": settings,
+        "versions": _versions(req.backend),
+        "seed": req.seed,
+        "houses": {
+            hid: {"files_sha256": hashes[hid], "objects_of_class": len(objects_of(houses[hid], cats)),
+                  "frames": [p * req.frames, (p + 1) * req.frames - 1]}
+            for p, hid in enumerate(req.houses)
+        },
+        "conventions": {
+            "frame": "sensor: x forward, y left, z up, metres (right-handed; the original was mirrored)",
+            "velodyne": "float32 x, y, z, 1.0 (constant 4th channel: the sensor has no intensity)",
+            "pose": "3x4 row-major sensor -> world (Matterport z-up metres)",
+            "bbox_2d": "projection of the 3D box through P2, clipped to the image; truncation = fraction outside",
+            "occluded": "0 if visible fraction >= {:.2f}, 1 if >= {:.2f}, else 2 (dense grid)".format(
+                *settings["sensor"]["filters"]["occlusion_cutoffs"]),
+            "image_2": "8-bit scan depth: 0 none, else 1 + round(254 * (1 - depth / max_range))",
+            "misses": "rays without a hit (or outside the range limits) are dropped",
+        },
+        "splits": {k: len(v) for k, v in splits.items()},
+        "totals": {"frames": n_total, "boxes_kept": sum(len(r["kept"]) for r in records),
+                   "boxes_rejected": dict(sorted(reasons.items())),
+                   "points": int(sum(r["points"] for r in records))},
+        "frames": records,
+    }
+    write_text(out / "manifest.json", json.dumps(manifest, sort_keys=True, indent=1) + "\n")
+    return manifest["splits"]
+
+
+def default_workers() -> int:
+    """A sensible default worker count: the CPUs this process may use."""
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))

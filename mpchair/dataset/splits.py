@@ -1,0 +1,55 @@
+"""Train / val / test membership of the frames of a dataset (``ImageSets/{train,val,test}.txt``).
+
+* ``paper``: the paper's layout. Per house, the first half of its frames go to the training pool and the second half
+  to ``test``; the pool (houses in command-line order) is split at 2/3: indices below go to ``train``, the last third
+  to ``val`` (the original: training index < 5000 of 7500). As in the paper, train and test share houses.
+* ``frame`` (default): a seeded random permutation of all frames, cut 60 / 20 / 20 % into train / val / test.
+* ``house``: houses (not frames) are shuffled with the seed and assigned whole, 60 / 20 / 20 % of the houses (at least
+  one each; needs 3 houses), so no house is shared between splits.
+
+Frame ids are global 6-digit indices, ``house position * frames_per_house + frame index``.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from mpchair.errors import InputError
+
+SPLIT_MODES = ("frame", "house", "paper")
+FRACTIONS = (0.6, 0.2, 0.2)
+
+
+def split_frames(n_houses: int, frames_per_house: int, mode: str, seed: int) -> dict[str, list[int]]:
+    """``{"train": [...], "val": [...], "test": [...]}`` of global frame indices (each list sorted)."""
+    n = n_houses * frames_per_house
+    ids = np.arange(n)
+    rng = np.random.default_rng([seed, zlib.crc32(b"split"), zlib.crc32(mode.encode())])
+    if mode == "paper":
+        local = ids % frames_per_house
+        half = frames_per_house // 2
+        pool = ids[local < half]
+        test = ids[local >= half]
+        cut = (2 * len(pool)) // 3
+        train, val = pool[:cut], pool[cut:]
+    elif mode == "frame":
+        perm = rng.permutation(n)
+        a = int(round(FRACTIONS[0] * n))
+        b = a + int(round(FRACTIONS[1] * n))
+        train, val, test = perm[:a], perm[a:b], perm[b:]
+    elif mode == "house":
+        if n_houses < 3:
+            raise InputError(f"--split-mode house needs at least 3 houses, got {n_houses}")
+        perm = rng.permutation(n_houses)
+        n_val = max(1, int(round(FRACTIONS[1] * n_houses)))
+        n_test = max(1, int(round(FRACTIONS[2] * n_houses)))
+        n_train = n_houses - n_val - n_test
+        parts = np.split(perm, [n_train, n_train + n_val])
+        house_of = ids // frames_per_house
+        train, val, test = (ids[np.isin(house_of, p)] for p in parts)
+    else:
+        raise InputError(f"unknown split mode {mode!r} (choose from {', '.join(SPLIT_MODES)})")
+    return {"train": sorted(int(i) for i in train), "val": sorted(int(i) for i in val),
+            "test": sorted(int(i) for i in test)}

@@ -1,0 +1,171 @@
+"""End to end: ``mpchair generate`` on a synthetic house — KITTI files OpenPCDet can read, boxes that match the
+construction, determinism across worker counts, SIGKILL + resume, splits, and the clear errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpchair.dataset.generate import GenerateRequest, generate
+from mpchair.dataset.splits import split_frames
+from mpchair.errors import InputError
+from mpchair.geometry import fov_mask, labels_to_boxes, points_in_boxes, transform_boxes
+from mpchair.kitti import read_calib, read_image_size, read_imageset, read_labels, read_velodyne
+from mpchair.synth import synthesize_house, write_house
+
+ROOT = Path(__file__).resolve().parents[1]
+FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def house_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("houses")
+    house = synthesize_house(7, levels=1)
+    write_house(root, house)
+    return root, house
+
+
+def _req(root, house, out, **kw) -> GenerateRequest:
+    return GenerateRequest(root=root, houses=(house.id,), frames=FRAMES, out=out, seed=11, progress=False, **kw)
+
+
+def _tree(path: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
+            if p.is_file() and not p.name.endswith(".tmp")}
+
+
+@pytest.fixture(scope="module")
+def dataset(house_root, tmp_path_factory):
+    root, house = house_root
+    out = tmp_path_factory.mktemp("ds") / "one"
+    summary = generate(_req(root, house, out, workers=1))
+    return out, summary
+
+
+def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
+    out, summary = dataset
+    _, house = house_root
+    assert summary.complete and summary.frames == FRAMES and summary.made == FRAMES and summary.kept >= FRAMES
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert str(out) not in (out / "manifest.json").read_text()  # no absolute paths
+    assert manifest["houses"][house.id]["files_sha256"][f"{house.id}.house"] == __import__("hashlib").sha256(
+        house.files()[".house"]).hexdigest()
+    ids = sorted(read_imageset(out / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test"))
+    assert sorted(sum(ids, [])) == [f"{i:06d}" for i in range(FRAMES)]
+    truth = {o.index: o for o in house.objects}
+    for rec in manifest["frames"]:
+        fid = rec["frame"]
+        calib_lines = (out / "training" / "calib" / f"{fid}.txt").read_text().splitlines()[:7]
+        assert [ln.split(":")[0] for ln in calib_lines] == ["P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam",
+                                                            "Tr_imu_to_velo"]
+        assert all("  " not in ln for ln in calib_lines)
+        text = (out / "training" / "label_2" / f"{fid}.txt").read_text()
+        rows = text.splitlines()
+        assert rows and all(len(r.split(" ")) == 15 for r in rows)
+        calib = read_calib(out / "training" / "calib" / f"{fid}.txt")
+        labels = read_labels(out / "training" / "label_2" / f"{fid}.txt")
+        assert read_image_size(out / "training" / "image_2" / f"{fid}.png") == (1024, 1024)
+        pts = read_velodyne(out / "training" / "velodyne" / f"{fid}.bin")
+        assert len(pts) == rec["points"] and (pts[:, 3] == 1.0).all()
+        assert (np.abs(pts[:, 2]) < 2).all() and (pts[:, 0] > 0).all() and pts[:, 0].max() <= 25 + 1e-4
+        pose = np.loadtxt(out / "training" / "pose" / f"{fid}.txt").reshape(3, 4)
+        T = np.vstack([pose, [0, 0, 0, 1]])
+        # Boxes: the label file's boxes == the construction's aligned boxes moved through the inverse pose.
+        boxes = labels_to_boxes(labels.objects(), calib)
+        assert list(labels.names) == ["Chair"] * len(rec["kept"])
+        expect = transform_boxes(np.stack([truth[k["object"]].aligned_box for k in rec["kept"]]), np.linalg.inv(T))
+        np.testing.assert_allclose(boxes[:, :6], expect[:, :6], atol=0.006)
+        dyaw = np.mod(boxes[:, 6] - expect[:, 6] + np.pi / 2, np.pi) - np.pi / 2  # a box's axis has no direction
+        np.testing.assert_allclose(dyaw, 0, atol=0.006)
+        # OpenPCDet's FOV crop keeps every labelled box: each box's 2D box has area inside image_2 (its centre can sit
+        # below the image when the chair is close) and all its points are inside image_2.
+        assert ((labels.bbox[:, 2] > labels.bbox[:, 0]) & (labels.bbox[:, 3] > labels.bbox[:, 1])).all()
+        # (The grid's last row / column lands on u or v = 1024, which the crop drops: P2 is f = c = 512 as specified,
+        # half a pixel off habitat's linspace grid.)
+        fov = fov_mask(pts, calib, (1024, 1024))
+        for in_box in points_in_boxes(pts[:, :3], boxes):
+            assert (fov & in_box).sum() >= 0.95 * in_box.sum()
+        assert fov.mean() > 0.99
+        assert (labels.bbox[:, 2] > labels.bbox[:, 0]).all() and (labels.bbox <= 1023).all()
+        assert set(labels.occluded) <= {0, 1, 2} and ((labels.truncated >= 0) & (labels.truncated <= 1)).all()
+        for k in rec["kept"]:
+            assert k["visible_pixels"] > 35 and k["points_in_box"] >= 35 and k["in_box_fraction"] >= 0.8
+        assert all(r["reason"] for r in rec["rejected"])
+
+
+def test_two_workers_give_identical_bytes(dataset, house_root, tmp_path):
+    out, _ = dataset
+    root, house = house_root
+    generate(_req(root, house, tmp_path / "two", workers=2))
+    assert _tree(tmp_path / "two") == _tree(out)
+
+
+def test_sigkill_then_resume_is_byte_identical(dataset, house_root, tmp_path):
+    out, _ = dataset
+    root, house = house_root
+    dest = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "mpchair.cli", "generate", "--root", str(root), "--house", house.id, "--frames",
+           str(FRAMES), "--out", str(dest), "--seed", "11", "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(cmd, env=env, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((dest / ".frames").glob("*.json")) and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (dest / "manifest.json").exists() or len(list((dest / ".frames").glob("*.json"))) == FRAMES
+    res = subprocess.run(cmd + ["--json"], env=env, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["complete"] and summary["made"] + summary["resumed"] == FRAMES
+    assert _tree(dest) == _tree(out)
+
+
+def test_shards_fill_one_folder(dataset, house_root, tmp_path):
+    out, _ = dataset
+    root, house = house_root
+    s0 = generate(_req(root, house, tmp_path / "sh", shard=(0, 2)))
+    assert not s0.complete and s0.made == (FRAMES + 1) // 2 and not (tmp_path / "sh" / "manifest.json").exists()
+    s1 = generate(_req(root, house, tmp_path / "sh", shard=(1, 2)))
+    assert s1.complete
+    assert _tree(tmp_path / "sh") == _tree(out)
+
+
+def test_clear_errors(house_root, tmp_path, dataset):
+    root, house = house_root
+    with pytest.raises(InputError, match=f"unknown house 'nope'.*available: {house.id}"):
+        generate(GenerateRequest(root=root, houses=("nope",), frames=1, out=tmp_path / "a", progress=False))
+    with pytest.raises(InputError, match="has no object of class toilet"):
+        generate(_req(root, house, tmp_path / "b", categories=("toilet",)))
+    with pytest.raises(InputError, match="seed differ"):
+        out, _ = dataset
+        generate(GenerateRequest(root=root, houses=(house.id,), frames=FRAMES, out=out, seed=12, progress=False))
+    res = subprocess.run([sys.executable, "-m", "mpchair.cli", "generate", "--root", str(root), "--house", "nope",
+                          "--frames", "1", "--out", str(tmp_path / "c")], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert res.returncode == 2 and res.stderr.startswith("error: ") and "Traceback" not in res.stderr
+    assert not (tmp_path / "c").exists()
+
+
+def test_split_modes():
+    s = split_frames(4, 3750, "paper", seed=0)
+    assert len(s["train"]) == 5000 and len(s["val"]) == 2500 and len(s["test"]) == 7500
+    assert s["val"][0] == 2 * 3750 + 1250 and max(s["train"]) < min(s["val"])  # the original: index >= 5000
+    assert all(i % 3750 >= 1875 for i in s["test"])
+    f = split_frames(2, 50, "frame", seed=1)
+    assert sorted(f["train"] + f["val"] + f["test"]) == list(range(100)) and len(f["train"]) == 60
+    assert f == split_frames(2, 50, "frame", seed=1) and f != split_frames(2, 50, "frame", seed=2)
+    h = split_frames(5, 10, "house", seed=0)
+    houses = [{i // 10 for i in h[k]} for k in ("train", "val", "test")]
+    assert not (houses[0] & houses[1]) and not (houses[0] & houses[2]) and sum(map(len, houses)) == 5
+    with pytest.raises(InputError, match="at least 3 houses"):
+        split_frames(2, 10, "house", seed=0)

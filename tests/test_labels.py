@@ -1,0 +1,123 @@
+"""Labels on hand-made scenes: boxes through the pose, and each filter on a constructed case."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_generate_scenes import WALL, HouseBuilder
+
+from mpchair.dataset.frame import cast_scan
+from mpchair.geometry import points_in_boxes, transform_points
+from mpchair.labels import ObjectScenes, decide_boxes
+from mpchair.labels.visibility import covering_boxes
+from mpchair.scan.raycast import make_raycaster
+from mpchair.scan.sensors import camera_calib, load_sensor, scan_directions
+
+OFFSET = np.array([-3210.0, 4567.0, 8.0])
+SENSOR = load_sensor("mp3d-depth90")
+
+
+def _pose(x, y, yaw, height=1.0):
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = OFFSET + [x, y, height]
+    return T
+
+
+def _decide(house, pose, filters=SENSOR.filters):
+    objs = np.array([i for i, o in enumerate(house.objects) if o.mpcat40_index == 3])
+    boxes = np.stack([house.objects[i].aligned_box for i in objs])
+    rc = make_raycaster(house.vertices, house.faces)
+    scenes = ObjectScenes(house.vertices, house.faces, house.face_object)
+    cover = covering_boxes(house.vertices, house.faces, house.face_object, objs, boxes)
+    dec = decide_boxes(boxes, objs, pose, rc, house.face_object, SENSOR.camera, camera_calib(SENSOR.camera), filters,
+                       scenes, cover)
+    return dec, rc
+
+
+def test_boxes_follow_the_pose_and_scan_points_inside_are_the_chair():
+    hb = HouseBuilder()
+    hb.room(0, 0, 8, 6)
+    a = hb.chair(3.0, 2.5, 0.3)
+    b = hb.chair(4.0, 4.2, -1.1, size=(0.6, 0.5, 1.0))
+    house = hb.build(offset=OFFSET)
+    pose = _pose(1.0, 3.0, 0.2)
+    dec, rc = _decide(house, pose)
+    assert dec.reasons == ("", "")
+    # Construction: chair a at world (3, 2.5), yaw 0.3; the sensor at (1, 3, 1) with yaw 0.2.
+    for k, (x, y, yaw, size) in zip((a, b), ((3.0, 2.5, 0.3, (0.5, 0.45, 0.9)), (4.0, 4.2, -1.1, (0.6, 0.5, 1.0)))):
+        c, s = np.cos(-0.2), np.sin(-0.2)
+        dx, dy = x - 1.0, y - 3.0
+        expect = [c * dx - s * dy, s * dx + c * dy, size[2] / 2 - 1.0, *size, yaw - 0.2]
+        np.testing.assert_allclose(dec.boxes[list(dec.objects).index(k)], expect, atol=1e-9)
+    assert (dec.visible_pixels > 35).all() and (dec.in_box_fraction >= 0.99).all()
+    assert set(dec.occluded) <= {0, 1, 2}
+    # Scan points inside a kept box (above the floor) are hits on that chair, and there are plenty.
+    d = scan_directions(SENSOR)
+    pts = cast_scan(SENSOR, d, pose, rc)
+    _, face = rc.cast(pose[:3, 3], d @ pose[:3, :3].T)
+    for k in (a, b):
+        j = list(dec.objects).index(k)
+        grown = dec.boxes[j : j + 1].copy()
+        grown[0, 3:6] += 0.02
+        inside = points_in_boxes(pts[:, :3], grown)[0] & (pts[:, 2] > -1.0 + 0.01)
+        assert inside.sum() > 50
+        # Recover each point's ray: points and ray hits are in the same order for hit rays inside the crop.
+        world = transform_points(pts[inside, :3].astype(np.float64), pose)
+        hit_world = pose[:3, 3] + d @ pose[:3, :3].T * rc.cast(pose[:3, 3], d @ pose[:3, :3].T)[0][:, None]
+        on_chair = house.face_object[face] == k
+        dist = np.min(np.linalg.norm(world[:, None] - hit_world[on_chair][None], axis=2), axis=1)
+        assert dist.max() < 1e-4
+
+
+def test_filters_on_constructed_cases():
+    hb = HouseBuilder()
+    hb.room(0, 0, 12, 8)
+    near = hb.chair(3.0, 3.0)  # kept
+    far = hb.chair(9.6, 3.0)  # 8.6 m away: distance
+    hidden = hb.chair(5.5, 6.0)  # 5.4 m away, 34 deg left, behind a wall: visible pixels
+    hb.add_box((4.5, 5.0, 1.3), (5.0, 0.1, 2.6), category=WALL)
+    side = hb.chair(1.2, 5.0)  # 90 deg to the left: fov
+    high = hb.add_box((5.0, 2.4, 2.3), (0.5, 0.45, 0.5), category=3)  # a "chair" 1.3 m above the sensor: height
+    high = sum(1 for p in hb.parts[: high + 1] if p[2] >= 0) - 1
+    holey = hb.chair(4.5, 1.6)  # its label leaks onto a big wall patch behind: in-box fraction
+    patch = hb.add_box((11.9, 0.5, 1.3), (0.1, 1.0, 2.6))
+    house = hb.build(offset=OFFSET)
+    start = sum(len(p[1]) for p in hb.parts[:patch])
+    fo = house.face_object.copy()
+    fo[start : start + len(hb.parts[patch][1])] = holey
+    house = dataclasses.replace(house, face_object=fo)
+    dec, _ = _decide(house, _pose(1.0, 3.0, 0.0))
+    reasons = dict(zip(dec.objects.tolist(), dec.reasons))
+    assert reasons[near] == ""
+    assert reasons[far] == "distance"
+    assert reasons[hidden] == "visible_pixels" and dec.visible_pixels[list(dec.objects).index(hidden)] == 0
+    assert reasons[side] == "fov"
+    assert reasons[high] == "height"
+    j = list(dec.objects).index(holey)
+    assert reasons[holey] == "in_box_fraction", (dec.visible_pixels[j], dec.in_box_fraction[j])
+    assert dec.in_box_fraction[j] < 0.8 and dec.points_in_box[j] >= 35
+    # Too few points: the same frame with a stricter point threshold rejects the near chair for that reason.
+    strict = dataclasses.replace(SENSOR.filters, min_points_in_box=10**6)
+    dec2, _ = _decide(house, _pose(1.0, 3.0, 0.0), strict)
+    assert dict(zip(dec2.objects.tolist(), dec2.reasons))[near] == "points_in_box"
+
+
+@pytest.mark.parametrize("distance,expect_occluded", [(2.0, 0)])
+def test_occlusion_level_of_a_half_hidden_chair(distance, expect_occluded):
+    hb = HouseBuilder()
+    hb.room(0, 0, 8, 6)
+    k = hb.chair(1.0 + distance, 3.0, size=(0.5, 0.8, 0.9))
+    house = hb.build(offset=OFFSET)
+    dec, _ = _decide(house, _pose(1.0, 3.0, 0.0))
+    k = list(dec.objects).index(k)
+    assert dec.occluded[k] == expect_occluded and dec.visible_fraction[k] == pytest.approx(1.0, abs=0.02)
+    # A screen hiding the chair's left half.
+    hb.add_box((2.0, 3.25, 0.6), (0.05, 0.5, 1.2))
+    house = hb.build(offset=OFFSET)
+    dec, _ = _decide(house, _pose(1.0, 3.0, 0.0))
+    assert dec.reasons[k] == ""
+    assert 0.25 < dec.visible_fraction[k] < 0.75 and dec.occluded[k] == 1

@@ -1,0 +1,95 @@
+"""Benchmark ``mpchair generate`` (``mp3d-depth90``) on a reference synthetic house; prints ratios, asserts nothing.
+
+Reports, in one run:
+
+* pipeline throughput: frames/s of ``generate`` with ``--workers`` (default 2) into a temporary folder;
+* raw Embree time for the same number of rays: the scan pattern cast (embreex scene, one thread, no Python work
+  around it) from the generated frames' own poses, repeated until it reaches the rays the pipeline cast
+  (scan + dense visibility rays, as counted in the frame records);
+* the ratio ``pipeline CPU-seconds / raw raycast seconds``, with pipeline CPU-seconds = wall time x workers (an
+  upper bound on the CPU the pipeline used).
+
+Usage: ``python tools/bench_generate.py [--frames 100] [--workers 2] [--seed 0] [--json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import numpy as np
+
+    from mpchair.dataset.generate import GenerateRequest, generate
+    from mpchair.matterport.house import read_house
+    from mpchair.matterport.source import find_houses
+    from mpchair.scan.raycast import EmbreeRaycaster
+    from mpchair.scan.sensors import load_sensor, scan_directions
+    from mpchair.synth import synthesize_house, write_house
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0, help="seed of the reference house and of the dataset")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+
+    with tempfile.TemporaryDirectory(prefix="mpchair-bench-") as tmp:
+        tmp = Path(tmp)
+        house = synthesize_house(args.seed, levels=1)
+        write_house(tmp / "houses", house)
+        t0 = time.perf_counter()
+        summary = generate(GenerateRequest(root=tmp / "houses", houses=(house.id,), frames=args.frames,
+                                           out=tmp / "ds", seed=args.seed, workers=args.workers, progress=False))
+        wall = time.perf_counter() - t0
+        records = json.loads((tmp / "ds" / "manifest.json").read_text())["frames"]
+        rays = int(sum(r["rays"] for r in records))
+        h = read_house(find_houses(tmp / "houses")[house.id])
+        rc = EmbreeRaycaster(h.vertices, h.faces)
+        d = scan_directions(load_sensor("mp3d-depth90"))
+        poses = [np.vstack([np.array(r["pose"]), [0, 0, 0, 1]]) for r in records]
+        batches = []
+        left, k = rays, 0
+        while left > 0:  # precompute float32 inputs so that only Embree is timed
+            T = poses[k % len(poses)]
+            n = min(left, len(d))
+            o32 = np.empty((n, 3), dtype=np.float32)
+            o32[:] = (T[:3, 3] - rc.centre).astype(np.float32)
+            batches.append((o32, np.ascontiguousarray(d[:n] @ T[:3, :3].T, dtype=np.float32)))
+            left -= n
+            k += 1
+        t1 = time.perf_counter()
+        for o32, d32 in batches:
+            rc._scene.run(o32, d32)  # the raw engine call (what EmbreeRaycaster.cast wraps)
+        raw = time.perf_counter() - t1
+    result = {
+        "house": house.id, "faces": len(house.faces), "frames": args.frames, "workers": args.workers,
+        "wall_s": round(wall, 3), "frames_per_s": round(args.frames / wall, 2), "rays": rays,
+        "rays_per_frame": round(rays / args.frames), "raw_embree_s": round(raw, 3),
+        "raw_embree_mrays_per_s": round(rays / raw / 1e6, 2),
+        "pipeline_cpu_over_raw": round(wall * args.workers / raw, 2), "kept_boxes": summary.kept,
+        "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key:>24}: {value}")
+        print(f"targets: frames/s >= 25 ({result['frames_per_s']}), pipeline/raw <= 1.5 "
+              f"({result['pipeline_cpu_over_raw']})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
