@@ -1,0 +1,102 @@
+"""``mpchair view`` (a frame: bird's-eye view, optional 3D view) and ``mpchair view-house`` (a house, top-down)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from mpchair.errors import InputError
+
+_CTX = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
+
+
+def _png(path: Path, option: str) -> Path:
+    if path.suffix.lower() != ".png":
+        raise InputError(f"{option} must name a .png file", path)
+    return path
+
+
+@click.command(context_settings=_CTX)
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--frame", "frame", required=True, help="Frame id (123 or 000123).")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Bird's-eye view PNG.")
+@click.option("--results", type=click.Path(path_type=Path), default=None,
+              help="Folder of KITTI result files (16 columns): detections drawn in red with scores.")
+@click.option("--3d", "three_d", is_flag=True,
+              help="Also render the 3D view (pyvista/VTK off-screen) to <out stem>-3d.png beside --out.")
+@click.option("--fov-crop", is_flag=True, help="Show only points inside the image_2 field of view.")
+@click.option("--size", type=int, nargs=2, default=(1000, 1000), show_default=True, metavar="W H",
+              help="Picture size in pixels.")
+@click.option("--extent", type=float, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
+              help="BEV window (sensor frame, metres); default: fit the points and boxes.")
+@click.option("--zmax", type=float, default=None,
+              help="Drop points at or above this z (sensor frame, metres), e.g. an indoor ceiling.")
+@click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
+def view(dataset: Path, frame: str, out: Path, results: Path | None, three_d: bool, fov_crop: bool,
+         size: tuple[int, int], extent, zmax: float | None, as_json: bool) -> None:
+    """Picture of one frame of DATASET: bird's-eye view of the scan (coloured by z) with its labelled boxes (green,
+    class names) and, with --results, detections (red, dashed, scores). Headless; PNG output.
+
+    \b
+    Example:
+      mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
+    """
+    from mpchair.render import RenderError, frame_picture
+
+    if not frame.isdigit() or len(frame) > 6:
+        raise click.BadParameter(f"{frame!r} is not a frame id (up to 6 digits)", param_hint="--frame")
+    fid = f"{int(frame):06d}"
+    _png(out, "--out")
+    if min(size) < 64:
+        raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
+    if not (Path(dataset) / "training" / "velodyne" / f"{fid}.bin").is_file():
+        raise InputError(f"frame {fid} not found (no training/velodyne/{fid}.bin)", dataset)
+    out_3d = out.with_name(out.stem + "-3d.png") if three_d else None
+    try:
+        info = frame_picture(dataset, fid, out, results=results, out_3d=out_3d, fov_crop=fov_crop, size=tuple(size),
+                             extent=tuple(extent) if extent else None, zmax=zmax)
+    except RenderError as e:
+        raise click.ClickException(str(e)) from None
+    if as_json:
+        click.echo(json.dumps(info, indent=1))
+    else:
+        click.echo(f"wrote {out}" + (f" and {out_3d}" if out_3d else "") + f": frame {fid}, {info['points']} points, "
+                   f"{info['boxes']} boxes" + ("" if info["detections"] is None else f", {info['detections']} "
+                                               "detections"))
+
+
+@click.command("view-house", context_settings=_CTX)
+@click.option("--root", type=click.Path(path_type=Path), required=True,
+              help="Matterport3D root (folders or house_segmentations.zip), as for mpchair houses.")
+@click.option("--house", "house_id", required=True, help="House id.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="PNG to write.")
+@click.option("--category", default="chair", show_default=True, help="mpcat40 class to highlight (name or index).")
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="An mpchair dataset: draw the viewpoints (pose/ files) of its frames in this house (manifest.json).")
+@click.option("--level", type=int, default=None, help="Only this level (index into the house's levels).")
+@click.option("--size", type=int, nargs=2, default=(1200, 1200), show_default=True, metavar="W H",
+              help="Picture size in pixels.")
+@click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
+def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Path | None, level: int | None,
+               size: tuple[int, int], as_json: bool) -> None:
+    """Top-down picture of a house mesh: up-facing surfaces in grey by height (ceilings left out, walls as dark
+    outlines), objects of --category in orange with their aligned boxes, and with --dataset the sensor viewpoints
+    (blue arrows: position and heading). Headless; PNG output.
+
+    \b
+    Example:
+      mpchair view-house --root houses/ --house synth0000 --out house.png --dataset dataset/
+    """
+    from mpchair.render import house_picture
+
+    _png(out, "--out")
+    if min(size) < 64:
+        raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
+    info = house_picture(root, house_id, out, category=category, dataset=dataset, level=level, size=tuple(size))
+    if as_json:
+        click.echo(json.dumps(info, indent=1))
+    else:
+        click.echo(f"wrote {out}: house {house_id}, {info['faces']} faces, {info['objects']} {category} object(s)"
+                   + ("" if info["viewpoints"] is None else f", {info['viewpoints']} viewpoints"))

@@ -1,0 +1,168 @@
+"""Pictures render headless: ``mpchair view`` (bird's-eye view, detections, 3D) and ``mpchair view-house``; PNGs have
+the asked size, are not blank and show what they claim (ground truth green, detections red, chairs orange)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+from test_stats import KITTI, build_small_dataset, independent_density, run_main, small_calib
+
+from mpchair.cli import cli
+from mpchair.geometry import boxes_to_kitti_camera
+from mpchair.kitti import Labels, read_velodyne, write_labels
+from mpchair.render import render_house
+from mpchair.stats import MATTERPORT_GEOMETRY
+
+
+def run(*args) -> tuple[int, str]:
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        raise result.exception
+    return result.exit_code, result.output
+
+
+def rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB")).astype(np.int64)
+
+
+def near(image: np.ndarray, colour: str, tol: int = 40) -> int:
+    """Pixels within ``tol`` (per channel) of a ``#rrggbb`` colour."""
+    target = np.array([int(colour[i:i + 2], 16) for i in (1, 3, 5)])
+    return int(np.all(np.abs(image - target) <= tol, axis=-1).sum())
+
+
+def assert_picture(path: Path, size: tuple[int, int], min_colours: int = 20) -> np.ndarray:
+    image = rgb(path)
+    assert image.shape == (size[1], size[0], 3)
+    assert image.std() > 15
+    assert len(np.unique(image.reshape(-1, 3), axis=0)) >= min_colours
+    return image
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    return build_small_dataset(tmp_path_factory.mktemp("small_render"))
+
+
+def test_view_bev_with_detections(small, tmp_path):
+    # Results: the frame's first box shifted 0.3 m (16 columns, with a score), written like a detector would.
+    results = tmp_path / "results"
+    box = np.array([[3.3, 1.0, -0.6, 0.9, 0.6, 0.9, 0.3]])
+    loc, dims, ry, alpha = boxes_to_kitti_camera(box, small_calib())
+    write_labels(results / "000000.txt", Labels(["Chair"], [-1], [-1], alpha, [[0, 0, 50, 50]], dims, loc, ry,
+                                                score=[0.87]))
+    plain, with_dets = tmp_path / "plain.png", tmp_path / "dets.png"
+    code, out = run("view", small, "--frame", "0", "--out", plain, "--size", "640", "480")
+    assert code == 0, out
+    code, out = run("view", small, "--frame", "000000", "--out", with_dets, "--results", results, "--size", "640",
+                    "480", "--json")
+    assert code == 0, out
+    info = json.loads(out)
+    assert (info["boxes"], info["detections"], info["out_3d"]) == (2, 1, None)
+    a, b = assert_picture(plain, (640, 480)), assert_picture(with_dets, (640, 480))
+    assert near(a, "#00b050") > 100 and near(b, "#00b050") > 100  # ground truth outlines
+    assert near(a, "#e8242b") < 5 < 40 < near(b, "#e8242b")  # the detection (and its score) appear only with it
+
+
+def test_view_bad_inputs(small, tmp_path, capsys):
+    assert run("view", "--help")[0] == 0 and run("view-house", "--help")[0] == 0
+    code, out = run_main(capsys, "view", small, "--frame", "7", "--out", tmp_path / "x.png")
+    assert code == 2 and out.startswith("error: ") and "frame 000007 not found" in out
+    code, out = run_main(capsys, "view", small, "--frame", "0", "--out", tmp_path / "x.png", "--results",
+                         tmp_path / "none")
+    assert code == 2 and out.count("\n") == 1 and "none/000000.txt: label file not found" in out
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_view_3d_on_kitti(tmp_path):
+    out = tmp_path / "k.png"
+    code, text = run("view", KITTI, "--frame", "1", "--out", out, "--3d", "--size", "400", "300")
+    assert code == 0, text
+    assert_picture(out, (400, 300))
+    image = assert_picture(tmp_path / "k-3d.png", (400, 300))
+    assert near(image, "#00b050", tol=60) > 20  # the green box wireframes
+
+
+def _cube(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned closed box mesh with outward normals (12 triangles)."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], dtype=np.float64)
+    f = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+                  [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]], dtype=np.int64)
+    return v, f
+
+
+def test_render_house_arrays(tmp_path):
+    # A room: floor slab, a ceiling slab above it (its top faces up like a roof, so it is hidden by face mask) and
+    # a chair block; the chair must come out orange, and hiding the ceiling must uncover it.
+    parts = [_cube((0, 0, -0.1), (6, 4, 0)), _cube((0, 0, 2.6), (6, 4, 2.7)), _cube((2, 1, 0), (2.6, 1.6, 0.9))]
+    verts, faces, owner = [], [], []
+    for k, (v, f) in enumerate(parts):
+        faces.append(f + sum(len(p[0]) for p in parts[:k]))
+        verts.append(v)
+        owner += [k] * len(f)
+    v, f, owner = np.concatenate(verts), np.concatenate(faces), np.asarray(owner)
+    box = np.array([[2.3, 1.3, 0.45, 0.6, 0.6, 0.9, 0.0]])
+    vp = np.array([[1.0, 2.0, 1.0, 0.0], [5.0, 3.0, 1.0, math.pi]])
+    covered, shown = tmp_path / "covered.png", tmp_path / "shown.png"
+    render_house(v, f, covered, highlight_faces=owner == 2, highlight_boxes=box, viewpoints=vp, size=(500, 400))
+    render_house(v, f, shown, highlight_faces=owner == 2, highlight_boxes=box, viewpoints=vp, size=(500, 400),
+                 hidden_faces=owner == 1)
+    a, b = assert_picture(covered, (500, 400), 10), assert_picture(shown, (500, 400), 10)
+    assert near(b, "#ff7f0e", 30) > 4 * near(a, "#ff7f0e", 30) > 0  # chair fill uncovered (its box outline always)
+    assert near(b, "#1f4fff", 40) > 20  # viewpoints
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """One synthetic house and a 1-frame dataset made by ``mpchair.dataset.generate`` (skipped if not built yet)."""
+    gen = pytest.importorskip("mpchair.dataset.generate")
+    from mpchair.synth import write_synthetic_houses
+
+    base = tmp_path_factory.mktemp("gen")
+    (house_id,) = write_synthetic_houses(base / "houses", 1, seed=3)
+    gen.generate(gen.GenerateRequest(root=base / "houses", houses=(house_id,), frames=1, out=base / "ds",
+                                     progress=False))
+    return base / "houses", house_id, base / "ds"
+
+
+@pytest.mark.slow
+def test_generated_dataset_stats_and_pictures(generated, tmp_path, capsys):
+    houses, house_id, ds = generated
+    code, out = run("stats", "--density", ds, "--json")
+    assert code == 0, out
+    data = json.loads(out)
+    for f in data["frames"]:
+        points = read_velodyne(ds / "training" / "velodyne" / f"{f['id']}.bin")
+        assert (f["pillars"], f["density"]) == independent_density(points, MATTERPORT_GEOMETRY)
+    manifest = json.loads((ds / "manifest.json").read_text())
+    code, out = run("stats", "--boxes", ds, "--json")
+    assert code == 0, out
+    boxes = json.loads(out)
+    kept = [len(fr["kept"]) for fr in manifest["frames"]]
+    assert [f["boxes"] for f in boxes["per_frame"]] == kept
+    expected_rej: dict[str, int] = {}
+    for fr in manifest["frames"]:
+        for r in fr["rejected"]:
+            expected_rej[r["reason"]] = expected_rej.get(r["reason"], 0) + 1
+    assert (boxes["rejected"] or {}) == expected_rej
+    code, out = run("view", ds, "--frame", "0", "--out", tmp_path / "f.png", "--size", "500", "500", "--zmax", "1")
+    assert code == 0, out
+    assert_picture(tmp_path / "f.png", (500, 500))
+    code, out = run("view-house", "--root", houses, "--house", house_id, "--dataset", ds, "--out",
+                    tmp_path / "h.png", "--size", "900", "500", "--json")
+    assert code == 0, out
+    info = json.loads(out)
+    assert info["viewpoints"] == 1 and info["objects"] > 0
+    image = assert_picture(tmp_path / "h.png", (900, 500), 10)
+    assert near(image, "#ff7f0e", 30) > 50 and near(image, "#1f4fff", 40) > 5
+    code, out = run_main(capsys, "view-house", "--root", houses, "--house", "nope", "--out", tmp_path / "n.png")
+    assert code == 2 and "house 'nope' not found" in out and not (tmp_path / "n.png").exists()
