@@ -1,0 +1,48 @@
+"""``detector train``: parse arguments, call :func:`detector.train.train`, print where the run is."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+
+@click.command("train")
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
+              help="Experiment YAML (configs/models/*.yaml).")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
+              help="KITTI-format dataset folder (training/ + ImageSets/).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Run folder: checkpoints, last.pt, metrics.jsonl, config.yaml.")
+@click.option("--epochs", type=int, default=None, help="Override train.epochs.")
+@click.option("--resume", is_flag=True, help="Continue from OUT/last.pt (identical to an uninterrupted run).")
+@click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps (whole run) and save.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
+@click.option("--split", default="train", show_default=True, help="ImageSets split to train on.")
+@click.option("--eval-split", default="val", show_default=True,
+              help="Split evaluated every train.eval_every epochs (skipped if the dataset lacks it).")
+@click.option("--no-progress", is_flag=True, help="No progress bars.")
+def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, resume: bool, max_steps: int | None,
+          device: str, threads: int | None, split: str, eval_split: str, no_progress: bool) -> None:
+    """Train dense or sparse PointPillars on a KITTI-format dataset.
+
+    \b
+    Metrics go to OUT/metrics.jsonl (one JSON object per line), checkpoints to OUT/checkpoints/epoch_NNN.pt and
+    OUT/last.pt (written atomically). Same seed, same data → same weights; --resume continues exactly.
+    Distributed (DDP, gloo on CPU / nccl on CUDA; train.batch_size is per process):
+      torchrun --standalone --nproc-per-node=2 -m detector train --config CFG --data DIR --out RUN
+    """
+    from detector.train import TrainingError
+    from detector.train import train as run_training
+
+    try:
+        result = run_training(config_path, data_dir, out_dir, epochs=epochs, resume=resume, max_steps=max_steps,
+                              device=device, threads=threads, split=split, eval_split=eval_split,
+                              progress=not no_progress)
+    except TrainingError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(1)
+    loss = "n/a" if result.last_loss is None else f"{result.last_loss:.4f}"
+    click.echo(f"trained {result.epoch} epoch(s), {result.step} step(s), last loss {loss}; "
+               f"checkpoint {result.last_checkpoint}")

@@ -1,0 +1,235 @@
+"""Inference: a trained model over a KITTI-format split → KITTI result files (16 columns) → KITTI-protocol AP.
+
+Detections come out of the model as sensor-frame boxes ``[x, y, z, l, w, h, yaw]``; they are written in the frame's
+own label frame through its calib (:func:`mpchair.geometry.boxes_to_kitti_camera`: bottom centre in the rectified
+camera frame, ``h w l``, ``rotation_y``, ``alpha = rotation_y - atan2(x, z)``), with the 2D box of the projected 3D
+box clipped to that frame's real image size (:func:`mpchair.geometry.project_boxes_to_image`) — the KITTI
+difficulty rules need sensible 2D boxes even for BEV and 3D AP. ``truncated`` / ``occluded`` are written as -1, like
+the common frameworks. Every frame of the split gets a file, empty when nothing was detected.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from detector.data import Frame, KittiDataset
+from detector.data.pipeline import make_eval_sample
+from detector.models import Detections, ExperimentConfig, build_model, load_experiment
+from mpchair.atomic import write_text
+from mpchair.errors import InputError
+from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
+from mpchair.kitti import Labels, frame_paths, read_image_size, write_labels
+
+RESULTS_SUBDIR = "data"  # result files go to OUT/data/<id>.txt (OpenPCDet's final_result/data layout)
+
+
+def detections_to_labels(
+    det: Detections, frame: Frame, classes: tuple[str, ...], image_size: tuple[int, int]
+) -> Labels:
+    """One frame's detections as 16-column KITTI result rows (rectified camera frame of ``frame.calib``).
+
+    ``det.boxes`` (M,7) sensor frame, ``det.scores`` (M,), ``det.labels`` (M,) index into ``classes``;
+    ``image_size`` ``(W, H)`` of the frame's image_2.
+    """
+    boxes = det.boxes.detach().cpu().to(torch.float64).numpy().reshape(-1, 7)
+    scores = det.scores.detach().cpu().to(torch.float64).numpy().reshape(-1)
+    labels = det.labels.detach().cpu().numpy().reshape(-1)
+    n = len(boxes)
+    if n == 0:
+        return Labels.empty(with_score=True)
+    location, dims_hwl, rotation_y, alpha = boxes_to_kitti_camera(boxes, frame.calib)
+    bbox, _ = project_boxes_to_image(boxes, frame.calib, image_size)
+    names = np.array([classes[int(k)] for k in labels], dtype=str)
+    return Labels(
+        names=names,
+        truncated=np.full(n, -1.0),
+        occluded=np.full(n, -1, dtype=np.int64),
+        alpha=alpha,
+        bbox=bbox,
+        dims_hwl=dims_hwl,
+        location=location,
+        rotation_y=rotation_y,
+        score=scores,
+    )
+
+
+def predict_split(
+    model: nn.Module, frames: KittiDataset, cfg: ExperimentConfig, *, device: torch.device | str = "cpu",
+    batch_size: int | None = None, progress: bool = True,
+) -> Iterator[tuple[Frame, Detections]]:
+    """Run ``model`` (put in eval mode here) over every frame of ``frames``, yielding ``(frame, detections)``."""
+    from detector.train import augment_options
+
+    options = augment_options(cfg)
+    bs = batch_size or cfg.eval.batch_size
+    model.eval()
+    ids = frames.ids
+    with torch.no_grad(), tqdm(total=len(ids), desc=f"infer {frames.split}", unit="frame", disable=not progress,
+                                leave=False) as bar:
+        for start in range(0, len(ids), bs):
+            chunk = [frames.load(fid) for fid in ids[start : start + bs]]
+            points = [torch.from_numpy(make_eval_sample(f, options).points).to(device) for f in chunk]
+            dets = model.predict(points)
+            yield from zip(chunk, dets)
+            bar.update(len(chunk))
+
+
+@torch.no_grad()
+def recalibrate_batchnorm(
+    model: nn.Module, frames: KittiDataset, cfg: ExperimentConfig, *, device: torch.device | str = "cpu",
+    batch_size: int | None = None, progress: bool = True,
+) -> int:
+    """Re-estimate every BatchNorm's running mean/variance as the plain average of batch statistics over ``frames``
+    ("precise BN"); returns the number of batches. Leaves the model in eval mode.
+
+    The reference BN momentum (0.01) makes the running statistics an average over the last few hundred steps of
+    changing weights; after a short run they still remember their initial values (mean 0, variance 1) and the eval-mode
+    network is far from the trained one. Averaging fresh batch statistics of the final weights (forward passes in
+    train mode without gradients, no augmentation) fixes that without touching any weight.
+    """
+    from detector.train import augment_options
+
+    options = augment_options(cfg)
+    bs = batch_size or cfg.train.batch_size
+    norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    momenta = [m.momentum for m in norms]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative average over the batches below
+    model.train()
+    n = 0
+    try:
+        for start in tqdm(range(0, len(frames), bs), desc="recalibrate BN", unit="batch", disable=not progress,
+                          leave=False):
+            chunk = [frames.load(fid) for fid in frames.ids[start : start + bs]]
+            model([torch.from_numpy(make_eval_sample(f, options).points).to(device) for f in chunk])
+            n += 1
+    finally:
+        for m, momentum in zip(norms, momenta):
+            m.momentum = momentum
+        model.eval()
+    return n
+
+
+def evaluate_model(
+    model: nn.Module, cfg: ExperimentConfig, data_dir: str | Path, split: str, out_dir: str | Path | None, *,
+    device: torch.device | str = "cpu", progress: bool = True,
+):
+    """Predict ``split`` of ``data_dir`` with ``model``, write result files under ``out_dir/data`` (if given) and
+    return the :class:`detector.eval.EvalResult` against the split's labels (DontCare included).
+
+    Result files are written to a temporary folder and renamed into place only when every frame succeeded, so a
+    failure leaves no partial result folder.
+    """
+    from detector.eval import evaluate
+
+    frames = KittiDataset(data_dir, split, classes=cfg.data.classes, name_map=dict(cfg.data.rename),
+                          fov_crop=cfg.data.fov_crop)
+    gts: list[Labels] = []
+    dts: list[Labels] = []
+    for frame, det in predict_split(model, frames, cfg, device=device, progress=progress):
+        size = frame.image_size or read_image_size(frame_paths(frames.root, frame.frame_id).image_2)
+        dts.append(detections_to_labels(det, frame, cfg.data.classes, size))
+        gts.append(frame.gt)
+    min_overlaps = {c: (t, t, t) for c, t in zip(cfg.eval.classes, cfg.eval.iou_thresholds)}
+    result = evaluate(gts, dts, cfg.eval.classes, min_overlaps=min_overlaps)
+    if out_dir is not None:
+        write_results(out_dir, frames.ids, dts)
+        write_text(Path(out_dir) / "metrics.json", _json(result))
+    return result
+
+
+def _json(result) -> str:
+    from detector.eval import to_json
+
+    return to_json(result) + "\n"
+
+
+def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> Path:
+    """Write ``OUT/data/<id>.txt`` for every id (16 columns; empty files for frames without detections).
+
+    The folder is filled under a temporary name and swapped in at the end (an older ``data`` folder is replaced).
+    """
+    out = Path(out_dir)
+    final = out / RESULTS_SUBDIR
+    tmp = out / f".{RESULTS_SUBDIR}.tmp{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    for fid, lab in zip(ids, labels):
+        write_labels(tmp / f"{fid}.txt", lab)
+    if final.exists():
+        old = out / f".{RESULTS_SUBDIR}.old{os.getpid()}"
+        final.rename(old)
+        tmp.rename(final)
+        shutil.rmtree(old)
+    else:
+        tmp.rename(final)
+    return final
+
+
+def load_model_from_checkpoint(
+    checkpoint: str | Path, cfg: ExperimentConfig, device: torch.device | str = "cpu"
+) -> nn.Module:
+    """Build ``cfg.model`` and load the checkpoint's weights (a mismatching checkpoint is an :class:`InputError`)."""
+    from detector.train import load_checkpoint
+
+    state = load_checkpoint(checkpoint, map_location=device)
+    model = build_model(cfg.model).to(device)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        msg = " ".join(first[:2])[:300]
+        raise InputError(f"checkpoint does not fit the config's model: {msg}", checkpoint) from None
+    return model
+
+
+def evaluate_checkpoint(
+    config_path: str | Path,
+    data_dir: str | Path,
+    checkpoint: str | Path,
+    split: str = "val",
+    out_dir: str | Path | None = None,
+    *,
+    device: str = "cpu",
+    threads: int | None = None,
+    recalibrate_bn_split: str | None = None,
+    progress: bool = True,
+):
+    """``detector eval --config --data --checkpoint``: inference on ``split`` + result files + KITTI evaluation.
+
+    ``recalibrate_bn_split`` (e.g. ``"train"``): first re-estimate the BatchNorm statistics on that split
+    (:func:`recalibrate_batchnorm`; useful after short runs, off by default as in the reference).
+
+    Writes ``OUT/data/<id>.txt`` (16-column KITTI results, one per frame id of the split) and ``OUT/metrics.json``;
+    ``out_dir`` defaults to ``<checkpoint folder>/<checkpoint name>_<split>``. Returns the
+    :class:`detector.eval.EvalResult`. Everything is validated (config, checkpoint, split) before anything is written.
+    """
+    if threads is not None:
+        if threads < 1:
+            raise InputError(f"--threads must be >= 1, got {threads}")
+        torch.set_num_threads(threads)
+    if device not in ("cpu", "cuda"):
+        raise InputError(f"unknown device {device!r} (cpu or cuda)")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available")
+    cfg = load_experiment(config_path)
+    model = load_model_from_checkpoint(checkpoint, cfg, device)
+    KittiDataset(data_dir, split, classes=cfg.data.classes)  # fail on a missing folder / split before any output
+    if recalibrate_bn_split is not None:
+        frames = KittiDataset(data_dir, recalibrate_bn_split, classes=cfg.data.classes, name_map=dict(cfg.data.rename),
+                              fov_crop=cfg.data.fov_crop)
+        recalibrate_batchnorm(model, frames, cfg, device=device, progress=progress)
+    if out_dir is None:
+        ckpt = Path(checkpoint)
+        out_dir = ckpt.parent / f"{ckpt.stem}_{split}"
+    return evaluate_model(model, cfg, data_dir, split, out_dir, device=device, progress=progress)

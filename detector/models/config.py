@@ -1,0 +1,258 @@
+"""Experiment configuration: one YAML file per experiment, loaded into frozen dataclasses.
+
+The file reads top to bottom like OpenPCDet's ``pointpillar.yaml``: ``model`` (voxelizer → pillar net → backbone →
+neck → anchors → head → losses → post-processing), ``data`` (classes and augmentation switches), ``train``
+(optimiser and schedule) and ``eval`` (classes and IoU thresholds). Only :func:`detector.models.build.build_model`
+reads ``model``; modules take explicit keyword arguments. Every length is in metres, every angle in radians, and all
+boxes are ``[x, y, z_centre, l, w, h, yaw]`` in the sensor frame (x forward, y left, z up), yaw CCW from +x.
+
+Reference values (section 6 of ``pointpillars-reference.md``) are the defaults, so a config only has to name the
+geometry; see ``docs/model.md`` for every key.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from mpchair.config import from_dict, load_yaml
+from mpchair.errors import InputError
+from mpchair.geometry import grid_size
+
+Backbone = Literal["dense", "sparse", "sparse1_dense23", "sparse12_dense3", "sparse_wide"]
+"""Middle of the network: the dense SECOND backbone + FPN, or one of the sparse variants of the paper."""
+
+Downsample = Literal["floor", "reference_quirk"]
+"""Sparse 2x2 stride-2 semantics: ``floor`` (paper, default) or the reference's MinkowskiEngine expand quirk."""
+
+Head = Literal["dense", "sparse_exact"]
+"""``dense``: three 1x1 convs over the whole map. ``sparse_exact``: the same weights on active sites only, bias
+elsewhere (identical output when the map is zero at inactive sites)."""
+
+MEAN_CHAIR_LWH = (0.960005934232471, 0.6668719666706728, 0.8838318530669755)
+"""Reference chair anchor [l, w, h] (m): the Matterport-Chair mean box (Open3D-ML lists it as (w, l, h))."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything :func:`build_model` needs. Defaults are the reference's (Open3D-ML / SPP) values.
+
+    Geometry: ``point_cloud_range`` ``[x_min, y_min, z_min, x_max, y_max, z_max]`` (m, sensor frame); ``voxel_size``
+    ``[vx, vy, vz]`` (m; vz spans the whole z range, so pillars); ``output_shape`` ``[ny, nx]`` cells of the padded
+    pseudo-image (>= the real grid, a multiple of the product of ``layer_strides``).
+
+    Anchors: ``anchor_range`` ``[x_min, y_min, z_bottom, x_max, y_max, z_bottom]`` (anchor *bottom* z, as the
+    reference); ``anchor_sizes`` ``[[l, w, h], ...]`` in OUR convention (l along the heading). Open3D-ML lists sizes
+    as (w, l, h) with w the x extent at yaw 0; because the rotations {0, 1.57} cover both axis assignments, the
+    reference anchor set is the same set of BEV rectangles as ours with l = the larger listed horizontal value for the
+    car ([1.6, 3.9, 1.56] → l 3.9, w 1.6, h 1.56) and l = the first value for the chair ([0.960, 0.667, 0.884] →
+    l 0.960, w 0.667, h 0.884).
+    """
+
+    # --- voxelizer (Feature Extract) ---
+    point_cloud_range: tuple[float, float, float, float, float, float]
+    voxel_size: tuple[float, float, float]
+    output_shape: tuple[int, int]
+    in_channels: int = 3
+    max_points_per_pillar: int = 32
+    max_pillars_train: int = 16000
+    max_pillars_test: int = 40000
+    # --- pillar feature net ---
+    pfn_channels: int = 64
+    # --- backbone + neck ---
+    backbone: Backbone = "dense"
+    downsample: Downsample = "floor"
+    layer_channels: tuple[int, ...] = (64, 128, 256)
+    layer_nums: tuple[int, ...] = (3, 5, 5)
+    layer_strides: tuple[int, ...] = (2, 2, 2)
+    neck_channels: tuple[int, ...] = (128, 128, 128)
+    upsample_strides: tuple[int, ...] = (1, 2, 4)
+    # --- head + anchors ---
+    head: Head = "dense"
+    num_classes: int = 1
+    anchor_range: tuple[float, float, float, float, float, float] = (0.0, -19.0, 0.0, 25.0, 19.0, 0.0)
+    anchor_sizes: tuple[tuple[float, float, float], ...] = (MEAN_CHAIR_LWH,)
+    anchor_rotations: tuple[float, ...] = (0.0, 1.57)
+    # --- target assignment (nearest-BEV axis-aligned IoU) ---
+    neg_iou_thr: float = 0.35
+    pos_iou_thr: float = 0.5
+    # --- losses ---
+    focal_alpha: float = 0.25
+    focal_gamma: float = 2.0
+    cls_weight: float = 1.0
+    smooth_l1_beta: float = 0.11
+    reg_weight: float = 2.0
+    dir_weight: float = 0.2
+    dir_offset: float = 0.0
+    # --- post-processing (BBox Extract) ---
+    nms_pre: int = 100
+    score_thr: float = 0.1
+    nms_iou: float = 0.01
+    dir_limit_offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class GtSamplingConfig:
+    """Ground-truth database sampling: paste up to ``sample`` database objects with >= ``min_points`` points."""
+
+    enabled: bool = True
+    min_points: int = 20
+    sample: int = 10
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """What the dataset yields and how training samples are augmented (read by ``detector.data`` / ``train``).
+
+    ``classes``: label names trained on, in class-index order (index k ↔ head class k). ``rename``: pairs
+    ``[from, to]`` applied to label names first (e.g. none for the chair set). ``fov_crop``: keep only points that
+    project into the camera image (KITTI). ``range_filter``: drop GT boxes whose centre is outside the anchor x/y
+    range (Open3D-ML ObjectRangeFilter). ``flip_y``: random flip of y (p 0.5); ``rotation``: uniform global yaw range
+    (rad) or null; ``scaling``: uniform global scale range or null (all three off in the reference).
+    """
+
+    classes: tuple[str, ...] = ("Chair",)
+    rename: tuple[tuple[str, str], ...] = ()
+    fov_crop: bool = False
+    gt_sampling: GtSamplingConfig = field(default_factory=GtSamplingConfig)
+    point_shuffle: bool = True
+    range_filter: bool = True
+    flip_y: bool = False
+    rotation: tuple[float, float] | None = None
+    scaling: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimiser and schedule. Reference: AdamW lr 1e-3, betas (0.95, 0.99), wd 0.01, constant LR, batch 6.
+
+    ``grad_clip_norm``: clip the total gradient norm to this value (``torch.nn.utils.clip_grad_norm_``) or null for no
+    clipping. The reference config names ``grad_clip_norm: 2`` but never applies it (and would have clipped by
+    value); we clip by norm at 10 like OpenPCDet, which only acts on rare spikes. ``samples_per_epoch``: samples drawn
+    per epoch (reference 5000) or null for one pass over the split. ``shuffle``: the reference iterates in a fixed
+    order every epoch (false).
+    """
+
+    optimizer: Literal["adamw"] = "adamw"
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.95, 0.99)
+    weight_decay: float = 0.01
+    batch_size: int = 6
+    epochs: int = 200
+    samples_per_epoch: int | None = None
+    shuffle: bool = False
+    grad_clip_norm: float | None = 10.0
+    seed: int = 0
+    num_workers: int = 0
+    checkpoint_every: int = 2
+    eval_every: int = 5
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """KITTI-protocol evaluation: ``classes`` with one IoU threshold each (BEV and 3D), result batch size.
+
+    ``similar``: pairs ``[label, class]`` of neighbouring classes that are ignored rather than counted as false
+    positives (KITTI: Van → Car).
+    """
+
+    classes: tuple[str, ...] = ("Chair",)
+    iou_thresholds: tuple[float, ...] = (0.5,)
+    similar: tuple[tuple[str, str], ...] = ()
+    batch_size: int = 1
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment file: ``model``, ``data``, ``train``, ``eval`` (the last three default to the reference)."""
+
+    model: ModelConfig
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def real_grid(cfg: ModelConfig) -> tuple[int, int]:
+    """The un-padded pillar grid ``(ny, nx)`` spanned by ``point_cloud_range`` / ``voxel_size`` (cells).
+
+    Raises ValueError when the range is not a whole number of voxels (:func:`mpchair.geometry.grid_size`).
+    """
+    nx, ny = grid_size(cfg.point_cloud_range, cfg.voxel_size)
+    return ny, nx
+
+
+def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
+    """Raise :class:`InputError` for values the dataclass types cannot express (ranges, divisibility, lengths)."""
+
+    def fail(msg: str) -> None:
+        raise InputError(f"model.{msg}", source)
+
+    x0, y0, z0, x1, y1, z1 = cfg.point_cloud_range
+    if not (x1 > x0 and y1 > y0 and z1 > z0):
+        fail(f"point_cloud_range: max must exceed min on every axis, got {list(cfg.point_cloud_range)}")
+    if min(cfg.voxel_size) <= 0:
+        fail(f"voxel_size: must be positive, got {list(cfg.voxel_size)}")
+    if cfg.in_channels not in (3, 4):
+        fail(f"in_channels: 3 (xyz) or 4 (xyzr), got {cfg.in_channels}")
+    ny, nx = cfg.output_shape
+    try:
+        ry, rx = real_grid(cfg)
+    except ValueError as e:
+        raise InputError(f"model.point_cloud_range / voxel_size: {e}", source) from None
+    if ny < ry or nx < rx:
+        fail(f"output_shape: [{ny}, {nx}] is smaller than the real grid [{ry}, {rx}]")
+    n_levels = len(cfg.layer_channels)
+    if n_levels != 3 or any(
+        len(t) != 3 for t in (cfg.layer_nums, cfg.layer_strides, cfg.neck_channels, cfg.upsample_strides)
+    ):
+        fail("layer_channels, layer_nums, layer_strides, neck_channels, upsample_strides: three levels each")
+    total = math.prod(cfg.layer_strides)
+    if ny % total or nx % total:
+        fail(f"output_shape: [{ny}, {nx}] must be a multiple of the total stride {total}")
+    # Every neck level must land on the block-1 resolution so the three maps concatenate.
+    cum = 1
+    for i, (s, u) in enumerate(zip(cfg.layer_strides, cfg.upsample_strides)):
+        cum *= s
+        if cum // u != cfg.layer_strides[0] or cum % u:
+            fail(f"upsample_strides[{i}]: {u} does not bring level {i} (stride {cum}) to stride {cfg.layer_strides[0]}")
+    if cfg.backbone != "dense" and cfg.layer_strides != (2, 2, 2):
+        fail(f"layer_strides: sparse backbones use 2x2 stride-2 down-convs, got {list(cfg.layer_strides)}")
+    if cfg.max_points_per_pillar < 1 or cfg.max_pillars_train < 1 or cfg.max_pillars_test < 1:
+        fail("max_points_per_pillar / max_pillars_*: must be >= 1")
+    if cfg.num_classes < 1:
+        fail(f"num_classes: must be >= 1, got {cfg.num_classes}")
+    if not cfg.anchor_sizes or not cfg.anchor_rotations:
+        fail("anchor_sizes / anchor_rotations: at least one each")
+    if any(min(s) <= 0 for s in cfg.anchor_sizes):
+        fail("anchor_sizes: every l, w, h must be positive")
+    if not 0.0 <= cfg.neg_iou_thr <= cfg.pos_iou_thr <= 1.0:
+        fail(f"neg_iou_thr / pos_iou_thr: need 0 <= neg <= pos <= 1, got {cfg.neg_iou_thr}, {cfg.pos_iou_thr}")
+    if cfg.nms_pre < 1:
+        fail(f"nms_pre: must be >= 1, got {cfg.nms_pre}")
+
+
+def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
+    """Cross-section checks: class lists agree with ``model.num_classes`` and ``eval.iou_thresholds``."""
+    check_model_config(cfg.model, source)
+    if len(cfg.data.classes) != cfg.model.num_classes:
+        raise InputError(
+            f"data.classes has {len(cfg.data.classes)} names but model.num_classes is {cfg.model.num_classes}", source
+        )
+    if len(cfg.eval.iou_thresholds) != len(cfg.eval.classes):
+        raise InputError("eval.iou_thresholds: one threshold per eval class", source)
+    if cfg.train.batch_size < 1 or cfg.train.epochs < 0:
+        raise InputError("train.batch_size must be >= 1 and train.epochs >= 0", source)
+
+
+def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConfig:
+    """Build and check an :class:`ExperimentConfig` from a plain mapping (e.g. the copy stored in a checkpoint)."""
+    cfg = from_dict(ExperimentConfig, data, source=source)
+    check_experiment(cfg, source)
+    return cfg
+
+
+def load_experiment(path: str | Path) -> ExperimentConfig:
+    """Load and validate an experiment YAML (``configs/models/*.yaml``); bad keys/types/values → InputError."""
+    return experiment_from_dict(load_yaml(path), source=str(path))

@@ -1,0 +1,74 @@
+"""Anchor head: three 1x1 convs on the neck map (the paper's "Head" timer), and its exact sparse twin.
+
+Per cell and anchor a (A = n_sizes * n_rots): class logits at channels ``[a*K, (a+1)*K)``, 7 box residuals at
+``[a*7, (a+1)*7)`` and 2 direction logits at ``[a*2, (a+1)*2)``. Init (reference): cls weights N(0, 0.01) with bias
+-log((1 - 0.01) / 0.01) = -4.595 (prior probability 0.01), reg weights N(0, 0.01) with bias 0, dir PyTorch default.
+
+:class:`SparseExactHead` holds the same parameters (same ``state_dict``) but evaluates the 1x1 convs as one Linear
+layer on the *active* sites only and fills every other site with the bias. On a map that is exactly zero at inactive
+sites (the sparse backbone's todense output) this is the dense head's output: a 1x1 conv of a zero vector is its bias.
+The full (B, H, W, C) maps are still materialised, so post-processing (top-k over the whole map, including its tie
+order among the many equal bias scores) sees exactly what the dense head would give it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+CLS_PRIOR = 0.01  # initial foreground probability of every anchor (focal-loss prior), bias = -log((1 - p) / p)
+
+
+class HeadOutput(NamedTuple):
+    """Raw head maps, channels last: cls (B, H, W, A*K), reg (B, H, W, A*7), dir (B, H, W, A*2)."""
+
+    cls: torch.Tensor
+    reg: torch.Tensor
+    dir: torch.Tensor
+
+
+class AnchorHead(nn.Module):
+    """Dense head. in_channels: neck width (384); num_anchors: A per cell; num_classes: K."""
+
+    def __init__(self, *, in_channels: int, num_anchors: int, num_classes: int) -> None:
+        super().__init__()
+        self.num_anchors, self.num_classes = num_anchors, num_classes
+        self.conv_cls = nn.Conv2d(in_channels, num_anchors * num_classes, 1)
+        self.conv_reg = nn.Conv2d(in_channels, num_anchors * 7, 1)
+        self.conv_dir = nn.Conv2d(in_channels, num_anchors * 2, 1)
+        nn.init.normal_(self.conv_cls.weight, std=0.01)
+        nn.init.constant_(self.conv_cls.bias, -math.log((1 - CLS_PRIOR) / CLS_PRIOR))
+        nn.init.normal_(self.conv_reg.weight, std=0.01)
+        nn.init.zeros_(self.conv_reg.bias)
+
+    def forward(self, x: torch.Tensor, active: torch.Tensor | None = None) -> HeadOutput:
+        """x (B, C, H, W) → :class:`HeadOutput` (channels-last views). ``active`` is accepted and unused."""
+        return HeadOutput(
+            self.conv_cls(x).permute(0, 2, 3, 1),
+            self.conv_reg(x).permute(0, 2, 3, 1),
+            self.conv_dir(x).permute(0, 2, 3, 1),
+        )
+
+
+class SparseExactHead(AnchorHead):
+    """The dense head computed on active sites only; exact when ``x`` is zero wherever ``active`` is False."""
+
+    def forward(self, x: torch.Tensor, active: torch.Tensor | None = None) -> HeadOutput:
+        """x (B, C, H, W), active (B, H, W) bool → :class:`HeadOutput`; ``active=None`` falls back to the dense path
+        (a dense backbone has no inactive sites)."""
+        if active is None:
+            return super().forward(x, None)
+        b, c, h, w = x.shape
+        convs = (self.conv_cls, self.conv_reg, self.conv_dir)
+        weight = torch.cat([m.weight.view(m.out_channels, c) for m in convs])  # (O, C)
+        bias = torch.cat([m.bias for m in convs])  # (O,)
+        # Gather the active sites' feature vectors: (N_active, C), rows in (b, y, x) order.
+        bi, yi, xi = torch.nonzero(active, as_tuple=True)
+        feats = x[bi, :, yi, xi]
+        out = bias.expand(b, h, w, bias.shape[0]).clone()
+        out[bi, yi, xi] = torch.nn.functional.linear(feats, weight, bias)
+        n_cls, n_reg = self.conv_cls.out_channels, self.conv_reg.out_channels
+        return HeadOutput(out[..., :n_cls], out[..., n_cls : n_cls + n_reg], out[..., n_cls + n_reg :])
