@@ -1,0 +1,254 @@
+"""Dense vs sparse timings from one run: one SubM conv, the full backbone + neck, and a training step.
+
+Protocol (reference note, section 7): CPU, ``torch.set_num_threads(--threads)`` (2), batch 1, eval mode and
+``torch.no_grad`` for the inference rows, warm-up first, then ``--repeats`` interleaved dense/sparse runs; the tables
+show min and median wall time (ms) and the ratio dense / sparse of the minima. The "backbone" rows are the paper's
+Backbone timer: from the pseudo-image (dense canvas or SparseTensor) to the dense (1, 384, ny/2, nx/2) map, todense and
+concat included; the sparse rows build their neighbour tables inside the timed region.
+
+The allocator can dominate CPU timings (reference note, timing note): glibc returns big freed buffers to the OS, so
+every dense forward pays page faults. Run once as is and once with ``--reuse-allocator`` (re-executes itself with
+``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736``); the header prints the setting in force and every row its
+minor page faults per run.
+
+    PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from detector.models.backbone import SecondBackbone  # noqa: E402
+from detector.models.head import AnchorHead  # noqa: E402
+from detector.models.neck import SecondFPN  # noqa: E402
+from detector.models.sparse_backbone import SparseBackboneNeck  # noqa: E402
+from detector.sparse import SparseTensor, SubMConv2d  # noqa: E402
+from detector.sparse.conv import GEMM_MIN_FILL  # noqa: E402
+from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites  # noqa: E402
+from mpchair.atomic import write_text  # noqa: E402
+
+REUSE_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
+
+
+def timed(fn: Callable[[], object]) -> tuple[float, float, int]:
+    """Wall seconds, process CPU seconds (all threads, user + system) and minor page faults of one call.
+
+    On a shared machine the CPU time is the steadier measure of the work done; the wall time is what a dedicated
+    machine would show only when the CPU is not oversubscribed.
+    """
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    c0, t0 = time.process_time(), time.perf_counter()
+    fn()
+    dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    return dt, dc, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
+
+
+def compare(fns: dict[str, Callable[[], object]], repeats: int, warmup: int = 1) -> dict[str, dict[str, float]]:
+    """Interleaved runs of every function; per name: wall min/median ms, CPU min ms, mean page faults per run."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    samples: dict[str, list[tuple[float, float, int]]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            samples[k].append(timed(fn))
+    return {
+        k: {
+            "min_ms": 1e3 * min(t for t, _, _ in v),
+            "median_ms": 1e3 * statistics.median(t for t, _, _ in v),
+            "cpu_min_ms": 1e3 * min(c for _, c, _ in v),
+            "faults": statistics.mean(f for _, _, f in v),
+        }
+        for k, v in samples.items()
+    }
+
+
+def make_sites(pattern: str, shape: tuple[int, int], density: float, seed: int) -> torch.Tensor:
+    return (clustered_sites if pattern == "clustered" else uniform_sites)(shape, density, seed=seed)
+
+
+def bench_subm(repeats: int) -> list[dict[str, object]]:
+    """One SubM 3x3 64 → 64 conv at 768 x 512: dense Conv2d vs the sparse conv (tables cached / built in the run)."""
+    dense = nn.Conv2d(64, 64, 3, padding=1, bias=False).eval()
+    cases = (("clustered", 0.0075), ("clustered", 0.025), ("uniform", 0.0075))
+    return [_subm_case(dense, pattern, density, repeats) for pattern, density in cases]
+
+
+def _subm_case(dense: nn.Conv2d, pattern: str, density: float, repeats: int) -> dict[str, object]:
+    shape = (768, 512)
+    coords = make_sites(pattern, shape, density, seed=1)
+    feats = torch.randn(coords.shape[0], 64)
+    x = SparseTensor(feats, coords, shape, 1)
+    canvas = x.dense()
+    convs = {a: SubMConv2d(64, 64, 3, indice_key="k", algorithm=a).eval() for a in ("gemm", "rulebook", "auto")}
+    for c in convs.values():
+        c.weight.data.copy_(dense.weight.data)
+    fns: dict[str, Callable[[], object]] = {"dense": lambda: dense(canvas)}
+    for a, c in convs.items():
+        fns[f"sparse_{a}"] = lambda c=c: c(x)
+    fns["sparse_auto+table"] = lambda: convs["auto"](SparseTensor(feats, coords, shape, 1))
+    with torch.no_grad():
+        r = compare(fns, repeats)
+    table = convs["auto"].table(x)
+    return {
+        "case": f"{pattern} {100 * density:.2f}%",
+        "active": int(coords.shape[0]),
+        "neighbours": round(mean_active_neighbours(coords, shape), 2),
+        "fill": round(table.fill, 3),
+        "auto_algorithm": "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook",
+        "timings": r,
+    }
+
+
+def dense_backbone_neck() -> nn.Module:
+    """The dense SECOND backbone + FPN of detector.models (3x3 stride-2 down-convs), eval mode."""
+    backbone = SecondBackbone(
+        in_channels=64, layer_channels=(64, 128, 256), layer_nums=(3, 5, 5), layer_strides=(2, 2, 2)
+    )
+    neck = SecondFPN(in_channels=(64, 128, 256), out_channels=(128, 128, 128), upsample_strides=(1, 2, 4))
+    return nn.Sequential(backbone, neck)
+
+
+def active_counts(model: SparseBackboneNeck, x: SparseTensor) -> list[int]:
+    counts = []
+    with torch.no_grad():
+        for block in model.blocks:
+            x = block(x)
+            counts.append(x.num_active)
+    return counts
+
+
+def bench_backbone(repeats: int) -> list[dict[str, object]]:
+    """Full backbone + neck up to the dense 384-channel map."""
+    dense = dense_backbone_neck().eval()
+    sparse = SparseBackboneNeck().eval()
+    rows = []
+    for name, shape, pattern, density in (
+        ("matterport 768x512", (768, 512), "clustered", 0.0075),
+        ("kitti 504x440", (504, 440), "clustered", 0.025),
+    ):
+        coords = make_sites(pattern, shape, density, seed=2)
+        feats = torch.randn(coords.shape[0], 64).relu()  # pillar features come out of a ReLU
+        canvas = SparseTensor(feats, coords, shape, 1).dense()
+
+        def run_sparse(feats: torch.Tensor = feats, coords: torch.Tensor = coords, shape=shape) -> object:
+            return sparse(SparseTensor(feats, coords, shape, 1))
+
+        with torch.no_grad():
+            r = compare({"dense": lambda canvas=canvas: dense(canvas), "sparse": run_sparse}, repeats)
+        rows.append(
+            {
+                "case": f"{name} {pattern} {100 * density:.2f}%",
+                "active": int(coords.shape[0]),
+                "active_after_blocks": active_counts(sparse, SparseTensor(feats, coords, shape, 1)),
+                "timings": r,
+            }
+        )
+    return rows
+
+
+def bench_train_step(repeats: int) -> list[dict[str, object]]:
+    """Forward + backward of backbone + neck + the dense 1x1 head (as the reference's training-step rows)."""
+    shape = (768, 512)
+    coords = make_sites("clustered", shape, 0.0075, seed=3)
+    feats = torch.randn(coords.shape[0], 64).relu()
+    canvas = SparseTensor(feats, coords, shape, 1).dense()
+    dense, sparse = dense_backbone_neck().train(), SparseBackboneNeck().train()
+    head_d, head_s = (AnchorHead(in_channels=384, num_anchors=2, num_classes=1).train() for _ in range(2))
+
+    def loss_of(out: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        return sum(o.square().mean() for o in out)  # type: ignore[return-value]
+
+    def step_dense() -> None:
+        loss_of(head_d(dense(canvas))).backward()
+
+    def step_sparse() -> None:
+        y, _ = sparse(SparseTensor(feats, coords, shape, 1))
+        loss_of(head_s(y)).backward()
+
+    r = compare({"dense": step_dense, "sparse": step_sparse}, repeats)
+    return [
+        {
+            "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head)",
+            "active": int(coords.shape[0]),
+            "timings": r,
+        }
+    ]
+
+
+def fmt_rows(title: str, rows: list[dict[str, object]]) -> str:
+    lines = [f"\n## {title}"]
+    for row in rows:
+        t: dict[str, dict[str, float]] = row["timings"]  # type: ignore[assignment]
+        extra = {k: v for k, v in row.items() if k not in ("case", "timings")}
+        lines.append(f"{row['case']}  {extra}")
+        base, base_cpu = t["dense"]["min_ms"], t["dense"]["cpu_min_ms"]
+        for k, v in t.items():
+            ratio = "" if k == "dense" else f"  wall {base / v['min_ms']:6.1f}x  cpu {base_cpu / v['cpu_min_ms']:6.1f}x"
+            lines.append(
+                f"  {k:18s} wall min {v['min_ms']:9.2f} median {v['median_ms']:9.2f}  cpu min {v['cpu_min_ms']:9.2f} ms"
+                f"  faults/run {v['faults']:7.0f}{ratio}"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--train-repeats", type=int, default=3)
+    p.add_argument("--skip", nargs="*", default=[], choices=["subm", "backbone", "train"])
+    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this path")
+    p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {REUSE_ENV}")
+    args = p.parse_args(argv)
+    if args.reuse_allocator and any(os.environ.get(k) != v for k, v in REUSE_ENV.items()):
+        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **REUSE_ENV})
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    allocator = {k: os.environ.get(k, "(unset)") for k in REUSE_ENV}
+    header = {
+        "torch": torch.__version__,
+        "threads": args.threads,
+        "cpus": os.cpu_count(),
+        "machine": platform.machine(),
+        "load_average": os.getloadavg(),
+        "allocator": allocator,
+        "allocator_reuse": all(os.environ.get(k) == v for k, v in REUSE_ENV.items()),
+    }
+    print("# bench_sparse", json.dumps(header))
+    results: dict[str, object] = {"header": header}
+    sections = (
+        ("subm", "One SubM 3x3 conv, 64 -> 64, 768 x 512 (eval, no_grad)", bench_subm, args.repeats),
+        ("backbone", "Backbone + neck to the dense 384-ch map (eval, no_grad)", bench_backbone, args.repeats),
+        ("train", "Training step, forward + backward", bench_train_step, args.train_repeats),
+    )
+    for key, title, fn, reps in sections:
+        if key in args.skip:
+            continue
+        rows = fn(reps)
+        results[key] = rows
+        print(fmt_rows(title, rows), flush=True)
+    results["load_average_end"] = os.getloadavg()
+    print(f"\n# load average at the end: {results['load_average_end']}")
+    if args.json is not None:
+        write_text(args.json, json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
