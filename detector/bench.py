@@ -1,0 +1,373 @@
+"""Per-component runtime of dense and sparse PointPillars: the paper's Tables II / IV protocol, made measurable.
+
+Components (one :class:`detector.models.PointPillars` stage each, batch 1, eval mode, ``torch.no_grad``):
+
+| key | paper column | what runs |
+|---|---|---|
+| ``to_device`` | To Device | ``torch.from_numpy(points).to(device)`` (on CPU: the tensor wrap only, no copy) |
+| ``feature_extract`` | Feature Extract | ``voxelize`` + ``pillar_net`` |
+| ``feature_net`` | Feature Net | ``feature_net``: scatter to the dense canvas, or wrapping as a ``SparseTensor`` |
+| ``backbone`` | Backbone | ``backbone_neck``: backbone + neck, incl. the sparse model's todense + concat |
+| ``head`` | Head | ``head`` (three 1x1 convs, or the exact sparse head) |
+| ``bbox_extract`` | BBox Extract | ``postprocess``: top-k, decode, rotated NMS, direction fix |
+| ``total`` | Total time | the sum of the six, i.e. first stamp to last stamp of a frame |
+
+Protocol: every model is warmed up on the first frames, then ``trials`` passes over the same ``frames`` frames are
+timed. Within a pass the models are **interleaved per frame** (the order alternates from frame to frame), so load
+spikes of a shared machine hit all models alike. A trial's value of a component is its mean over the frames (the
+per-instance runtime); the reported mean ± std is over trials (population std), as the paper's tables. On CUDA the
+device is synchronised before every stamp; stamps are ``time.perf_counter``.
+
+The result records the data's pseudo-image density ``D`` (pillars indexed by :func:`mpchair.geometry.pillar_coords`,
+over the model's ``output_shape`` canvas) and the machine: CPU model, threads, torch version, GPU, load average, the
+glibc allocator settings ``MALLOC_MMAP_MAX_`` / ``MALLOC_TRIM_THRESHOLD_`` (they can dominate CPU timings, see
+``docs/benchmarks.md``) and page faults per frame of each model (``resource.getrusage``, whole process).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import resource
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from detector.models import ExperimentConfig, PointPillars, build_model, load_experiment
+from mpchair.errors import InputError
+from mpchair.geometry import pillar_coords
+
+#: Component keys in table order (``total`` last).
+COMPONENTS: tuple[str, ...] = ("to_device", "feature_extract", "feature_net", "backbone", "head", "bbox_extract",
+                               "total")
+#: Column titles of the paper's runtime tables.
+TITLES: dict[str, str] = {
+    "to_device": "To Device",
+    "feature_extract": "Feature Extract",
+    "feature_net": "Feature Net",
+    "backbone": "Backbone",
+    "head": "Head",
+    "bbox_extract": "BBox Extract",
+    "total": "Total",
+}
+MALLOC_ENV: tuple[str, ...] = ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")
+#: The allocator setting under which freed memory is reused instead of returned to the OS after every frame.
+MALLOC_REUSE: dict[str, str] = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
+
+
+# --- data ---------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EvalFrame:
+    """One frame ready for inference: ``points`` (N, C) float32, sensor frame (m), range-filtered for the model."""
+
+    frame_id: str
+    points: np.ndarray
+
+
+def load_eval_frames(
+    cfg: ExperimentConfig, data_dir: str | Path, split: str, limit: int | None = None, start: int = 0
+) -> list[EvalFrame]:
+    """Frames ``start .. start+limit`` of ``split`` of a KITTI-format folder, transformed as at inference
+    (:func:`detector.data.pipeline.make_eval_sample`: range filter, ``in_channels`` columns)."""
+    from detector.data.pipeline import make_eval_sample
+    from detector.train import augment_options, open_split
+
+    frames = open_split(cfg, data_dir, split)
+    ids = frames.ids[start:] if limit is None else frames.ids[start : start + limit]
+    if not ids:
+        raise InputError(f"split {split!r} has no frame at index {start} (it has {len(frames.ids)})", data_dir)
+    options = augment_options(cfg)
+    return [EvalFrame(fid, make_eval_sample(frames.load(fid), options).points) for fid in ids]
+
+
+def frame_density(points: np.ndarray, cfg: ExperimentConfig) -> tuple[int, float]:
+    """(non-empty pillars, D = pillars / (ny * nx)) of one frame under ``cfg.model``'s grid and padded canvas."""
+    m = cfg.model
+    coords, _ = pillar_coords(points, m.point_cloud_range, m.voxel_size)
+    n = int(np.unique(coords[:, 0] * (1 << 32) + coords[:, 1]).size) if len(coords) else 0
+    ny, nx = m.output_shape
+    return n, n / float(ny * nx)
+
+
+def density_summary(values: Sequence[float]) -> dict[str, float]:
+    """``{"frames", "median", "mean", "min", "max"}`` of per-frame densities."""
+    v = np.asarray(values, dtype=np.float64)
+    return {"frames": int(v.size), "median": float(np.median(v)), "mean": float(v.mean()), "min": float(v.min()),
+            "max": float(v.max())}
+
+
+# --- models -------------------------------------------------------------------------------------------------------
+def build_bench_model(
+    cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device, seed: int = 0
+) -> PointPillars:
+    """``cfg.model`` in eval mode on ``device``: trained weights from ``checkpoint`` or seeded random weights.
+
+    Random weights are drawn under ``torch.random.fork_rng`` so the caller's global RNG is untouched. Conv weights do
+    not depend on the grid, so a checkpoint trained at one pseudo-image size loads into a model of another size.
+    """
+    if checkpoint is not None:
+        from detector.infer import load_model_from_checkpoint
+
+        model = load_model_from_checkpoint(checkpoint, cfg, device)
+    else:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            model = build_model(cfg.model)
+        model = model.to(device)
+    return model.eval()
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _faults() -> int:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return int(r.ru_minflt + r.ru_majflt)
+
+
+@torch.no_grad()
+def time_frame(model: PointPillars, points: np.ndarray, device: torch.device) -> tuple[dict[str, float], int]:
+    """Run one frame through the five stages with a stamp after each: ``({component: ms}, detections)``."""
+    stamps = []
+    _sync(device)
+    stamps.append(time.perf_counter())
+    pts = torch.from_numpy(points).to(device)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    voxels = model.voxelize([pts])
+    features, coords = model.pillar_net(voxels)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    x = model.feature_net(features, coords, voxels.batch_size)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    x, active = model.backbone_neck(x)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    out = model.head(x, active)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    dets = model.postprocess(out.cls, out.reg, out.dir)
+    _sync(device)
+    stamps.append(time.perf_counter())
+    ms = {k: (stamps[i + 1] - stamps[i]) * 1e3 for i, k in enumerate(COMPONENTS[:-1])}
+    ms["total"] = (stamps[-1] - stamps[0]) * 1e3
+    return ms, int(sum(int(d.boxes.shape[0]) for d in dets))
+
+
+# --- machine ------------------------------------------------------------------------------------------------------
+def cpu_model() -> str:
+    """The CPU's marketing name (``/proc/cpuinfo``), or ``platform.processor()``."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_info(device: torch.device) -> dict:
+    """What the timings depend on: CPU, threads, torch, GPU, load, allocator env."""
+    info = {
+        "cpu": cpu_model(),
+        "logical_cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "device": str(device),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "loadavg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "malloc_env": {k: os.environ.get(k) for k in MALLOC_ENV},
+    }
+    info["allocator"] = (
+        "reuse" if all(os.environ.get(k) == v for k, v in MALLOC_REUSE.items())
+        else "default" if not any(os.environ.get(k) for k in MALLOC_ENV) else "custom"
+    )
+    return info
+
+
+# --- the benchmark ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BenchModel:
+    """One model to time: display ``name``, its ``config`` path and optional ``checkpoint``."""
+
+    name: str
+    config: str
+    checkpoint: str | None = None
+
+
+def default_name(cfg: ExperimentConfig, path: str | Path) -> str:
+    """``dense`` / ``sparse`` / ... from the backbone, plus ``+sparse_head`` for the exact sparse head."""
+    name = cfg.model.backbone
+    if cfg.model.head != "dense":
+        name += "+sparse_head"
+    return name
+
+
+def run_bench(
+    models: Sequence[BenchModel],
+    data_dir: str | Path,
+    *,
+    split: str = "test",
+    frames: int = 20,
+    trials: int = 3,
+    warmup: int = 3,
+    device: str = "cpu",
+    threads: int | None = None,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result.
+
+    ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "per_frame_ms",
+    "detections_per_frame", "page_faults_per_frame", "density_median"}], "density": {...}, "machine": {...},
+    "protocol": {...}}``.
+    """
+    if not models:
+        raise InputError("bench needs at least one --config")
+    if frames < 1 or trials < 1 or warmup < 0:
+        raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
+    if device not in ("cpu", "cuda"):
+        raise InputError(f"unknown device {device!r} (cpu or cuda)")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available")
+    if threads is not None:
+        if threads < 1:
+            raise InputError(f"--threads must be >= 1, got {threads}")
+        torch.set_num_threads(threads)
+    dev = torch.device(device)
+    cfgs = [load_experiment(m.config) for m in models]
+    names = [m.name or default_name(c, m.config) for m, c in zip(models, cfgs)]
+    if len(set(names)) != len(names):
+        # two configs with the same backbone (e.g. a shape sweep): fall back to file stems
+        names = [n if names.count(n) == 1 else f"{n}:{Path(m.config).stem}" for n, m in zip(names, models)]
+    nets = [build_bench_model(c, m.checkpoint, dev, seed) for c, m in zip(cfgs, models)]
+    data = [load_eval_frames(c, data_dir, split, frames) for c in cfgs]
+    n = len(data[0])
+    densities = [[frame_density(f.points, c)[1] for f in d] for c, d in zip(cfgs, data)]
+
+    for i in range(min(warmup, n)):
+        for net, d in zip(nets, data):
+            time_frame(net, d[i].points, dev)
+
+    k = len(nets)
+    # per model, trial, component: the mean over frames
+    trial_means = np.zeros((k, trials, len(COMPONENTS)))
+    per_frame = np.zeros((k, trials, n, len(COMPONENTS)))
+    faults = np.zeros((k,), dtype=np.int64)
+    dets = np.zeros((k,), dtype=np.int64)
+    for t in range(trials):
+        for i in range(n):
+            order = range(k) if (t * n + i) % 2 == 0 else reversed(range(k))  # alternate who goes first
+            for j in order:
+                f0 = _faults()
+                ms, nd = time_frame(nets[j], data[j][i].points, dev)
+                faults[j] += _faults() - f0
+                dets[j] += nd
+                per_frame[j, t, i] = [ms[c] for c in COMPONENTS]
+            if progress:
+                print(f"\rtrial {t + 1}/{trials} frame {i + 1}/{n}", end="", flush=True)
+        trial_means[:, t] = per_frame[:, t].mean(axis=1)
+    if progress:
+        print()
+
+    out_models = []
+    for j, (m, c) in enumerate(zip(models, cfgs)):
+        comps = {
+            key: {"mean_ms": float(trial_means[j, :, ci].mean()), "std_ms": float(trial_means[j, :, ci].std())}
+            for ci, key in enumerate(COMPONENTS)
+        }
+        out_models.append({
+            "name": names[j],
+            "config": str(m.config),
+            "weights": str(m.checkpoint) if m.checkpoint else f"random (seed {seed}; untrained, timing only)",
+            "backbone": c.model.backbone,
+            "head": c.model.head,
+            "output_shape": list(c.model.output_shape),
+            "components": comps,
+            "median_frame_ms": {key: float(np.median(per_frame[j, :, :, ci])) for ci, key in enumerate(COMPONENTS)},
+            "min_frame_ms": {key: float(per_frame[j, :, :, ci].min()) for ci, key in enumerate(COMPONENTS)},
+            "detections_per_frame": float(dets[j]) / (trials * n),
+            "page_faults_per_frame": float(faults[j]) / (trials * n),
+            "density_median": float(np.median(densities[j])),
+        })
+    density = density_summary(densities[0])
+    density["geometry"] = {"point_cloud_range": list(cfgs[0].model.point_cloud_range),
+                           "voxel_size": list(cfgs[0].model.voxel_size),
+                           "output_shape": list(cfgs[0].model.output_shape)}
+    return {
+        "models": out_models,
+        "density": density,
+        "machine": machine_info(dev),
+        "protocol": {"data": str(data_dir), "split": split, "frames": n, "frame_ids": [f.frame_id for f in data[0]],
+                     "trials": trials, "warmup": min(warmup, n), "batch_size": 1, "interleaved": True,
+                     "std": "population std over trials of the per-trial mean over frames"},
+    }
+
+
+# --- formatting ---------------------------------------------------------------------------------------------------
+def _fmt(x: float) -> str:
+    return f"{x:,.3f}" if x < 100 else f"{x:,.1f}"
+
+
+def ratio_rows(result: dict) -> list[tuple[str, dict[str, float]]]:
+    """``first / other`` per component for every model after the first (dense / sparse: > 1 means sparse faster)."""
+    models = result["models"]
+    rows = []
+    base = models[0]
+    for m in models[1:]:
+        r = {}
+        for key in COMPONENTS:
+            a, b = base["components"][key]["mean_ms"], m["components"][key]["mean_ms"]
+            r[key] = a / b if b > 0 else math.inf
+        rows.append((f"{base['name']} / {m['name']}", r))
+    return rows
+
+
+def machine_line(mach: dict) -> str:
+    """One line describing the machine of a result."""
+    line = (f"machine: {mach['cpu']}, {mach['torch_threads']} torch threads of {mach['logical_cpus']} CPUs, "
+            f"torch {mach['torch']}, device {mach['device']}")
+    if mach.get("gpu"):
+        line += f" ({mach['gpu']})"
+    if mach.get("loadavg_1m") is not None:
+        line += f", load average {mach['loadavg_1m']:.2f} when it ended"
+    return line
+
+
+def format_table(result: dict, markdown: bool = False) -> str:
+    """The paper-shaped table: one row per model (mean ± std ms), one ratio row per further model, then notes."""
+    header = ["model", *(TITLES[k] for k in COMPONENTS)]
+    rows = [[m["name"], *(f"{_fmt(m['components'][k]['mean_ms'])} ± {_fmt(m['components'][k]['std_ms'])}"
+                          for k in COMPONENTS)] for m in result["models"]]
+    rows += [[name, *(f"{r[k]:.2f}x" for k in COMPONENTS)] for name, r in ratio_rows(result)]
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+    else:
+        widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+        fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+        lines = [fmt.format(*header)] + [fmt.format(*r) for r in rows]
+    mach, dens, prot = result["machine"], result["density"], result["protocol"]
+    env = ", ".join(f"{k}={v}" for k, v in mach["malloc_env"].items() if v is not None) or "unset"
+    notes = [
+        f"ms per frame, mean ± std over {prot['trials']} trials of {prot['frames']} frames ({prot['split']} split), "
+        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame",
+        machine_line(mach),
+        f"allocator: {mach['allocator']} ({env})",
+        f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
+        f"{dens['median']:.5f}, min {dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames",
+    ]
+    for m in result["models"]:
+        notes.append(f"{m['name']}: weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame; "
+                     f"{m['detections_per_frame']:.1f} detections/frame")
+    prefix = "- " if markdown else ""
+    return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in notes)

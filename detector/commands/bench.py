@@ -1,0 +1,57 @@
+"""``detector bench``: parse arguments, call :func:`detector.bench.run_bench`, print the paper-shaped table."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+
+@click.command("bench")
+@click.option("--config", "configs", multiple=True, required=True, type=click.Path(dir_okay=False),
+              help="Experiment YAML; repeat to time several models interleaved (the first is the ratio's numerator).")
+@click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
+              help="KITTI-format dataset folder (training/ + ImageSets/).")
+@click.option("--checkpoint", "checkpoints", multiple=True,
+              help="Trained weights, one per --config in the same order ('-' = random weights). Default: random "
+                   "weights for every model (fine for timing; said so in the output).")
+@click.option("--split", default="test", show_default=True, help="ImageSets split whose first frames are timed.")
+@click.option("--frames", type=int, default=20, show_default=True, help="Frames per trial.")
+@click.option("--trials", type=int, default=3, show_default=True, help="Timed passes over the frames.")
+@click.option("--warmup", type=int, default=3, show_default=True, help="Untimed warm-up frames per model.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
+              help="Also write the full result as JSON to this file.")
+@click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
+@click.option("--progress", is_flag=True, help="Show the frame counter.")
+def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
+          warmup: int, device: str, threads: int | None, seed: int, json_out: str | None, markdown: bool,
+          progress: bool) -> None:
+    """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
+
+    \b
+    Columns: To Device, Feature Extract (voxelize + pillar net), Feature Net (scatter / sparse tensor), Backbone
+    (backbone + neck, incl. todense), Head, BBox Extract (decode + NMS), Total; mean ± std over trials; a ratio row
+    (first model / each other). Also records density D, machine, allocator env and page faults per frame.
+    Allocator: CPU timings depend on glibc's; compare with
+      MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
+    Example:
+      detector bench --config configs/models/mpchair_dense.yaml --config configs/models/mpchair_sparse.yaml \\
+        --data dataset/ --frames 20 --trials 3 --threads 2 --json bench.json
+    """
+    from detector.bench import BenchModel, format_table, run_bench
+    from mpchair.atomic import write_text
+    from mpchair.errors import InputError
+
+    if checkpoints and len(checkpoints) != len(configs):
+        raise InputError(f"give one --checkpoint per --config ('-' for random weights): {len(checkpoints)} "
+                         f"checkpoint(s) for {len(configs)} config(s)")
+    ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
+    models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
+    result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
+                       threads=threads, seed=seed, progress=progress)
+    if json_out:
+        write_text(json_out, json.dumps(result, indent=2) + "\n")
+    click.echo(format_table(result, markdown=markdown))

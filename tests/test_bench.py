@@ -1,0 +1,66 @@
+"""``detector bench``: every component timed (positive), the JSON schema, the ratio row, the CLI's error path."""
+
+from __future__ import annotations
+
+import json
+
+import click.testing
+import pytest
+from helpers_detector import make_tiny_dataset
+
+from detector.bench import COMPONENTS, format_table, frame_density, load_eval_frames, ratio_rows
+from detector.cli import cli
+from detector.models import load_experiment
+
+DENSE = "configs/models/mpchair_dense_smoke.yaml"
+SPARSE = "configs/models/mpchair_sparse_smoke.yaml"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return make_tiny_dataset(tmp_path_factory.mktemp("bench") / "ds", n_frames=3)
+
+
+def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
+    out = tmp_path / "bench.json"
+    res = click.testing.CliRunner().invoke(cli, [
+        "bench", "--config", DENSE, "--config", SPARSE, "--data", str(data), "--frames", "2", "--trials", "2",
+        "--warmup", "1", "--threads", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    result = json.loads(out.read_text())
+    assert set(result) == {"models", "density", "machine", "protocol"}
+    assert [m["name"] for m in result["models"]] == ["dense", "sparse"]
+    for m in result["models"]:
+        assert set(m["components"]) == set(COMPONENTS) == {
+            "to_device", "feature_extract", "feature_net", "backbone", "head", "bbox_extract", "total"}
+        for key, v in m["components"].items():
+            assert set(v) == {"mean_ms", "std_ms"}
+            assert v["mean_ms"] > 0 and v["std_ms"] >= 0, key
+        parts = sum(m["components"][k]["mean_ms"] for k in COMPONENTS[:-1])
+        assert m["components"]["total"]["mean_ms"] == pytest.approx(parts, rel=1e-9)  # stamps telescope
+        assert m["weights"].startswith("random")
+        assert m["page_faults_per_frame"] >= 0
+    assert result["protocol"]["frames"] == 2 and result["protocol"]["trials"] == 2
+    assert result["protocol"]["frame_ids"] == ["000000", "000001"]
+    mach = result["machine"]
+    assert mach["torch_threads"] == 1 and set(mach["malloc_env"]) == {"MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_"}
+    # density: the same pillar rule as the voxelizer, over the 96 x 64 canvas
+    cfg = load_experiment(DENSE)
+    frames = load_eval_frames(cfg, data, "test", 2)
+    ds = sorted(frame_density(f.points, cfg)[1] for f in frames)
+    assert result["density"]["min"] == pytest.approx(ds[0]) and result["density"]["max"] == pytest.approx(ds[-1])
+    assert 0 < ds[0] < 1 and result["density"]["geometry"]["output_shape"] == [96, 64]
+    # ratio row: dense / sparse of the means, printed
+    (name, ratios), = ratio_rows(result)
+    assert name == "dense / sparse"
+    d, s = (m["components"]["backbone"]["mean_ms"] for m in result["models"])
+    assert ratios["backbone"] == pytest.approx(d / s)
+    assert "dense / sparse" in res.output and "Feature Extract" in res.output
+    md = format_table(result, markdown=True)
+    assert md.splitlines()[0].startswith("| model | To Device |") and md.count("\n| ") >= 3
+
+
+def test_bench_checkpoint_count_must_match(data) -> None:
+    res = click.testing.CliRunner().invoke(cli, [
+        "bench", "--config", DENSE, "--config", SPARSE, "--checkpoint", "x.pt", "--data", str(data)])
+    assert res.exit_code != 0 and "one --checkpoint per --config" in str(res.exception or res.output)

@@ -1,0 +1,37 @@
+"""``detector viz-sparsity``: the PNGs exist, have the pseudo-image size, are not blank, and sparse block 1 is no
+whiter than dense block 1."""
+
+from __future__ import annotations
+
+import numpy as np
+from helpers_detector import make_tiny_dataset
+from PIL import Image
+
+from detector.viz import STAGES, viz_sparsity
+
+SPARSE = "configs/models/mpchair_sparse_smoke.yaml"  # 96 x 64 pseudo-image
+
+
+def test_viz_sparsity_pictures(tmp_path) -> None:
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2)
+    out = tmp_path / "viz"
+    result = viz_sparsity(SPARSE, data, 1, out, split="test")
+    assert result["frame_id"] == "000001"
+    white = {}
+    for model in ("dense", "sparse"):
+        for stage in STAGES:
+            img = Image.open(out / f"{model}_{stage}.png")
+            assert img.size == (64, 96)  # (W, H) = (nx, ny)
+            a = np.asarray(img)
+            assert set(np.unique(a)) <= {0, 255}
+            white[model, stage] = int((a == 255).sum())
+            assert white[model, stage] > 0
+    assert 0 < white["dense", "input"] == white["sparse", "input"] < 64 * 96
+    assert white["sparse", "block1"] <= white["dense", "block1"]
+    # block-1 cells are 2x2 squares in the picture: white pixels = 4 x non-zero cells
+    assert white["sparse", "block1"] == 4 * result["nonzero_cells"]["sparse"][1]
+    # the input picture is the pillar set, +y up: row ny-1-iy
+    assert result["nonzero_cells"]["sparse"][0] == white["sparse", "input"]
+    panel = Image.open(out / "panel.png")
+    assert panel.format == "PNG" and panel.size[0] > 300
+    assert not list(out.glob("*.tmp*"))
