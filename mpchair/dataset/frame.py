@@ -25,7 +25,7 @@ from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import DONTCARE, Calib, Labels, frame_paths, write_calib, write_labels, write_velodyne
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
-from mpchair.labels.visibility import ObjectScenes, covering_boxes
+from mpchair.labels.visibility import ObjectScenes, covering_boxes, outside_vertices
 from mpchair.matterport.categories import resolve_category
 from mpchair.matterport.house import House
 from mpchair.scan.raycast import Raycaster, make_raycaster
@@ -83,11 +83,15 @@ class HouseContext:
     class_objects: np.ndarray
     class_boxes: np.ndarray
     cover_boxes: np.ndarray
+    outside: list[np.ndarray]
     scenes: ObjectScenes
 
 
-def build_context(house: House, categories: frozenset[int], backend: str = "embree") -> HouseContext:
-    """Scene, floor sampler and class objects of ``house`` (``categories``: mpcat40 indices to label).
+def build_context(
+    house: House, categories: frozenset[int], backend: str = "embree", box_margin: float = LabelFilters.box_margin
+) -> HouseContext:
+    """Scene, floor sampler and class objects of ``house`` (``categories``: mpcat40 indices to label; ``box_margin``
+    the filters' in-box margin, metres, for the faces that can hit outside their box).
 
     A house with no object of the classes, or without any floor to stand on, is an :class:`InputError`.
     """
@@ -117,6 +121,7 @@ def build_context(house: House, categories: frozenset[int], backend: str = "embr
         class_objects=objs,
         class_boxes=boxes,
         cover_boxes=covering_boxes(house.vertices, house.faces, house.face_object, objs, boxes),
+        outside=outside_vertices(house.vertices, house.faces, house.face_object, objs, boxes, box_margin),
         scenes=ObjectScenes(house.vertices, house.faces, house.face_object, backend),
     )
 
@@ -187,7 +192,7 @@ def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, direction
         views += 1
         pose = vp.pose()
         dec = decide_boxes(ctx.class_boxes, ctx.class_objects, pose, ctx.raycaster, ctx.house.face_object, camera,
-                           calib, filters, ctx.scenes, ctx.cover_boxes)
+                           calib, filters, ctx.scenes, ctx.cover_boxes, ctx.outside)
         rays += dec.dense_rays
         if not dec.kept.any() and not settings.keep_empty:
             continue
@@ -267,6 +272,9 @@ def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dic
                 visible_pixels=int(dec.visible_pixels[j]),
                 points_in_box=int(dec.points_in_box[j]),
                 in_box_fraction=_r(dec.in_box_fraction[j]),
+                # "lower_bound": the three counts above cover a coarse subset of the grid that already proves the
+                # box passes (mpchair.labels.visibility); "exact": the whole grid region was cast.
+                visibility="exact" if dec.exact[j] else "lower_bound",
                 scan_points=int(dec.scan_points[j]),
                 visible_fraction=_r(dec.visible_fraction[j]),
                 occluded=int(dec.occluded[j]),

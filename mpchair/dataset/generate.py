@@ -156,7 +156,8 @@ def _work(task: tuple[int, str, int]) -> dict:
     g, house_id, index = task
     ctx = _STATE["ctx"].get(house_id)
     if ctx is None:  # the scene is built once per house and process, then reused for all its frames
-        ctx = build_context(_STATE["houses"][house_id], _STATE["cats"], _STATE["backend"])
+        ctx = build_context(_STATE["houses"][house_id], _STATE["cats"], _STATE["backend"],
+                            _STATE["settings"].sensor.filters.box_margin)
         _STATE["ctx"][house_id] = ctx
     settings: FrameSettings = _STATE["settings"]
     result = make_frame(ctx, settings, index, _STATE["dirs"])

@@ -17,10 +17,15 @@ from mpchair.geometry import invert_rigid, points_in_boxes, transform_boxes
 from mpchair.kitti import Calib
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.visibility import (
+    COARSE_RAYS,
     ObjectScenes,
-    cast_dense,
+    ObjectVisibility,
+    cast_pixels,
+    coarse_stride,
     grid_regions,
+    merge_hits,
     object_visibility,
+    vertex_region,
     visible_fraction,
 )
 from mpchair.scan.raycast import Raycaster
@@ -35,7 +40,9 @@ class BoxDecisions:
     first failed filter; ``visible_pixels``, ``points_in_box`` (dense grid counts, -1 = not evaluated),
     ``in_box_fraction`` (NaN = not evaluated), ``scan_points`` (-1 = not evaluated), ``visible_fraction`` of the
     unoccluded silhouette and ``occluded`` (KITTI 0/1/2) for kept boxes (NaN / -1 otherwise), ``regions`` (N,4)
-    dense pixel regions (``[r0, r1, c0, c1]``), ``dense_rays`` the number of dense rays cast.
+    dense pixel regions (``[r0, r1, c0, c1]``), ``dense_rays`` the number of dense rays cast, ``exact`` (N,) bool:
+    the dense counts cover the whole region (else they are lower bounds that already prove the box passes; see
+    :mod:`mpchair.labels.visibility`).
     """
 
     objects: np.ndarray
@@ -49,6 +56,7 @@ class BoxDecisions:
     occluded: np.ndarray
     regions: np.ndarray
     dense_rays: int
+    exact: np.ndarray
 
     @property
     def kept(self) -> np.ndarray:
@@ -87,6 +95,12 @@ def occlusion_level(visible_fraction: np.ndarray, cutoffs: tuple[float, float]) 
     return np.where(f >= cutoffs[0], 0, np.where(f >= cutoffs[1], 1, 2)).astype(np.int64)
 
 
+def _passes(ov: ObjectVisibility, filters: LabelFilters) -> np.ndarray:
+    """(N,) bool: the dense counts pass the visible-pixel, points-in-box and in-box-fraction filters."""
+    return ((ov.visible_pixels > filters.min_visible_pixels) & (ov.points_in_box >= filters.min_points_in_box)
+            & (ov.in_box_fraction >= filters.min_in_box_fraction))
+
+
 def decide_boxes(
     world_boxes: np.ndarray,
     objects: np.ndarray,
@@ -98,6 +112,8 @@ def decide_boxes(
     filters: LabelFilters,
     scenes: ObjectScenes | None = None,
     cover_boxes: np.ndarray | None = None,
+    outside: list[np.ndarray] | None = None,
+    coarse_rays: int | None = COARSE_RAYS,
 ) -> BoxDecisions:
     """Run every filter except the scan-point one (see :func:`apply_scan_points`) on one frame's candidates.
 
@@ -105,7 +121,10 @@ def decide_boxes(
     sensor → world, ``raycaster`` over the whole house mesh (world frame), ``face_object`` (F,) face → object
     position. With ``scenes``, kept boxes also get their unoccluded silhouette (visible fraction, KITTI occlusion).
     ``cover_boxes`` (N,7) world (:func:`~mpchair.labels.visibility.covering_boxes`) widen the dense regions to every
-    face of each object; without them the regions are the boxes' own projections.
+    face of each object; without them the regions are the boxes' own projections. ``outside`` (per candidate, world
+    vertices of the faces that can hit outside its box: :func:`~mpchair.labels.visibility.outside_vertices`) enables
+    the coarse first stage with ``coarse_rays`` rays per candidate; without it, or with ``coarse_rays=None``, every
+    pixel of every region is cast. The decisions are the same either way.
     """
     objects = np.asarray(objects, dtype=np.int64).reshape(-1)
     boxes = boxes_to_sensor(world_boxes, pose)
@@ -116,6 +135,7 @@ def decide_boxes(
     frac = np.full(n, np.nan)
     vfrac = np.full(n, np.nan)
     occ = np.full(n, -1, dtype=np.int64)
+    exact = np.ones(n, dtype=bool)
     regions = np.tile(np.array([0, -1, 0, -1], dtype=np.int64), (n, 1))
     cand = np.array([r == "" for r in reasons], dtype=bool)
     dense_rays = 0
@@ -123,9 +143,37 @@ def decide_boxes(
         idx = np.flatnonzero(cand)
         cover = boxes[idx] if cover_boxes is None else boxes_to_sensor(np.asarray(cover_boxes)[idx], pose)
         regions[idx] = grid_regions(cover, calib, camera)
-        hits = cast_dense(regions[idx], camera, pose, raycaster, face_object, objects[idx])
-        dense_rays = len(hits.rows)
+        # Stage 1: a coarse grid of each region plus every pixel where the object could hit outside its box.
+        mask = np.zeros((camera.height, camera.width), dtype=bool)
+        for k in idx:
+            r0, r1, c0, c1 = regions[k]
+            if r1 < r0 or c1 < c0:
+                continue
+            s = coarse_stride(regions[k], coarse_rays if outside is not None else None)
+            sub = None
+            if s > 1:
+                local = (outside[k] - pose[:3, 3]) @ pose[:3, :3]  # world → sensor frame (pose is rigid)
+                sub = vertex_region(local, camera, regions[k])
+            if s == 1 or sub is None:
+                mask[r0 : r1 + 1, c0 : c1 + 1] = True
+                continue
+            exact[k] = False
+            mask[r0 : r1 + 1 : s, c0 : c1 + 1 : s] = True
+            if sub[1] >= sub[0] and sub[3] >= sub[2]:
+                mask[sub[0] : sub[1] + 1, sub[2] : sub[3] + 1] = True
+        hits = cast_pixels(mask, camera, pose, raycaster, face_object, objects[idx])
         ov = object_visibility(hits, boxes[idx], objects[idx], filters.box_margin)
+        # Stage 2: candidates not yet proven to pass get their whole region, so rejections use exact counts.
+        redo = idx[~exact[idx] & ~_passes(ov, filters)]
+        if len(redo):
+            more = np.zeros_like(mask)
+            for r0, r1, c0, c1 in regions[redo]:
+                more[r0 : r1 + 1, c0 : c1 + 1] = True
+            more &= ~mask
+            hits = merge_hits(hits, cast_pixels(more, camera, pose, raycaster, face_object, objects[idx]))
+            ov = object_visibility(hits, boxes[idx], objects[idx], filters.box_margin)
+            exact[redo] = True
+        dense_rays = len(hits.rows)
         vis[idx], inb[idx], frac[idx] = ov.visible_pixels, ov.points_in_box, ov.in_box_fraction
         obj_img = None
         for j, k in enumerate(idx):
@@ -141,7 +189,7 @@ def decide_boxes(
                 vfrac[k] = visible_fraction(scenes, int(objects[k]), regions[k], obj_img, camera, pose)
                 occ[k] = int(occlusion_level(np.array([vfrac[k]]), filters.occlusion_cutoffs)[0])
     return BoxDecisions(objects, boxes, tuple(reasons), vis, inb, frac, np.full(n, -1, dtype=np.int64), vfrac, occ,
-                        regions, dense_rays)
+                        regions, dense_rays, exact)
 
 
 def apply_scan_points(decisions: BoxDecisions, points: np.ndarray, filters: LabelFilters) -> BoxDecisions:

@@ -2,9 +2,20 @@
 
 The original filters counted an object's pixels on a rendered 1024 x 1024 instance image. Here the same grid
 (:func:`mpchair.scan.sensors.grid_directions`) is raycast, but only inside the candidates' projected 2D boxes (their
-union, each pixel once), so a frame costs tens of thousands of rays instead of a million. The counts are exact for
-every object whose mesh lies inside its box, because its pixels can only fall inside the box's projection (a 2-pixel
-margin covers the half-pixel difference between the grid and the ``P2`` pinhole).
+union, each pixel once): an object's pixels can only fall inside the projection of the box that covers all its faces
+(a 2-pixel margin covers the half-pixel difference between the grid and the ``P2`` pinhole).
+
+Even that is ~200k rays per frame when chairs are near, so the filters are decided in two stages that give exactly the
+decisions of the full grid (``tests/test_labels.py`` compares them):
+
+1. a coarse, regular subset of each region (stride chosen for at most :data:`COARSE_RAYS` rays), plus *every* pixel of
+   the region where a hit on the object could land outside its box: the projection of the object's faces that are not
+   wholly inside the box (a hit on a face inside the convex box is inside it). Counts over a subset of the grid are
+   lower bounds of the full counts, and the out-of-box count is already exact, so ``visible > 35``,
+   ``in_box >= 35`` and ``in_box / visible >= 0.8`` hold on the full grid whenever they hold for the lower bounds;
+2. only candidates not yet shown to pass get their whole region cast, so every rejection is decided on exact counts.
+
+A kept box's ``visible_pixels`` is therefore exact or a lower bound (``BoxDecisions.exact`` says which).
 
 Points are in the sensor frame (x forward, y left, z up, metres); pixel regions are inclusive ``[r0, r1] x [c0, c1]``.
 """
@@ -22,6 +33,8 @@ from mpchair.scan.sensors import CameraConfig, grid_directions
 
 #: Pixels added around each projected box before casting (covers grid vs P2 rounding; see module docstring).
 REGION_MARGIN = 2
+#: At most about this many rays per candidate in the coarse stage and for the unoccluded silhouette.
+COARSE_RAYS = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,23 +104,71 @@ def grid_regions(boxes: np.ndarray, calib: Calib, camera: CameraConfig) -> np.nd
     return out
 
 
-def cast_dense(
-    regions: np.ndarray,
+def coarse_stride(region: np.ndarray, max_rays: int | None = COARSE_RAYS) -> int:
+    """Grid stride of the coarse stage for an inclusive pixel ``region`` (1 = every pixel; ``max_rays=None``: 1)."""
+    r0, r1, c0, c1 = (int(v) for v in region)
+    if max_rays is None or r1 < r0 or c1 < c0:
+        return 1
+    area = (r1 - r0 + 1) * (c1 - c0 + 1)
+    return max(1, int(np.ceil(np.sqrt(area / max_rays))))
+
+
+def outside_vertices(
+    vertices: np.ndarray, faces: np.ndarray, face_object: np.ndarray, objects: np.ndarray, boxes: np.ndarray,
+    margin: float,
+) -> list[np.ndarray]:
+    """Per object, the (K,3) world vertices of its faces not wholly inside its box with every face pushed out by
+    ``margin`` / 2.
+
+    Only these faces can give hits outside the box pushed out by ``margin`` (the in-box test of
+    :func:`object_visibility`), since a triangle with its corners inside a box lies inside it; the other half of the
+    margin absorbs the float rounding of hit points. ``objects`` (N,)
+    object positions (``face_object`` values), ``boxes`` (N,7) their aligned world boxes.
+    """
+    from mpchair.geometry import points_in_boxes
+
+    order = np.argsort(face_object, kind="stable")
+    sorted_obj = face_object[order]
+    out = []
+    for k, obj in enumerate(np.asarray(objects).reshape(-1)):
+        lo, hi = np.searchsorted(sorted_obj, obj, "left"), np.searchsorted(sorted_obj, obj, "right")
+        f = faces[order[lo:hi]]
+        grown = np.asarray(boxes[k : k + 1], dtype=np.float64).copy()
+        grown[0, 3:6] += margin
+        inside = points_in_boxes(vertices[f.reshape(-1)], grown)[0].reshape(-1, 3).all(axis=1)
+        out.append(vertices[np.unique(f[~inside].reshape(-1))])
+    return out
+
+
+def vertex_region(points: np.ndarray, camera: CameraConfig, region: np.ndarray) -> np.ndarray | None:
+    """Inclusive grid region ``[r0, r1, c0, c1]`` covering the projections of (K,3) sensor-frame ``points``, clipped to
+    ``region``; ``None`` when a point is not in front of the sensor (no finite projection: use the whole region)."""
+    from mpchair.scan.sensors import grid_pixels_of
+
+    if len(points) == 0:
+        return np.array([0, -1, 0, -1], dtype=np.int64)
+    if (points[:, 0] <= 1e-3).any():
+        return None
+    rows, cols = grid_pixels_of(camera, points)
+    r0, r1, c0, c1 = (int(v) for v in region)
+    out = np.array([np.floor(rows.min()) - REGION_MARGIN, np.ceil(rows.max()) + REGION_MARGIN,
+                    np.floor(cols.min()) - REGION_MARGIN, np.ceil(cols.max()) + REGION_MARGIN])
+    return np.array([max(out[0], r0), min(out[1], r1), max(out[2], c0), min(out[3], c1)], dtype=np.int64)
+
+
+def cast_pixels(
+    mask: np.ndarray,
     camera: CameraConfig,
     pose: np.ndarray,
     raycaster: Raycaster,
     face_object: np.ndarray,
     objects: np.ndarray | None = None,
 ) -> DenseHits:
-    """Cast every grid pixel in the union of ``regions`` once, from the sensor at ``pose`` (4,4 sensor → world).
+    """Cast every grid pixel set in ``mask`` (H,W bool) once, from the sensor at ``pose`` (4,4 sensor → world).
 
     ``face_object`` (F,) maps the mesh's faces to object positions (-1 none). Pixels come back row-major. Points are
     computed only for pixels that hit one of ``objects`` (all hits when ``None``); other points are NaN.
     """
-    mask = np.zeros((camera.height, camera.width), dtype=bool)
-    for r0, r1, c0, c1 in regions:
-        if r1 >= r0 and c1 >= c0:
-            mask[r0 : r1 + 1, c0 : c1 + 1] = True
     rows, cols = np.nonzero(mask)
     d = grid_directions(camera, rows, cols)
     R, p = pose[:3, :3], pose[:3, 3]
@@ -121,6 +182,32 @@ def cast_dense(
         t, _ = raycaster.cast(p, dw[need])
         pts[need] = t[:, None] * d[need]
     return DenseHits(rows.astype(np.int64), cols.astype(np.int64), pts, face, obj)
+
+
+def region_mask(regions: np.ndarray, camera: CameraConfig) -> np.ndarray:
+    """(H,W) bool union of inclusive pixel ``regions`` (N,4) ``[r0, r1, c0, c1]`` (empty ones skipped)."""
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    for r0, r1, c0, c1 in np.asarray(regions, dtype=np.int64).reshape(-1, 4):
+        if r1 >= r0 and c1 >= c0:
+            mask[r0 : r1 + 1, c0 : c1 + 1] = True
+    return mask
+
+
+def cast_dense(
+    regions: np.ndarray,
+    camera: CameraConfig,
+    pose: np.ndarray,
+    raycaster: Raycaster,
+    face_object: np.ndarray,
+    objects: np.ndarray | None = None,
+) -> DenseHits:
+    """Cast every grid pixel in the union of ``regions`` once (see :func:`cast_pixels`)."""
+    return cast_pixels(region_mask(regions, camera), camera, pose, raycaster, face_object, objects)
+
+
+def merge_hits(a: DenseHits, b: DenseHits) -> DenseHits:
+    """The hits of two disjoint pixel sets together."""
+    return DenseHits(*(np.concatenate([getattr(a, f.name), getattr(b, f.name)]) for f in dataclasses.fields(DenseHits)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,10 +266,6 @@ class ObjectScenes:
         return self._cache[obj]
 
 
-#: At most about this many rays per kept box for its unoccluded silhouette (the occlusion level only needs a fraction).
-SILHOUETTE_RAYS = 4096
-
-
 def visible_fraction(
     scenes: ObjectScenes,
     obj: int,
@@ -193,16 +276,15 @@ def visible_fraction(
 ) -> float:
     """Fraction of object ``obj``'s unoccluded silhouette that is visible in ``hits`` (1.0 if it has none).
 
-    Evaluated on a regular subsample of the grid pixels in ``region`` (stride chosen so that at most about
-    :data:`SILHOUETTE_RAYS` rays are cast against the object alone): visible = pixels whose dense hit is ``obj``,
-    unoccluded = pixels whose ray hits ``obj`` when nothing else is there.
+    Evaluated on the coarse grid of ``region`` (:func:`coarse_stride`, at most about :data:`COARSE_RAYS` rays cast
+    against the object alone; those pixels were all cast in the dense stage): visible = pixels whose dense hit is
+    ``obj``, unoccluded = pixels whose ray hits ``obj`` when nothing else is there.
     """
     scene = scenes.get(obj)
     r0, r1, c0, c1 = (int(v) for v in region)
     if scene is None or r1 < r0 or c1 < c0:
         return 1.0
-    area = (r1 - r0 + 1) * (c1 - c0 + 1)
-    stride = max(1, int(np.ceil(np.sqrt(area / SILHOUETTE_RAYS))))
+    stride = coarse_stride(region)
     rows, cols = np.mgrid[r0 : r1 + 1 : stride, c0 : c1 + 1 : stride]
     rows, cols = rows.reshape(-1), cols.reshape(-1)
     d = grid_directions(camera, rows, cols)
