@@ -133,6 +133,29 @@ def test_houses_are_plausible_homes(written, houses) -> None:
     assert 0.65 < mean[0] < 1.1 and 0.5 < mean[1] < 0.8 and 0.8 < mean[2] < 1.05
 
 
+#: Mean aligned chair box of the original dataset, l x w x h in metres (docs/original-generator.md, stat_boxes.py).
+MP3D_CHAIR_MEAN_LWH = (0.960, 0.667, 0.884)
+
+
+def test_chair_sizes_match_matterport_mean() -> None:
+    # Many houses (about 0.05 s each): one house has ~16 chairs, far too few for a stable mean. The construction
+    # boxes equal what the reader derives from the O records (round-trip test above), so no files are written.
+    sizes: dict[str, list[np.ndarray]] = {}
+    for hid, hs, lv in plan_houses(40, SEED):
+        for o in synthesize_house(hs, hid, levels=lv).objects:
+            if o.mpcat40_index == 3:
+                sizes.setdefault(o.style, []).append(o.aligned_box[3:6])
+    allsizes = np.concatenate([np.stack(v) for v in sizes.values()])
+    assert len(allsizes) >= 400
+    np.testing.assert_allclose(allsizes.mean(axis=0), MP3D_CHAIR_MEAN_LWH, atol=0.06)
+    # The mean must come from a mix of realistic styles, not from every chair being an average box.
+    mean = {k: np.stack(v).mean(axis=0) for k, v in sizes.items()}
+    assert set(mean) == {"dining", "armchair", "office", "folding", "lounge"}
+    assert all(len(v) >= 0.05 * len(allsizes) for v in sizes.values())
+    assert mean["dining"][0] < 0.6 and mean["folding"][0] < 0.5 and mean["lounge"][0] > 1.5
+    assert mean["armchair"][1] > 0.8 and mean["office"][2] > 0.95 and mean["lounge"][2] < 0.9
+
+
 def test_chairs_are_closed_surfaces_tight_in_their_boxes(houses) -> None:
     for h in houses:
         for o in (o for o in h.objects if o.mpcat40_index == 3):

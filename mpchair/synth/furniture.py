@@ -35,9 +35,9 @@ def _legs(d: float, w: float, h: float, size: float, inset: float = 0.0, group: 
 
 
 def dining_chair(rng: np.random.Generator) -> list[Part]:
-    """Four-leg dining chair: legs, seat, two rear posts and a back panel (about 0.5 x 0.46 x 0.92 m)."""
-    w, d = _u(rng, 0.44, 0.56), _u(rng, 0.48, 0.6)
-    sh, top, leg = _u(rng, 0.43, 0.48), _u(rng, 0.84, 1.0), 0.035
+    """Four-leg dining chair: legs, seat, two rear posts and a back panel (about 0.53 x 0.49 x 0.89 m)."""
+    w, d = _u(rng, 0.44, 0.54), _u(rng, 0.48, 0.58)
+    sh, top, leg = _u(rng, 0.43, 0.48), _u(rng, 0.8, 0.96), 0.035
     parts = _legs(d, w, sh - 0.04, leg)
     parts.append((1, *cbox(0, 0, sh - 0.02, d, w, 0.04)))
     for sy in (-1, 1):
@@ -47,9 +47,10 @@ def dining_chair(rng: np.random.Generator) -> list[Part]:
 
 
 def armchair(rng: np.random.Generator) -> list[Part]:
-    """Upholstered armchair: short legs, base, seat cushion, back block and two arms (about 0.9 x 0.85 x 0.9 m)."""
-    w, d = _u(rng, 0.8, 1.05), _u(rng, 0.8, 1.0)
-    sh, top, arm_h = _u(rng, 0.40, 0.46), _u(rng, 0.8, 1.0), _u(rng, 0.58, 0.68)
+    """Upholstered armchair: short legs, base, seat cushion, back block and two arms (about 1.0 x 0.9 x 0.87 m)."""
+    # Club chairs and wing chairs are wide and deep; these sizes are what makes real MP3D chair boxes long on average.
+    w, d = _u(rng, 0.86, 1.14), _u(rng, 0.84, 1.04)
+    sh, top, arm_h = _u(rng, 0.40, 0.46), _u(rng, 0.78, 0.96), _u(rng, 0.58, 0.68)
     arm_w, back_t = _u(rng, 0.12, 0.2), _u(rng, 0.15, 0.22)
     parts = _legs(d, w, 0.1, 0.05, inset=0.03)
     parts.append((1, *cbox(0, 0, (0.1 + sh - 0.1) / 2, d, w, sh - 0.2)))
@@ -63,8 +64,9 @@ def armchair(rng: np.random.Generator) -> list[Part]:
 
 
 def office_chair(rng: np.random.Generator) -> list[Part]:
-    """Office chair: five-star base with casters, gas column, seat, back on a post, optional armrests."""
-    r, sh, top = _u(rng, 0.30, 0.35), _u(rng, 0.44, 0.52), _u(rng, 0.95, 1.2)
+    """Office chair: five-star base with casters, gas column, seat, back on a post, optional armrests
+    (about 0.66 x 0.64 x 1.0 m)."""
+    r, sh, top = _u(rng, 0.31, 0.36), _u(rng, 0.44, 0.5), _u(rng, 0.9, 1.1)
     phase = _u(rng, 0, 2 * math.pi / 5)
     parts: list[Part] = []
     for k in range(5):
@@ -86,7 +88,8 @@ def office_chair(rng: np.random.Generator) -> list[Part]:
 
 
 def folding_chair(rng: np.random.Generator) -> list[Part]:
-    """Folding chair: crossed (X) side legs, thin seat and a back panel on the extended rear legs."""
+    """Folding chair: crossed (X) side legs, thin seat and a back panel on the extended rear legs (about 0.45 x 0.43
+    x 0.83 m)."""
     w, d = _u(rng, 0.42, 0.48), _u(rng, 0.42, 0.5)
     sh, top = _u(rng, 0.43, 0.46), _u(rng, 0.78, 0.88)
     parts: list[Part] = []
@@ -103,8 +106,8 @@ def folding_chair(rng: np.random.Generator) -> list[Part]:
 
 
 def lounge_chair(rng: np.random.Generator) -> list[Part]:
-    """Lounge chair (chaise): long low seat on legs with a reclined back at the rear (about 1.6 x 0.68 x 0.85 m)."""
-    length, w = _u(rng, 1.45, 1.8), _u(rng, 0.6, 0.75)
+    """Lounge chair (chaise): long low seat on legs with a reclined back at the rear (about 1.75 x 0.68 x 0.84 m)."""
+    length, w = _u(rng, 1.55, 1.95), _u(rng, 0.6, 0.75)
     sh, top = _u(rng, 0.3, 0.38), _u(rng, 0.75, 0.95)
     parts = _legs(length, w, 0.12, 0.04, inset=0.05)
     parts.append((1, *cbox(0, 0, (0.12 + sh) / 2, length, w, sh - 0.12)))
@@ -114,11 +117,11 @@ def lounge_chair(rng: np.random.Generator) -> list[Part]:
 
 #: Chair styles: name → (builder, weight, raw categories as (category_mapping index, name)).
 CHAIR_STYLES: dict[str, tuple[Callable[[np.random.Generator], list[Part]], float, tuple[tuple[int, str], ...]]] = {
-    "dining": (dining_chair, 0.22, ((7, "chair"), (25, "dining chair"))),
-    "armchair": (armchair, 0.32, ((34, "armchair"), (29, "sofa chair"), (227, "easy chair"))),
-    "office": (office_chair, 0.16, ((85, "office chair"), (134, "desk chair"), (142, "swivel chair"))),
+    "dining": (dining_chair, 0.14, ((7, "chair"), (25, "dining chair"))),
+    "armchair": (armchair, 0.42, ((34, "armchair"), (29, "sofa chair"), (227, "easy chair"))),
+    "office": (office_chair, 0.08, ((85, "office chair"), (134, "desk chair"), (142, "swivel chair"))),
     "folding": (folding_chair, 0.08, ((581, "folding chair"), (7, "chair"))),
-    "lounge": (lounge_chair, 0.22, ((228, "lounge chair"), (488, "chaise"), (427, "recliner"))),
+    "lounge": (lounge_chair, 0.28, ((228, "lounge chair"), (488, "chaise"), (427, "recliner"))),
 }
 
 
