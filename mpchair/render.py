@@ -575,12 +575,13 @@ def house_picture(
     category: str = "chair",
     dataset: str | Path | None = None,
     level: int | None = None,
-    size: tuple[int, int] = (1200, 1200),
+    size: tuple[int, int] | None = None,
 ) -> dict:
     """Top-down picture of house ``house_id`` found under ``root`` (:func:`mpchair.matterport.find_houses`): faces of
     objects of mpcat40 class ``category`` in orange with their aligned boxes, and, with ``dataset``, the viewpoints
     (position + heading) of its frames taken in this house (:func:`house_viewpoints`). ``level`` keeps only faces
-    inside that level's z range (``House.levels[level].bbox``). Returns ``{house, faces, objects, viewpoints, out}``.
+    inside that level's z range (``House.levels[level].bbox``). ``size`` (W, H) pixels; default: 800 x 860 per panel
+    side by side (one panel per level). Returns ``{house, faces, objects, viewpoints, out}``.
     """
     from mpchair.matterport import aligned_boxes, find_houses, read_house, resolve_categories, resolve_category
 
@@ -603,6 +604,8 @@ def house_picture(
     levels = ordered if level is None else [house.levels[level]]
     z_ranges = [bounds[lv.index] for lv in levels] if levels else None
     titles = [f"level {lv.index}" + (f" ({lv.label})" if lv.label.strip() else "") for lv in levels] or None
+    if size is None:  # side-by-side level panels: widen the picture instead of leaving bands above and below
+        size = (min(3200, 800 * max(1, len(levels))), 860)
     render_house(house.vertices, house.faces, out, highlight_faces=np.isin(house.face_object, positions),
                  highlight_boxes=aligned_boxes(objs), viewpoints=viewpoints, z_ranges=z_ranges,
                  hidden_faces=house.face_category == resolve_category("ceiling"),

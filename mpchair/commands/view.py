@@ -76,8 +76,8 @@ def view(dataset: Path, frame: str, out: Path, results: Path | None, three_d: bo
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
               help="An mpchair dataset: draw the viewpoints (pose/ files) of its frames in this house (manifest.json).")
 @click.option("--level", type=int, default=None, help="Only this level (index into the house's levels).")
-@click.option("--size", type=int, nargs=2, default=(1200, 1200), show_default=True, metavar="W H",
-              help="Picture size in pixels.")
+@click.option("--size", type=int, nargs=2, default=None, metavar="W H",
+              help="Picture size in pixels [default: 800 x 860 per level panel].")
 @click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
 def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Path | None, level: int | None,
                size: tuple[int, int], as_json: bool) -> None:
@@ -92,9 +92,10 @@ def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Pat
     from mpchair.render import house_picture
 
     _png(out, "--out")
-    if min(size) < 64:
+    if size is not None and min(size) < 64:
         raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
-    info = house_picture(root, house_id, out, category=category, dataset=dataset, level=level, size=tuple(size))
+    info = house_picture(root, house_id, out, category=category, dataset=dataset, level=level,
+                         size=tuple(size) if size else None)
     if as_json:
         click.echo(json.dumps(info, indent=1))
     else:
