@@ -175,11 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     ckpts = [str(runs / "dense" / "last.pt"), str(runs / "sparse" / "last.pt")]
     for alloc, env in (("default", {}), ("reuse", REUSE_ENV)):
         if todo("bench", res / f"bench_{alloc}.json"):
-            cmd = [det, "bench", "--config", paper_cfg["dense"], "--config", paper_cfg["sparse"], "--data", str(data),
+            # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
+            cmd = [det, "bench", "--config", paper_cfg["dense"], "--config", paper_cfg["sparse"], "--config",
+                   str(CONFIGS / "mpchair_sparse_exact.yaml"), "--data", str(data),
                    "--split", "test", "--frames", str(sc.bench_frames), "--trials", str(sc.bench_trials), *threads,
                    "--json", str(res / f"bench_{alloc}.json"), "--markdown"]
             if all(Path(c).exists() for c in ckpts):
-                for c in ckpts:
+                for c in (*ckpts, ckpts[1]):
                     cmd += ["--checkpoint", c]
             r.run(cmd, env=env or None, stdout=res / f"bench_{alloc}.md")
     if todo("ops", res / "ops.json"):
