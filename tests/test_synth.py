@@ -15,7 +15,7 @@ from shapely.ops import unary_union
 
 from mpchair.geometry import bev_polygons, points_in_boxes
 from mpchair.matterport import find_houses, read_house
-from mpchair.synth import plan_houses, synthesize_house, write_synthetic_houses
+from mpchair.synth import plan_houses, synthesize_house, write_house, write_synthetic_houses
 
 SEED = 11
 N = 2
@@ -185,3 +185,32 @@ def test_mesh_has_a_hole_rays_escape_through(houses) -> None:
     o = np.vstack(origins)
     hit = mesh.ray.intersects_any(o, np.tile([0.0, 0.0, 1.0], (len(o), 1)))
     assert 0 < np.count_nonzero(~hit) < 0.2 * len(o)  # an unreconstructed patch of ceiling, not a missing roof
+
+
+def test_subdivided_house_has_the_same_surfaces_objects_and_labels(tmp_path):
+    from mpchair.synth import subdivide_house
+
+    base = synthesize_house(5, levels=1)
+    fine = subdivide_house(base, 2)
+    assert len(fine.faces) == 16 * len(base.faces)
+    # Children of face f are faces 16 f .. 16 f + 15: same labels, and together exactly f's area, inside f's plane.
+    np.testing.assert_array_equal(fine.material_id, np.repeat(base.material_id, 16))
+    np.testing.assert_array_equal(fine.category_id, np.repeat(base.category_id, 16))
+
+    def areas(v, f):
+        return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+    np.testing.assert_allclose(areas(fine.vertices, fine.faces).reshape(-1, 16).sum(axis=1),
+                               areas(base.vertices, base.faces), rtol=1e-9, atol=1e-12)
+    a, b, c = (base.vertices[base.faces[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    child = fine.vertices[fine.faces].reshape(len(base.faces), 16 * 3, 3)
+    dist = np.einsum("fkj,fj->fk", child - a[:, None], normal)
+    assert np.abs(dist).max() < 1e-9
+    # Written and read back, the objects and their aligned boxes are those of the coarse house.
+    write_house(tmp_path, fine)
+    house = read_house(find_houses(tmp_path)[fine.id])
+    assert len(house.faces) == len(fine.faces)
+    for o, truth in zip(house.objects, base.objects):
+        np.testing.assert_allclose(o.aligned_box, truth.aligned_box, atol=1e-5)

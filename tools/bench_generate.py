@@ -9,7 +9,8 @@ Reports, in one run:
 * the ratio ``pipeline CPU-seconds / raw raycast seconds``, with pipeline CPU-seconds = wall time x workers (an
   upper bound on the CPU the pipeline used).
 
-Usage: ``python tools/bench_generate.py [--frames 100] [--workers 2] [--seed 0] [--json]``.
+Usage: ``python tools/bench_generate.py [--frames 100] [--workers 2] [--seed 0] [--subdivide 0] [--json]``
+(``--subdivide 3`` gives the house a real Matterport3D face count at the same geometry).
 """
 
 from __future__ import annotations
@@ -35,18 +36,20 @@ def main(argv: list[str] | None = None) -> int:
     from mpchair.matterport.source import find_houses
     from mpchair.scan.raycast import EmbreeRaycaster
     from mpchair.scan.sensors import load_sensor, scan_directions
-    from mpchair.synth import synthesize_house, write_house
+    from mpchair.synth import subdivide_house, synthesize_house, write_house
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=0, help="seed of the reference house and of the dataset")
+    p.add_argument("--subdivide", type=int, default=0,
+                   help="split every triangle into 4 this many times (3-4: real Matterport3D face counts)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="mpchair-bench-") as tmp:
         tmp = Path(tmp)
-        house = synthesize_house(args.seed, levels=1)
+        house = subdivide_house(synthesize_house(args.seed, levels=1), args.subdivide)
         write_house(tmp / "houses", house)
         t0 = time.perf_counter()
         summary = generate(GenerateRequest(root=tmp / "houses", houses=(house.id,), frames=args.frames,

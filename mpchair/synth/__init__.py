@@ -8,9 +8,18 @@ from mpchair.synth.house import (
     SyntheticHouse,
     SynthObject,
     plan_houses,
+    subdivide_house,
     synthesize_house,
     write_house,
     write_synthetic_houses,
 )
 
-__all__ = ["SynthObject", "SyntheticHouse", "plan_houses", "synthesize_house", "write_house", "write_synthetic_houses"]
+__all__ = [
+    "SynthObject",
+    "SyntheticHouse",
+    "plan_houses",
+    "subdivide_house",
+    "synthesize_house",
+    "write_house",
+    "write_synthetic_houses",
+]
