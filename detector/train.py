@@ -1,4 +1,5 @@
-"""Training: AdamW on a KITTI-format split, reproducible, resumable and optionally distributed (torchrun + DDP).
+"""Training: AdamW (constant or one-cycle LR) on a KITTI-format split, reproducible, resumable and optionally
+distributed (torchrun + DDP).
 
 One run lives in one folder ``RUN``::
 
@@ -20,9 +21,15 @@ global batch (each rank rescales its loss by ``world * max(1, pos_rank) / max(1,
 gradients). Therefore N processes × batch b and one process × batch N·b see the same statistics, losses and
 gradients, up to float summation order.
 
-**Resume.** A checkpoint holds the model, the optimiser, the epoch, the step within it, the global step, the RNG
-states and the config. Data order and augmentation depend only on ``(seed, epoch, slot)``, so resuming at step ``s``
-replays exactly the batches an uninterrupted run would see: the weights are identical.
+**Schedule.** ``train.schedule: onecycle`` drives the learning rate and AdamW's beta1 with
+``torch.optim.lr_scheduler.OneCycleLR`` over ``epochs * steps_per_epoch`` global steps (``steps_per_epoch`` counts
+global batches, so a torchrun job and one process with the same global batch get the same schedule), stepped once per
+optimiser step. The step records log the ``lr`` and ``beta1`` the step used.
+
+**Resume.** A checkpoint holds the model, the optimiser, the LR scheduler, the epoch, the step within it, the global
+step, the RNG states and the config. Data order and augmentation depend only on ``(seed, epoch, slot)``, so resuming at
+step ``s`` replays exactly the batches an uninterrupted run would see: the weights are identical. A one-cycle run's
+length is fixed when it starts: resuming it with another ``train.epochs`` (or steps per epoch) is an error.
 """
 
 from __future__ import annotations
@@ -53,7 +60,8 @@ from mpchair.errors import InputError
 CHECKPOINT_FORMAT = 1
 #: Seconds between mid-epoch ``last.pt`` saves (rank 0), so a long epoch interrupted late loses little work.
 SAVE_INTERVAL_S = 900.0
-#: Config keys that may change between a run and its resume: they do not change the trained weights.
+#: Config keys that may change between a run and its resume: they do not change the trained weights. (``epochs`` only
+#: with the constant schedule: it fixes the length of a one-cycle schedule, see :func:`train`.)
 RESUMABLE_CHANGES = ("epochs", "num_workers", "checkpoint_every", "eval_every")
 
 
@@ -272,12 +280,14 @@ def _unwrap(model: nn.Module) -> nn.Module:
 
 
 def save_checkpoint(path: Path, *, model: nn.Module, optimizer: torch.optim.Optimizer, cfg: ExperimentConfig,
-                    epoch: int, step_in_epoch: int, step: int, global_batch: int) -> None:
+                    epoch: int, step_in_epoch: int, step: int, global_batch: int,
+                    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> None:
     """Write a checkpoint atomically (``torch.save`` into a temp file renamed into place)."""
     state = {
         "format": CHECKPOINT_FORMAT,
         "model": _unwrap(model).state_dict(),
         "optimizer": optimizer.state_dict(),
+        "scheduler": scheduler.state_dict() if scheduler is not None else None,
         "epoch": epoch,
         "step_in_epoch": step_in_epoch,
         "step": step,
@@ -307,7 +317,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 
 def _comparable(cfg_dict: dict) -> dict:
-    d = json.loads(json.dumps(cfg_dict))
+    # Through the dataclasses first, so a checkpoint written before a key existed compares with its default.
+    d = json.loads(json.dumps(to_dict(experiment_from_dict(cfg_dict))))
     for key in RESUMABLE_CHANGES:
         d.get("train", {}).pop(key, None)
     return d
@@ -339,6 +350,23 @@ def _resolve_device(device: str, info: DistInfo) -> torch.device:
             raise InputError("--device cuda: no CUDA device is available")
         return torch.device("cuda", info.local_rank if info.distributed else torch.cuda.current_device())
     raise InputError(f"unknown device {device!r} (cpu or cuda)")
+
+
+def build_scheduler(optimizer: torch.optim.Optimizer, cfg: ExperimentConfig,
+                    total_steps: int) -> torch.optim.lr_scheduler.LRScheduler | None:
+    """The LR scheduler of ``train.schedule`` over ``total_steps`` global optimiser steps (None: constant LR).
+
+    ``onecycle``: ``OneCycleLR`` with ``max_lr = train.lr``, cosine annealing, and AdamW's beta1 cycled from
+    ``beta1_range[0]`` down to ``beta1_range[1]`` at the peak and back (OpenPCDet's ``adam_onecycle``). Creating it
+    sets the optimiser's lr and beta1 to their step-0 values. A run without steps (``total_steps == 0``) gets None.
+    """
+    tc = cfg.train
+    if tc.schedule == "constant" or total_steps == 0:
+        return None
+    return torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=tc.lr, total_steps=total_steps, pct_start=tc.pct_start, anneal_strategy="cos",
+        cycle_momentum=True, max_momentum=tc.beta1_range[0], base_momentum=tc.beta1_range[1],
+        div_factor=tc.div_factor, final_div_factor=tc.final_div_factor, three_phase=False)
 
 
 def _batches(keys: list[list[tuple[int, int, int]]], base: TrainingSet, workers: int) -> Iterator:
@@ -406,6 +434,20 @@ def train(
     if state is not None and state["global_batch"] != global_batch:
         raise InputError(f"{last_path} was trained with global batch {state['global_batch']}, this run has "
                          f"{global_batch} (batch_size x processes must stay the same to resume)")
+    # The schedule spans the run's global steps: steps_per_epoch counts global batches, so it is the same number in a
+    # torchrun job and in one process with the same global batch.
+    total_steps = tc.epochs * steps_per_epoch
+    if tc.schedule == "onecycle":
+        if 0 < total_steps and tc.pct_start * total_steps <= 1:
+            raise InputError(f"train.pct_start x total steps = {tc.pct_start} x {total_steps} must exceed 1: the "
+                             "one-cycle warm-up needs more than one step (raise train.epochs or pct_start)",
+                             config_path)
+        saved = None if state is None else (state.get("scheduler") or {}).get("total_steps")
+        if state is not None and saved != total_steps:
+            raise InputError(f"{last_path} follows a one-cycle schedule over {saved} steps; this run would have "
+                             f"{total_steps} (train.epochs {tc.epochs} x {steps_per_epoch} steps per epoch). The "
+                             "schedule's length is fixed when a run starts: resume with the original train.epochs "
+                             "/ --epochs and split, or start a new run", config_path)
 
     if info.distributed and not dist.is_initialized():
         backend = "nccl" if dev.type == "cuda" else "gloo"
@@ -415,8 +457,8 @@ def train(
         dist.init_process_group(backend=backend, timeout=datetime.timedelta(hours=6))
     try:
         return _train_loop(cfg, frames, out, dev, info, state, max_steps=max_steps, global_batch=global_batch,
-                           steps_per_epoch=steps_per_epoch, samples_per_epoch=samples_per_epoch, data_dir=data_dir,
-                           eval_split=eval_split, progress=progress)
+                           steps_per_epoch=steps_per_epoch, samples_per_epoch=samples_per_epoch,
+                           total_steps=total_steps, data_dir=data_dir, eval_split=eval_split, progress=progress)
     finally:
         if info.distributed and dist.is_initialized():
             dist.destroy_process_group()
@@ -424,7 +466,8 @@ def train(
 
 def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: torch.device, info: DistInfo,
                 state: dict | None, *, max_steps: int | None, global_batch: int, steps_per_epoch: int,
-                samples_per_epoch: int, data_dir: str | Path, eval_split: str, progress: bool) -> TrainResult:
+                samples_per_epoch: int, total_steps: int, data_dir: str | Path, eval_split: str,
+                progress: bool) -> TrainResult:
     tc = cfg.train
     show = progress and info.is_main
     if info.is_main:
@@ -446,10 +489,15 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
     if info.distributed:
         convert_to_global_batchnorm(model)
     optimizer = torch.optim.AdamW(model.parameters(), lr=tc.lr, betas=tc.betas, weight_decay=tc.weight_decay)
+    # Built before the optimiser state is loaded: its constructor resets lr / beta1 to step 0, the loaded param groups
+    # then restore the values of the checkpoint's step.
+    scheduler = build_scheduler(optimizer, cfg, total_steps)
     epoch, step_in_epoch, step = 0, 0, 0
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
+        if scheduler is not None:
+            scheduler.load_state_dict(state["scheduler"])
         epoch, step_in_epoch, step = int(state["epoch"]), int(state["step_in_epoch"]), int(state["step"])
         torch.set_rng_state(state["rng"]["torch"])
         if state["rng"]["cuda"] and torch.cuda.is_available():
@@ -472,7 +520,7 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
     def checkpoint(path: Path) -> None:
         if info.is_main:
             save_checkpoint(path, model=model, optimizer=optimizer, cfg=cfg, epoch=epoch,
-                            step_in_epoch=step_in_epoch, step=step, global_batch=global_batch)
+                            step_in_epoch=step_in_epoch, step=step, global_batch=global_batch, scheduler=scheduler)
 
     params = [p for p in model.parameters() if p.requires_grad]
     last_loss = None
@@ -524,7 +572,10 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                     raise TrainingError(
                         f"non-finite gradient norm at epoch {epoch + 1}, step {step + 1}; training stopped, "
                         f"{out / 'last.pt'} keeps the last good state. Lower train.lr or enable train.grad_clip_norm")
+                lr, beta1 = optimizer.param_groups[0]["lr"], optimizer.param_groups[0]["betas"][0]
                 optimizer.step()
+                if scheduler is not None and step + 1 < total_steps:
+                    scheduler.step()  # not past the last step, so a finished run keeps the final lr
                 step += 1
                 step_in_epoch += 1
                 n_steps += 1
@@ -532,7 +583,7 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                 for k in sums:
                     sums[k] += values[k]
                 emit({"kind": "step", "epoch": epoch + 1, "step": step, **{f"loss_{k}": v for k, v in values.items()},
-                      "grad_norm": grad_norm, "num_pos": int(pos_global), "lr": optimizer.param_groups[0]["lr"],
+                      "grad_norm": grad_norm, "num_pos": int(pos_global), "lr": lr, "beta1": beta1,
                       "time_s": round(time.perf_counter() - t0, 4)})
                 bar.update(1)
                 bar.set_postfix(loss=f"{values['total']:.4f}")

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +20,8 @@ from detector.infer import evaluate_checkpoint
 from detector.train import epoch_frames, rank_batches, train
 from mpchair.geometry import kitti_camera_to_boxes, project_boxes_to_image, wrap_angle
 from mpchair.kitti import frame_paths, read_calib, read_labels, read_velodyne, write_velodyne
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: Smoke training: epochs over 8 frames at batch 2 (4 steps each), and the BEV AP_R40 (Easy, IoU 0.5) the trained
 #: model must reach on its own 8 training frames (29 chairs: at most 70.0 with so few GT). Measured with this seed
@@ -41,6 +46,42 @@ def _steps(run: Path) -> list[dict]:
     return [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "step"]
 
 
+def _onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10.0, final: float = 1e4,
+                    beta1: tuple[float, float] = (0.95, 0.85)) -> list[tuple[float, float]]:
+    """(lr, beta1) of steps 0..total-1 of OpenPCDet's adam_onecycle in closed form, with OneCycleLR's phase ends
+    (warm-up ends at step pct * total - 1, annealing at total - 1; cosine interpolation in both phases)."""
+
+    def cos(a: float, b: float, t: float) -> float:
+        return b + (a - b) / 2 * (math.cos(math.pi * t) + 1)
+
+    e1, e2 = pct * total - 1, total - 1
+    out = []
+    for i in range(total):
+        if i <= e1:
+            t = i / e1
+            out.append((cos(peak / div, peak, t), cos(beta1[0], beta1[1], t)))
+        else:
+            t = (i - e1) / (e2 - e1)
+            out.append((cos(peak, peak / (div * final), t), cos(beta1[1], beta1[0], t)))
+    return out
+
+
+def _assert_identical_runs(a_dir: Path, b_dir: Path) -> None:
+    """Bit-identical last.pt (weights, optimiser state and param groups, scheduler) and step metrics."""
+    a = torch.load(a_dir / "last.pt", weights_only=False)
+    b = torch.load(b_dir / "last.pt", weights_only=False)
+    assert (a["epoch"], a["step_in_epoch"], a["step"]) == (b["epoch"], b["step_in_epoch"], b["step"])
+    for key, value in a["model"].items():
+        assert torch.equal(value, b["model"][key]), key
+    for pa, pb in zip(a["optimizer"]["state"].values(), b["optimizer"]["state"].values(), strict=True):
+        assert all(torch.equal(pa[k], pb[k]) for k in pa)
+    strip = [{k: v for k, v in g.items() if k != "params"} for g in a["optimizer"]["param_groups"]]
+    assert strip == [{k: v for k, v in g.items() if k != "params"} for g in b["optimizer"]["param_groups"]]
+    assert a["scheduler"] == b["scheduler"]
+    strip = [{k: v for k, v in r.items() if k != "time_s"} for r in _steps(a_dir)]
+    assert strip == [{k: v for k, v in r.items() if k != "time_s"} for r in _steps(b_dir)]
+
+
 def test_data_plan_slices_global_batches_per_rank():
     order = epoch_frames(num_frames=5, samples_per_epoch=7, epoch=1, seed=0, shuffle=False)
     assert order.tolist() == [2, 3, 4, 0, 1, 2, 3]  # fixed order, continuing where epoch 0 stopped
@@ -58,17 +99,103 @@ def test_resume_reproduces_an_uninterrupted_run_exactly(data, tmp_path):
     straight = train(cfg, data, tmp_path / "straight", max_steps=4, threads=1, progress=False)
     first = train(cfg, data, tmp_path / "resumed", max_steps=2, threads=1, progress=False)
     assert (first.epoch, first.step) == (0, 2)
+    # A checkpoint written before the schedule keys existed (no scheduler state, no train.schedule etc.) still resumes.
+    old = torch.load(tmp_path / "resumed" / "last.pt", weights_only=False)
+    del old["scheduler"]
+    for key in ("schedule", "pct_start", "div_factor", "final_div_factor", "beta1_range"):
+        del old["config"]["train"][key]
+    torch.save(old, tmp_path / "resumed" / "last.pt")
     resumed = train(cfg, data, tmp_path / "resumed", max_steps=4, resume=True, threads=1, progress=False)
     assert (straight.epoch, straight.step) == (resumed.epoch, resumed.step) == (1, 4)
-    a = torch.load(tmp_path / "straight" / "last.pt", weights_only=False)
-    b = torch.load(tmp_path / "resumed" / "last.pt", weights_only=False)
-    for key, value in a["model"].items():
-        assert torch.equal(value, b["model"][key]), key
-    for pa, pb in zip(a["optimizer"]["state"].values(), b["optimizer"]["state"].values()):
-        assert all(torch.equal(pa[k], pb[k]) for k in pa)
-    strip = [{k: v for k, v in r.items() if k != "time_s"} for r in _steps(tmp_path / "straight")]
-    assert strip == [{k: v for k, v in r.items() if k != "time_s"} for r in _steps(tmp_path / "resumed")]
+    _assert_identical_runs(tmp_path / "straight", tmp_path / "resumed")
     assert (tmp_path / "straight" / "checkpoints" / "epoch_001.pt").is_file()
+    # The default schedule is the reference's constant LR: no scheduler, lr and beta1 as configured on every step.
+    assert torch.load(tmp_path / "straight" / "last.pt", weights_only=False)["scheduler"] is None
+    assert {(r["lr"], r["beta1"]) for r in _steps(tmp_path / "straight")} == {(1e-3, 0.95)}
+
+
+def test_onecycle_schedule_follows_the_global_steps_and_resumes_exactly(data, tmp_path, capsys):
+    # The file says 7 epochs; --epochs 3 (here the train() argument the CLI passes) must set the schedule's length:
+    # 3 epochs x 3 steps = 9 global steps.
+    cfg = write_test_config(tmp_path / "cfg.yaml", data=dict(flip_y=True, rotation=[-0.3, 0.3]),
+                            train=dict(batch_size=2, epochs=7, samples_per_epoch=6, schedule="onecycle", lr=0.003))
+    straight = train(cfg, data, tmp_path / "straight", epochs=3, threads=1, progress=False)
+    first = train(cfg, data, tmp_path / "resumed", epochs=3, max_steps=2, threads=1, progress=False)
+    assert (first.epoch, first.step) == (0, 2)
+    resumed = train(cfg, data, tmp_path / "resumed", epochs=3, resume=True, threads=1, progress=False)
+    assert (straight.epoch, straight.step) == (resumed.epoch, resumed.step) == (3, 9)
+    _assert_identical_runs(tmp_path / "straight", tmp_path / "resumed")  # resumed mid-warm-up, across 2 epoch ends
+    state = torch.load(tmp_path / "straight" / "last.pt", weights_only=False)
+    assert state["scheduler"]["total_steps"] == 9
+
+    # The logged lr / beta1 follow the one-cycle curve over 9 steps: 3e-4 → peak 3e-3 around step 0.4 x 9 → 3e-8.
+    steps = _steps(tmp_path / "straight")
+    lrs, betas = [r["lr"] for r in steps], [r["beta1"] for r in steps]
+    np.testing.assert_allclose(np.array([lrs, betas]).T, _onecycle_curve(9, 0.003), rtol=1e-9)
+    peak = int(np.argmax(lrs))
+    assert abs(peak - 0.4 * 9) <= 1 and lrs[peak] > 0.98 * 0.003 and betas[peak] < 0.86
+    assert all(x < y for x, y in zip(lrs[:peak], lrs[1:peak + 1]))  # rises to the peak ...
+    assert all(x > y for x, y in zip(lrs[peak:], lrs[peak + 1:]))  # ... then falls
+    assert lrs[0] == pytest.approx(0.003 / 10) and betas[0] == betas[-1] == pytest.approx(0.95)
+    assert lrs[-1] == pytest.approx(0.003 / (10 * 1e4), rel=1e-6)
+
+    # Resuming with another --epochs would change the schedule's length: a clear error, nothing written.
+    before = (tmp_path / "straight" / "last.pt").read_bytes()
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", tmp_path / "straight", "--resume",
+                         "--epochs", "4", "--threads", "1", "--no-progress"], capsys)
+    assert code == 2 and err.startswith("error: ")
+    assert "one-cycle schedule over 9 steps" in err and "would have 12" in err
+    assert (tmp_path / "straight" / "last.pt").read_bytes() == before and len(_steps(tmp_path / "straight")) == 9
+
+
+def test_train_config_errors(data, tmp_path, capsys):
+    cases = [
+        (dict(schedule="cosine"), "train.schedule: 'cosine' is not one of 'constant', 'onecycle'"),
+        (dict(schedule="onecycle", pct_start=1.0), "train.pct_start"),
+        (dict(schedule="onecycle", div_factor=0.5), "train.div_factor"),
+        (dict(schedule="onecycle", beta1_range=[0.95, 1.0]), "train.beta1_range"),
+        (dict(schedule="onecycle", beta1_range=[0.95]), "train.beta1_range: expected 2 values"),
+        (dict(lr=0.0), "train.lr"),
+        # 1 epoch x 2 steps: the warm-up would last 0.8 steps.
+        (dict(schedule="onecycle", epochs=1, samples_per_epoch=4), "one-cycle warm-up needs more than one step"),
+    ]
+    for i, (values, msg) in enumerate(cases):
+        cfg = write_test_config(tmp_path / f"cfg{i}.yaml", train={"batch_size": 2, "epochs": 2, **values})
+        code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", tmp_path / f"run{i}"], capsys)
+        assert code == 2 and err.startswith("error: ") and msg in err, (values, err)
+        assert not (tmp_path / f"run{i}").exists()
+
+
+def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():
+    from detector.models import load_experiment
+
+    configs = ROOT / "configs" / "models"
+    for name in ("mpchair_dense_cpu", "mpchair_sparse_cpu"):
+        tc = load_experiment(configs / f"{name}.yaml").train
+        assert (tc.schedule, tc.lr, tc.pct_start, tc.div_factor, tc.final_div_factor, tc.beta1_range) == (
+            "onecycle", 0.003, 0.4, 10.0, 1e4, (0.95, 0.85)), name
+    for name in ("mpchair_dense", "mpchair_sparse"):
+        tc = load_experiment(configs / f"{name}.yaml").train
+        assert (tc.schedule, tc.lr) == ("constant", 1e-3), name
+
+
+@pytest.mark.slow
+def test_onecycle_length_counts_global_steps_under_torchrun(data, tmp_path):
+    # 2 processes x batch 1 over 4 samples per epoch = 2 global steps per epoch, 2 epochs: a 4-step schedule (per-rank
+    # counting would give 8 and another curve).
+    cfg = write_test_config(tmp_path / "cfg.yaml",
+                            train=dict(batch_size=1, epochs=2, samples_per_epoch=4, schedule="onecycle", lr=0.003))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2", "-m", "detector",
+           "train", "--config", str(cfg), "--data", str(data), "--out", str(tmp_path / "ddp"), "--max-steps", "3",
+           "--threads", "1", "--no-progress"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=False)
+    assert state["step"] == 3 and state["global_batch"] == 2 and state["scheduler"]["total_steps"] == 4
+    steps = _steps(tmp_path / "ddp")
+    np.testing.assert_allclose([(r["lr"], r["beta1"]) for r in steps], _onecycle_curve(4, 0.003)[:3], rtol=1e-9)
 
 
 def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, tmp_path, capsys):

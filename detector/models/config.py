@@ -124,6 +124,10 @@ class DataConfig:
     scaling: tuple[float, float] | None = None
 
 
+Schedule = Literal["constant", "onecycle"]
+"""Learning-rate schedule: ``constant`` (the reference) or ``onecycle`` (OpenPCDet's ``adam_onecycle``)."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimiser and schedule. Reference: AdamW lr 1e-3, betas (0.95, 0.99), wd 0.01, constant LR, batch 6.
@@ -133,12 +137,24 @@ class TrainConfig:
     value); we clip by norm at 10 like OpenPCDet, which only acts on rare spikes. ``samples_per_epoch``: samples drawn
     per epoch (reference 5000) or null for one pass over the split. ``shuffle``: the reference iterates in a fixed
     order every epoch (false).
+
+    ``schedule``: ``constant`` (``lr`` throughout) or ``onecycle`` (``torch.optim.lr_scheduler.OneCycleLR`` over
+    ``epochs x steps per epoch`` global steps, cosine annealing, stepped once per optimiser step): ``lr`` is then the
+    peak, reached after ``pct_start`` of the steps from ``lr / div_factor``, and the last step uses
+    ``lr / (div_factor * final_div_factor)``; AdamW's beta1 runs ``beta1_range[0] → beta1_range[1]`` (at the peak)
+    ``→ beta1_range[0]`` and replaces ``betas[0]``. The defaults are OpenPCDet's ``adam_onecycle`` (pct_start 0.4,
+    div_factor 10, final LR = initial / 1e4, moms [0.95, 0.85]). The one-cycle keys are ignored by ``constant``.
     """
 
     optimizer: Literal["adamw"] = "adamw"
     lr: float = 1e-3
     betas: tuple[float, float] = (0.95, 0.99)
     weight_decay: float = 0.01
+    schedule: Schedule = "constant"
+    pct_start: float = 0.4
+    div_factor: float = 10.0
+    final_div_factor: float = 1e4
+    beta1_range: tuple[float, float] = (0.95, 0.85)
     batch_size: int = 6
     epochs: int = 200
     samples_per_epoch: int | None = None
@@ -242,8 +258,26 @@ def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
         )
     if len(cfg.eval.iou_thresholds) != len(cfg.eval.classes):
         raise InputError("eval.iou_thresholds: one threshold per eval class", source)
-    if cfg.train.batch_size < 1 or cfg.train.epochs < 0:
+    check_train_config(cfg.train, source)
+
+
+def check_train_config(cfg: TrainConfig, source: str = "<config>") -> None:
+    """Raise :class:`InputError` for training values outside their range (the schedule name is checked on load)."""
+
+    def fail(msg: str) -> None:
+        raise InputError(f"train.{msg}", source)
+
+    if cfg.batch_size < 1 or cfg.epochs < 0:
         raise InputError("train.batch_size must be >= 1 and train.epochs >= 0", source)
+    if cfg.lr <= 0:
+        fail(f"lr: must be > 0, got {cfg.lr}")
+    if not 0.0 < cfg.pct_start < 1.0:
+        fail(f"pct_start: must be strictly between 0 and 1, got {cfg.pct_start}")
+    if cfg.div_factor < 1.0 or cfg.final_div_factor < 1.0:
+        fail(f"div_factor / final_div_factor: must be >= 1 (lr is the peak), got {cfg.div_factor}, "
+             f"{cfg.final_div_factor}")
+    if not all(0.0 <= b < 1.0 for b in cfg.beta1_range):
+        fail(f"beta1_range: both values must be in [0, 1), got {list(cfg.beta1_range)}")
 
 
 def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConfig:
