@@ -21,7 +21,7 @@ from PIL import Image
 
 from mpchair.atomic import write_bytes, write_text
 from mpchair.errors import InputError
-from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
+from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image, rotate_vectors
 from mpchair.kitti import DONTCARE, Calib, Labels, frame_paths, write_calib, write_labels, write_velodyne
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
@@ -161,7 +161,7 @@ def cast_scan(sensor: SensorConfig, directions: np.ndarray, pose: np.ndarray, ra
     (planar or Euclidean, per profile) and outside the ``z_min < z < z_max`` crop.
     """
     R, p = pose[:3, :3], pose[:3, 3]
-    t, face = raycaster.cast(p, directions @ R.T)
+    t, face = raycaster.cast(p, rotate_vectors(directions, R))
     ok = face >= 0
     rng_ = range_of(sensor, directions, np.where(ok, t, 0.0))
     ok &= (rng_ >= sensor.min_range) & (rng_ <= sensor.max_range)

@@ -26,7 +26,7 @@ import dataclasses
 
 import numpy as np
 
-from mpchair.geometry import points_in_boxes, project_boxes_to_image
+from mpchair.geometry import points_in_boxes, project_boxes_to_image, rotate_vectors
 from mpchair.kitti import Calib
 from mpchair.scan.raycast import Raycaster, make_raycaster
 from mpchair.scan.sensors import CameraConfig, grid_directions
@@ -169,10 +169,10 @@ def cast_pixels(
     ``face_object`` (F,) maps the mesh's faces to object positions (-1 none). Pixels come back row-major. Points are
     computed only for pixels that hit one of ``objects`` (all hits when ``None``); other points are NaN.
     """
-    rows, cols = np.nonzero(mask)
+    rows, cols = _nonzero_rows(mask)
     d = grid_directions(camera, rows, cols)
     R, p = pose[:3, :3], pose[:3, 3]
-    dw = d @ R.T
+    dw = rotate_vectors(d, R)
     face = raycaster.first_faces(p, dw)
     obj = np.where(face >= 0, face_object[np.maximum(face, 0)], -1)
     need = np.flatnonzero(np.isin(obj, objects) if objects is not None else face >= 0)
@@ -182,6 +182,16 @@ def cast_pixels(
         t, _ = raycaster.cast(p, dw[need])
         pts[need] = t[:, None] * d[need]
     return DenseHits(rows.astype(np.int64), cols.astype(np.int64), pts, face, obj)
+
+
+def _nonzero_rows(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero`` of a 2D mask, scanning only the rows that have a set pixel (most of a frame's grid is empty)."""
+    used = np.flatnonzero(mask.any(axis=1))
+    if len(used) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    r0, r1 = int(used[0]), int(used[-1]) + 1
+    rows, cols = np.nonzero(mask[r0:r1])
+    return rows + r0, cols
 
 
 def region_mask(regions: np.ndarray, camera: CameraConfig) -> np.ndarray:
@@ -289,7 +299,7 @@ def visible_fraction(
     rows, cols = rows.reshape(-1), cols.reshape(-1)
     d = grid_directions(camera, rows, cols)
     R, p = pose[:3, :3], pose[:3, 3]
-    face = scene.first_faces(p, d @ R.T)
+    face = scene.first_faces(p, rotate_vectors(d, R))
     full = face >= 0
     n_full = int(np.count_nonzero(full))
     if n_full == 0:

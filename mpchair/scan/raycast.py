@@ -103,7 +103,10 @@ class EmbreeRaycaster:
             nrm = self._normal[fh]
             dh = d[hit]
             denom = np.einsum("ij,ij->i", nrm, dh)
-            num = self._offset[fh] - (nrm @ oc[0] if shared else np.einsum("ij,ij->i", nrm, oc[hit]))
+            # (no BLAS matvec for the shared origin: its threads oversubscribe the cores beside worker processes)
+            oo = oc[0] if shared else None
+            num = self._offset[fh] - (nrm[:, 0] * oo[0] + nrm[:, 1] * oo[1] + nrm[:, 2] * oo[2] if shared
+                                      else np.einsum("ij,ij->i", nrm, oc[hit]))
             good = np.abs(denom) > _GRAZING_COS * np.sqrt(np.einsum("ij,ij->i", dh, dh))
             t[hit] = num / np.where(good, denom, 1.0)
             if not good.all():  # grazing hits: ask Embree for its own (float32) distance
