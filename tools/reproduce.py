@@ -165,7 +165,9 @@ def main(argv: list[str] | None = None) -> int:
                 cmd += ["--epochs", str(sc.epochs)]
             if (runs / m / "last.pt").exists() and not args.force:
                 cmd.append("--resume")
-            r.run(cmd)
+            # glibc otherwise returns every large freed tensor to the OS and page-faults it back in on the next step
+            # (measured 0.45 -> 0.33 s per CPU step of mpchair_dense_cpu.yaml); results are unaffected.
+            r.run(cmd, env=REUSE_ENV)
             if not args.dry_run:
                 (runs / m / "done").write_text("trained\n")
     for m in ("dense", "sparse"):
