@@ -95,6 +95,7 @@ def test_full_sparse_backbone_equals_masked_dense_chain(train: bool, first_subm_
     x = make_input()
     out, active = model(x)
     assert out.shape == (2, 9, SHAPE[0] // 2, SHAPE[1] // 2)
+    assert out.is_contiguous(memory_format=torch.channels_last)  # rows of 9 channels per site (docs/sparse.md)
     ref = dense_reference(model, x)  # training mode: batch statistics over the active sites, as the sparse BN
     for level in range(3):
         sl = slice(3 * level, 3 * level + 3)

@@ -129,6 +129,18 @@ def test_transposed_conv_on_target_set_equals_dense(stride: int) -> None:
     )
 
 
+def test_transposed_conv_with_no_active_parent_or_no_target_gives_bias() -> None:
+    coarse = make_tensor("clustered", channels=4, shape=(5, 4), seed=2)
+    conv = SparseConvTranspose2d(4, 3, 4, 4, bias=True).double()
+    # targets whose coarse parents (the top-left 2 x 2 of item 1, which is empty) are all inactive
+    far = torch.tensor([[1, 0, 0], [1, 3, 5], [1, 7, 2]])
+    y = conv(coarse, SparseTensor(torch.zeros(3, 1, dtype=torch.float64), far, (20, 16), coarse.batch_size))
+    torch.testing.assert_close(y.features, conv.bias.expand(3, 3), atol=0, rtol=0)
+    none = SparseTensor(torch.zeros(0, 1, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.int64), (20, 16),
+                        coarse.batch_size)
+    assert conv(coarse, none).features.shape == (0, 3)
+
+
 def test_weights_copy_from_dense_layers() -> None:
     assert SubMConv2d(3, 4, 5).weight.shape == nn.Conv2d(3, 4, 5).weight.shape
     assert SparseConv2d(3, 4).weight.shape == nn.Conv2d(3, 4, 2, 2).weight.shape

@@ -6,18 +6,28 @@ locations up to 70 m, any ry), and detections that perturb the GT (a fifth misse
 a few false positives per frame, scored so TPs tend to outrank FPs. Prints the wall time of one ``evaluate`` call
 (after a small warm-up call that loads the numba kernels), its CPU time, and the Moderate AP_R40 per class.
 
-    python tools/bench_eval.py [--frames 3769] [--objects 10] [--seed 0] [--repeat 3]
+With ``--cli`` it also writes the frames as a ``label_2`` folder and a 16-column result folder and times the whole
+user-facing command in a fresh process, ``python -m detector eval --labels ... --results ... --json`` (interpreter
+start, imports, numba cache load, reading 2 x frames files, the evaluation and the report).
+
+    python tools/bench_eval.py [--frames 3769] [--objects 10] [--seed 0] [--repeat 3] [--cli]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 from detector.eval import evaluate
-from mpchair.kitti import Labels
+from mpchair.kitti import Labels, write_labels
 
 CLASSES = ("Car", "Pedestrian", "Cyclist", "Van", "DontCare")
 CLASS_P = (0.55, 0.15, 0.07, 0.08, 0.15)
@@ -72,6 +82,7 @@ def main() -> None:
     ap.add_argument("--objects", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--cli", action="store_true", help="also time `python -m detector eval` on files, cold process")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     frames = [synth_frame(rng, int(rng.integers(args.objects // 2, args.objects * 3 // 2 + 1)))
@@ -96,6 +107,33 @@ def main() -> None:
         r = result.ap[c]
         print(f"  {c:<11} num_gt(mod) {result.num_gt[c][1]:>6}  moderate AP_R40 bbox {r['bbox']['R40'][1]:6.2f} "
               f"bev {r['bev']['R40'][1]:6.2f} 3d {r['3d']['R40'][1]:6.2f} aos {r['aos']['R40'][1]:6.2f}")
+    if args.cli:
+        time_cli(gt, dt, classes, args.repeat)
+
+
+def time_cli(gt: list[Labels], dt: list[Labels], classes: list[str], repeat: int) -> None:
+    """Write the frames as KITTI folders and time ``python -m detector eval`` on them in fresh processes."""
+    with tempfile.TemporaryDirectory() as tmp:
+        labels, results = Path(tmp, "label_2"), Path(tmp, "results")
+        labels.mkdir()
+        results.mkdir()
+        for i, (g, d) in enumerate(zip(gt, dt)):
+            write_labels(labels / f"{i:06d}.txt", g)
+            write_labels(results / f"{i:06d}.txt", d)
+        cmd = [sys.executable, "-m", "detector", "eval", "--labels", str(labels), "--results", str(results),
+               "--classes", ",".join(classes), "--json"]
+        repo = str(Path(__file__).resolve().parents[1])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [repo, os.environ.get("PYTHONPATH")]))}
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=True)
+            times.append(time.perf_counter() - t0)
+        res = json.loads(out.stdout)
+        print(f"python -m detector eval on {len(gt)} label + {len(dt)} result files, fresh process: wall best "
+              f"{min(times):.2f} s, median {float(np.median(times)):.2f} s over {repeat} runs")
+        print("  moderate AP_R40 3d from the files: "
+              + ", ".join(f"{c} {res[c]['3d']['R40'][1]:.2f}" for c in classes))
 
 
 if __name__ == "__main__":

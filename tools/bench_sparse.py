@@ -1,4 +1,5 @@
-"""Dense vs sparse timings from one run: one SubM conv, the full backbone + neck, and a training step.
+"""Dense vs sparse timings from one run: one SubM conv, the full backbone + neck, the whole detector end to end, and a
+training step; a closing summary prints the four ratios the issue sets targets for.
 
 Protocol (reference note, section 7): CPU, ``torch.set_num_threads(--threads)`` (2), batch 1, eval mode and
 ``torch.no_grad`` for the inference rows, warm-up first, then ``--repeats`` interleaved dense/sparse runs; the tables
@@ -6,17 +7,33 @@ show min and median wall time (ms) and the ratio dense / sparse of the minima. T
 Backbone timer: from the pseudo-image (dense canvas or SparseTensor) to the dense (1, 384, ny/2, nx/2) map, todense and
 concat included; the sparse rows build their neighbour tables inside the timed region.
 
+The "end to end" rows run the models that ``detector.models.build_model`` builds from ``configs/models/
+mpchair_dense.yaml`` and ``mpchair_sparse.yaml`` (with ``head: sparse_exact``, and once more with its dense head for
+reference), random weights, on one synthetic Matterport-Chair-like frame: 21,095 points (the mp3d-depth90 ray count)
+in clustered pillars at 0.75 % of the 768 x 512 canvas. Every stage of ``detector.bench.time_frame`` is timed:
+voxelize + pillar net, scatter / SparseTensor, backbone + neck, head, decode + rotated NMS. ``score_thr`` is set to 0
+for the benchmark so that NMS runs on the ``nms_pre`` = 100 top boxes as it would with a trained model (random weights
+score every anchor about 0.01, below the configured 0.1).
+
 The allocator can dominate CPU timings (reference note, timing note): glibc returns big freed buffers to the OS, so
 every dense forward pays page faults. Run once as is and once with ``--reuse-allocator`` (re-executes itself with
 ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736``); the header prints the setting in force and every row its
 minor page faults per run.
 
+On a machine whose cores are busy with other jobs, OpenMP's default spin-waiting can wreck the 2-thread rows: each
+parallel region waits for a worker thread that is not scheduled while the waiting thread spins. The sparse model runs
+hundreds of small parallel ops per forward, so it suffers most (measured: 4.6 s instead of 0.1 s per sparse backbone
+forward with another 2-thread job running; the dense model loses far less). ``--omp-passive`` re-executes under
+``OMP_WAIT_POLICY=PASSIVE`` (idle threads sleep at once) for such machines; the header prints the setting.
+
     PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json out.json]
+        [--skip subm backbone e2e train] [--reuse-allocator] [--omp-passive]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -27,13 +44,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from detector.bench import COMPONENTS, time_frame  # noqa: E402
+from detector.models import build_model, load_experiment  # noqa: E402
 from detector.models.backbone import SecondBackbone  # noqa: E402
-from detector.models.head import AnchorHead  # noqa: E402
+from detector.models.head import AnchorHead, SparseExactHead  # noqa: E402
 from detector.models.neck import SecondFPN  # noqa: E402
 from detector.models.sparse_backbone import SparseBackboneNeck  # noqa: E402
 from detector.sparse import SparseTensor, SubMConv2d  # noqa: E402
@@ -42,6 +62,15 @@ from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, u
 from mpchair.atomic import write_text  # noqa: E402
 
 REUSE_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
+PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "models"
+#: The issue's targets: (section, row, label, minimum ratio dense / sparse).
+TARGETS = (
+    ("backbone", "matterport", "(a) backbone + neck, Matterport 768x512 clustered 0.75%", 15.0),
+    ("e2e", "sparse+sparse_exact", "(b) end to end, sparse with head: sparse_exact", 10.0),
+    ("backbone", "kitti", "(c) backbone + neck, KITTI 504x440 clustered 2.5%", 3.0),
+    ("train", "dense head", "(d) training step fwd + bwd, Matterport clustered 0.75%", 3.0),
+)
 
 
 def timed(fn: Callable[[], object]) -> tuple[float, float, int]:
@@ -161,6 +190,67 @@ def bench_backbone(repeats: int) -> list[dict[str, object]]:
     return rows
 
 
+def matterport_points(seed: int = 4, num_points: int = 21095, density: float = 0.0075) -> np.ndarray:
+    """(N, 3) float32 sensor-frame points whose pillars are clustered sites of the Matterport canvas.
+
+    The sites cover ``density`` of the padded 768 x 512 canvas but lie in the real 760 x 500 grid (points outside it
+    are cropped by the voxelizer); every site gets at least one point, the rest are spread over the sites at random.
+    """
+    m = load_experiment(CONFIGS / "mpchair_dense.yaml").model
+    x0, y0, z0, x1, y1, z1 = m.point_cloud_range
+    vx, vy = m.voxel_size[0], m.voxel_size[1]
+    ny_real, nx_real = round((y1 - y0) / vy), round((x1 - x0) / vx)
+    count = round(density * m.output_shape[0] * m.output_shape[1])
+    sites = clustered_sites((ny_real, nx_real), count / (ny_real * nx_real), seed=seed).numpy()
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, len(sites), num_points)
+    pick[: len(sites)] = np.arange(len(sites))
+    iy, ix = sites[pick, 1], sites[pick, 2]
+    return np.stack(
+        [x0 + (ix + rng.uniform(0.01, 0.99, num_points)) * vx, y0 + (iy + rng.uniform(0.01, 0.99, num_points)) * vy,
+         rng.uniform(z0 + 0.01, z1 - 0.01, num_points)], axis=1,
+    ).astype(np.float32)
+
+
+def bench_end_to_end(repeats: int) -> list[dict[str, object]]:
+    """Points → detections with the models built from the Matterport configs (``detector.bench.time_frame``)."""
+    dense_cfg = load_experiment(CONFIGS / "mpchair_dense.yaml").model
+    sparse_cfg = load_experiment(CONFIGS / "mpchair_sparse.yaml").model
+    variants = {
+        "dense": dense_cfg,
+        "sparse+sparse_exact": dataclasses.replace(sparse_cfg, head="sparse_exact"),
+        "sparse+dense_head": dataclasses.replace(sparse_cfg, head="dense"),
+    }
+    models = {}
+    for name, cfg in variants.items():
+        torch.manual_seed(0)
+        models[name] = build_model(dataclasses.replace(cfg, score_thr=0.0)).eval()
+    points = matterport_points()
+    device = torch.device("cpu")
+    stages: dict[str, list[dict[str, float]]] = {k: [] for k in models}
+    detections: dict[str, int] = {}
+
+    def run(name: str) -> None:
+        ms, n = time_frame(models[name], points, device)
+        stages[name].append(ms)
+        detections[name] = n
+
+    r = compare({k: (lambda k=k: run(k)) for k in models}, repeats)
+    warm = 1  # compare() runs every function once as warm-up; drop those stage samples
+    n_sites = int(models["dense"].voxelize([torch.from_numpy(points)]).coords.shape[0])
+    return [
+        {
+            "case": f"matterport 768x512, {len(points)} points, {n_sites} pillars "
+                    f"({100 * n_sites / (768 * 512):.2f}%), configs mpchair_dense / mpchair_sparse",
+            "detections": detections,
+            "stages_min_ms": {
+                k: {c: round(min(s[c] for s in v[warm:]), 2) for c in COMPONENTS} for k, v in stages.items()
+            },
+            "timings": r,
+        }
+    ]
+
+
 def bench_train_step(repeats: int) -> list[dict[str, object]]:
     """Forward + backward of backbone + neck + the dense 1x1 head (as the reference's training-step rows)."""
     shape = (768, 512)
@@ -169,6 +259,7 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
     canvas = SparseTensor(feats, coords, shape, 1).dense()
     dense, sparse = dense_backbone_neck().train(), SparseBackboneNeck().train()
     head_d, head_s = (AnchorHead(in_channels=384, num_anchors=2, num_classes=1).train() for _ in range(2))
+    head_x = SparseExactHead(in_channels=384, num_anchors=2, num_classes=1).train()
 
     def loss_of(out: tuple[torch.Tensor, ...]) -> torch.Tensor:
         return sum(o.square().mean() for o in out)  # type: ignore[return-value]
@@ -180,13 +271,23 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
         y, _ = sparse(SparseTensor(feats, coords, shape, 1))
         loss_of(head_s(y)).backward()
 
+    def step_sparse_exact() -> None:
+        y, active = sparse(SparseTensor(feats, coords, shape, 1))
+        loss_of(head_x(y, active)).backward()
+
     r = compare({"dense": step_dense, "sparse": step_sparse}, repeats)
+    rx = compare({"dense": step_dense, "sparse": step_sparse_exact}, repeats)
     return [
         {
             "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head)",
             "active": int(coords.shape[0]),
             "timings": r,
-        }
+        },
+        {
+            "case": "matterport 768x512 clustered 0.75% fwd+bwd (dense: dense head; sparse: head sparse_exact)",
+            "active": int(coords.shape[0]),
+            "timings": rx,
+        },
     ]
 
 
@@ -194,15 +295,46 @@ def fmt_rows(title: str, rows: list[dict[str, object]]) -> str:
     lines = [f"\n## {title}"]
     for row in rows:
         t: dict[str, dict[str, float]] = row["timings"]  # type: ignore[assignment]
-        extra = {k: v for k, v in row.items() if k not in ("case", "timings")}
+        extra = {k: v for k, v in row.items() if k not in ("case", "timings", "stages_min_ms")}
         lines.append(f"{row['case']}  {extra}")
+        stages: dict[str, dict[str, float]] = row.get("stages_min_ms", {})  # type: ignore[assignment]
+        for k, v in stages.items():
+            lines.append(f"  {k:20s} stage minima (ms): " + ", ".join(f"{c} {ms:.2f}" for c, ms in v.items()))
         base, base_cpu = t["dense"]["min_ms"], t["dense"]["cpu_min_ms"]
         for k, v in t.items():
             ratio = "" if k == "dense" else f"  wall {base / v['min_ms']:6.1f}x  cpu {base_cpu / v['cpu_min_ms']:6.1f}x"
             lines.append(
-                f"  {k:18s} wall min {v['min_ms']:9.2f} median {v['median_ms']:9.2f}  cpu min {v['cpu_min_ms']:9.2f} ms"
+                f"  {k:20s} wall min {v['min_ms']:9.2f} median {v['median_ms']:9.2f}  cpu min {v['cpu_min_ms']:9.2f} ms"
                 f"  faults/run {v['faults']:7.0f}{ratio}"
             )
+    return "\n".join(lines)
+
+
+def summary(results: dict[str, object]) -> list[dict[str, object]]:
+    """The targeted ratios (dense / sparse of the minima, wall and CPU) of the sections that ran."""
+    out = []
+    for section, row_key, label, target in TARGETS:
+        rows = results.get(section)
+        if not rows:
+            continue
+        for row in rows:  # type: ignore[union-attr]
+            t = row["timings"]
+            if row_key in row["case"] or row_key in t:
+                sparse_key = row_key if row_key in t else "sparse"
+                wall = t["dense"]["min_ms"] / t[sparse_key]["min_ms"]
+                cpu = t["dense"]["cpu_min_ms"] / t[sparse_key]["cpu_min_ms"]
+                out.append({"target": label, "min_ratio": target, "wall": round(wall, 2), "cpu": round(cpu, 2),
+                            "met": wall >= target})
+                break
+    return out
+
+
+def fmt_summary(rows: list[dict[str, object]], header: dict[str, object]) -> str:
+    lines = [f"\n## Targets (dense / sparse of the minima; {header['threads']} threads, batch 1, allocator "
+             f"{'reuse' if header['allocator_reuse'] else 'default'}, OMP_WAIT_POLICY {header['omp_wait_policy']})"]
+    for r in rows:
+        lines.append(f"  {r['target']:<62s} wall {r['wall']:6.2f}x  cpu {r['cpu']:6.2f}x  target >= {r['min_ratio']:g}x"
+                     f"  {'met' if r['met'] else 'MISSED'}")
     return "\n".join(lines)
 
 
@@ -211,12 +343,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--train-repeats", type=int, default=3)
-    p.add_argument("--skip", nargs="*", default=[], choices=["subm", "backbone", "train"])
+    p.add_argument("--skip", nargs="*", default=[], choices=["subm", "backbone", "e2e", "train"])
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this path")
     p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {REUSE_ENV}")
+    p.add_argument("--omp-passive", action="store_true", help=f"re-run under {PASSIVE_ENV} (busy machines)")
     args = p.parse_args(argv)
-    if args.reuse_allocator and any(os.environ.get(k) != v for k, v in REUSE_ENV.items()):
-        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **REUSE_ENV})
+    want = {**(REUSE_ENV if args.reuse_allocator else {}), **(PASSIVE_ENV if args.omp_passive else {})}
+    if any(os.environ.get(k) != v for k, v in want.items()):
+        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **want})
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -229,12 +363,15 @@ def main(argv: list[str] | None = None) -> int:
         "load_average": os.getloadavg(),
         "allocator": allocator,
         "allocator_reuse": all(os.environ.get(k) == v for k, v in REUSE_ENV.items()),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(unset)"),
     }
     print("# bench_sparse", json.dumps(header))
     results: dict[str, object] = {"header": header}
     sections = (
         ("subm", "One SubM 3x3 conv, 64 -> 64, 768 x 512 (eval, no_grad)", bench_subm, args.repeats),
         ("backbone", "Backbone + neck to the dense 384-ch map (eval, no_grad)", bench_backbone, args.repeats),
+        ("e2e", "End to end: voxelize -> pillar net -> backbone -> head -> decode + NMS (eval, no_grad)",
+         bench_end_to_end, args.repeats),
         ("train", "Training step, forward + backward", bench_train_step, args.train_repeats),
     )
     for key, title, fn, reps in sections:
@@ -244,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         results[key] = rows
         print(fmt_rows(title, rows), flush=True)
     results["load_average_end"] = os.getloadavg()
+    results["summary"] = summary(results)
+    print(fmt_summary(results["summary"], header))
     print(f"\n# load average at the end: {results['load_average_end']}")
     if args.json is not None:
         write_text(args.json, json.dumps(results, indent=1))

@@ -21,10 +21,10 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 
-import numba
 import numpy as np
 
 from detector.ops.iou import camera_boxes, camera_overlaps_indexed
+from detector.ops.jit import njit_cached
 from mpchair.kitti import DONTCARE, Labels
 
 DIFFICULTIES: tuple[str, ...] = ("easy", "moderate", "hard")
@@ -95,7 +95,7 @@ class EvalResult:
 # --- matching kernels (numba) ----------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True)
+@njit_cached
 def _pass1(ov, ov_off, gt_off, dt_off, gt_flag, dt_flag, score, min_overlap):
     """TP scores over all frames: per GT in file order, the highest-scoring unassigned detection with IoU > thr.
 
@@ -135,7 +135,7 @@ def _pass1(ov, ov_off, gt_off, dt_off, gt_flag, dt_flag, score, min_overlap):
     return out[:n_out]
 
 
-@numba.njit(cache=True)
+@njit_cached
 def get_thresholds(scores: np.ndarray, num_gt: int, num_sample_pts: int = N_SAMPLE_PTS) -> np.ndarray:
     """Score thresholds at recall steps of ``1 / (num_sample_pts - 1)``, picked from the TP scores (reference rule).
 
@@ -159,7 +159,7 @@ def get_thresholds(scores: np.ndarray, num_gt: int, num_sample_pts: int = N_SAMP
     return out[:k]
 
 
-@numba.njit(cache=True)
+@njit_cached
 def _frame_stats(ov, o0, ng, nd, g0, d0, gt_flag, dt_flag, score, gt_alpha, dt_alpha, dt_bbox, dc_bbox, c0, nc,
                  use_dontcare, min_overlap, thr, compute_aos, assigned):
     """Pass 2 of one frame at score threshold ``thr``: (tp, fp, fn, orientation similarity)."""
@@ -222,7 +222,7 @@ def _frame_stats(ov, o0, ng, nd, g0, d0, gt_flag, dt_flag, score, gt_alpha, dt_a
     return tp, fp, fn, sim
 
 
-@numba.njit(cache=True)
+@njit_cached
 def _pass2(ov, ov_off, gt_off, dt_off, gt_flag, dt_flag, score, gt_alpha, dt_alpha, dt_bbox, dc_bbox, dc_off,
            use_dontcare, min_overlap, thresholds, compute_aos):
     """Summed (tp, fp, fn, similarity) per threshold over all frames (arrays of len(thresholds))."""

@@ -4,42 +4,11 @@ from __future__ import annotations
 
 import sys
 
-import numba
 import numpy as np
 
-from detector.ops.iou import _MAX_VERTS, _inter_one
-
-
-@numba.njit(cache=True)
-def _nms_kernel(bev: np.ndarray, iou_threshold: float) -> np.ndarray:
-    """Keep mask over boxes already sorted by descending score; rows of ``bev`` are ``[x, y, l, w, yaw]``.
-
-    IoUs are computed lazily, only between a kept box and boxes not yet suppressed, so the cost is
-    O(kept x N) clips instead of a full N x N matrix.
-    """
-    n = bev.shape[0]
-    keep = np.zeros(n, dtype=np.bool_)
-    suppressed = np.zeros(n, dtype=np.bool_)
-    p = np.empty((4, 2))
-    q = np.empty((4, 2))
-    buf_a = np.empty((_MAX_VERTS, 2))
-    buf_b = np.empty((_MAX_VERTS, 2))
-    for i in range(n):
-        if suppressed[i]:
-            continue
-        keep[i] = True
-        area_i = bev[i, 2] * bev[i, 3] if (bev[i, 2] > 0.0 and bev[i, 3] > 0.0) else 0.0
-        for j in range(i + 1, n):
-            if suppressed[j]:
-                continue
-            inter = _inter_one(bev[i, 0], bev[i, 1], bev[i, 2], bev[i, 3], bev[i, 4],
-                               bev[j, 0], bev[j, 1], bev[j, 2], bev[j, 3], bev[j, 4], p, q, buf_a, buf_b)
-            if inter <= 0.0:
-                continue
-            area_j = bev[j, 2] * bev[j, 3]
-            if inter / (area_i + area_j - inter) > iou_threshold:
-                suppressed[j] = True
-    return keep
+# The kernel lives in iou.py next to the clip it calls: numba's cache of a kernel is invalidated only by changes
+# to its own file (see detector/ops/jit.py).
+from detector.ops.iou import _nms_kernel
 
 
 def _is_tensor(x) -> bool:

@@ -43,6 +43,18 @@ def _reset_like_torch(weight: Tensor, bias: Tensor | None) -> None:
         nn.init.uniform_(bias, -bound, bound)
 
 
+def _taps_last(weight: Tensor) -> Tensor:
+    """``(O, C, kh, kw)`` conv weight → contiguous ``(O, kh * kw, C)`` (the weight in channels-last order).
+
+    Tap ``j = ky * kw + kx`` is then ``w[:, j]``, an ``(O, C)`` matrix with unit stride along C, so ``f @ w[:, j].t()``
+    runs as a BLAS product on a transposed operand without any copy. The copy made here reads the weight with
+    stride ``kh * kw`` along its innermost output axis: measured 3.4x cheaper than the ``(kh * kw, C, O)`` layout's
+    (0.19 vs 0.63 ms for a 256-channel 3x3 weight, 1 thread), which was about 12 % of the Matterport backbone.
+    """
+    o, c, kh, kw = weight.shape
+    return weight.permute(0, 2, 3, 1).contiguous().view(o, kh * kw, c)
+
+
 def subm_conv2d(
     features: Tensor, table: SubMTable, weight: Tensor, bias: Tensor | None = None, algorithm: SubMAlgorithm = "auto"
 ) -> Tensor:
@@ -57,21 +69,23 @@ def subm_conv2d(
     k = kh * kw
     if algorithm == "auto":
         algorithm = "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook"
-    # (O, C, kh, kw) -> (kh, kw, C, O): row (ky * kw + kx) * C + c multiplies channel c of the neighbour at offset k
-    w = weight.permute(2, 3, 1, 0).reshape(k, c, o)
+    # (O, C, kh, kw) -> (O, kh * kw, C): column (ky * kw + kx) * C + c multiplies channel c of the neighbour at
+    # offset ky * kw + kx
+    w = _taps_last(weight)
     if algorithm == "gemm":
         padded = torch.cat([features, features.new_zeros(1, c)], dim=0)
         cols = padded.index_select(0, table.padded).view(n, k * c)
-        out = cols @ w.reshape(k * c, o)
+        out = cols @ w.reshape(o, k * c).t()
     elif algorithm == "rulebook":
         centre = k // 2
-        out = features @ w[centre]
+        out = features @ w[:, centre].t()
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [g @ w[j] for g, j in zip(gathered.split(counts), others) if g.shape[0]]
-            out = out.index_add(0, out_rows, torch.cat(parts, dim=0))
+            parts = [g @ w[:, j].t() for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            # in place into the fresh centre product (mm does not need its output for the backward)
+            out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
         raise ValueError(f"unknown SubM algorithm {algorithm!r}")
     if bias is not None:
@@ -178,7 +192,7 @@ class SparseConv2d(SparseModule):
         f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
         # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and deterministic
         buf = f.new_zeros(m * s * s, c).index_put((t.out_rows * (s * s) + t.slots,), f)
-        out = buf.view(m, s * s * c) @ self.weight.permute(2, 3, 1, 0).reshape(s * s * c, o)
+        out = buf.view(m, s * s * c) @ _taps_last(self.weight).reshape(o, s * s * c).t()
         if self.bias is not None:
             out = out + self.bias
         return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size)
@@ -194,8 +208,8 @@ class SparseConvTranspose2d(SparseModule):
     """Transposed conv (kernel = stride = s) evaluated only on a target active set.
 
     ``forward(x, target)``: for a target site ``q`` the output is ``W[:, :, q_y % s, q_x % s]^T f(floor(q / s))``
-    (+ bias), zero (+ bias) where that parent is inactive in ``x``. The layer computes ``f W`` for all ``s*s`` slots
-    of every coarse site with one matmul and gathers each target's slot. Weight ``(in, out, s, s)`` as in
+    (+ bias), zero (+ bias) where that parent is inactive in ``x``. The layer groups the targets by kernel slot and
+    does one matmul per slot (only products some target needs). Weight ``(in, out, s, s)`` as in
     ``ConvTranspose2d``.
     """
 
@@ -222,17 +236,21 @@ class SparseConvTranspose2d(SparseModule):
         if x.batch_size != target.batch_size:
             raise ValueError(f"batch sizes differ: input {x.batch_size}, target {target.batch_size}")
         s, o = self.stride, self.out_channels
+        # (C, O, s, s) -> (s * s, C, O): slot ky * s + kx as a contiguous (C, O) matrix
+        w = self.weight.permute(2, 3, 0, 1).contiguous().view(s * s, self.in_channels, o)
         if s == 1 and target.coords is x.coords:
-            out = x.features @ self.weight[:, :, 0, 0]  # same site set: a plain 1x1 matmul
+            out = x.features @ w[0]  # same site set: a plain 1x1 matmul
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
-            n = x.num_active
-            # (C, O, s, s) -> (C, s, s, O): column (ky * s + kx) * O + o
-            y = x.features @ self.weight.permute(0, 2, 3, 1).reshape(self.in_channels, s * s * o)
-            y = torch.cat([y.view(n * s * s, o), y.new_zeros(1, o)], dim=0)
-            missing = torch.full_like(t.slots, n * s * s)  # the appended zero row
-            idx = torch.where(t.parent_rows >= 0, t.parent_rows * (s * s) + t.slots, missing)
-            out = y.index_select(0, idx)
+            # Targets grouped by kernel slot: one (n_slot, C) x (C, O) product per slot over the targets that have an
+            # active parent. Only the products that some target needs are computed (multiplying every coarse site by
+            # all s*s slots costs 4x more at s = 4 on the Matterport map, where a coarse site has about 4 targets).
+            rows, parents, counts = t.by_slot(s)
+            g = x.features.index_select(0, parents)
+            parts = [gi @ w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+            y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
+            # targets without an active parent stay zero (+ bias)
+            out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
         if self.bias is not None:
             out = out + self.bias
         return target.replace_feature(out)

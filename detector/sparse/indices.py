@@ -225,6 +225,20 @@ class UpTable:
     parent_rows: Tensor  # (N_target,) int64
     slots: Tensor  # (N_target,) int64
 
+    def by_slot(self, stride: int) -> tuple[Tensor, Tensor, list[int]]:
+        """Targets with an active parent, grouped by slot: ``(rows, parents, counts)``.
+
+        ``rows`` (V,) are target rows and ``parents`` (V,) their parent rows, ordered by slot (stable, so by target row
+        within a slot); ``counts[k]`` of them (``stride**2`` entries) use slot ``k``.
+        """
+        has_parent = self.parent_rows >= 0
+        rows = torch.nonzero(has_parent).squeeze(1)
+        slots = self.slots[rows]
+        order = torch.argsort(slots, stable=True)
+        rows = rows[order]
+        counts = torch.bincount(slots, minlength=stride * stride).tolist()
+        return rows, self.parent_rows[rows], counts
+
 
 def up_table(target_coords: Tensor, coarse_shape: tuple[int, int], coarse_lookup: SiteLookup, stride: int) -> UpTable:
     """Parents and kernel slots of the target sites ``(N, 3)`` under a stride-``stride`` transposed conv."""

@@ -124,7 +124,8 @@ def scatter_to_dense(
     """Scatter ``(N, C)`` rows at flat site keys ``(b * H + iy) * W + ix`` into a zero canvas.
 
     Returns ``(B, C, H, W)`` (contiguous, the layout ``nn.Conv2d`` expects) or ``(B, H, W, C)``. The channels-first
-    scatter writes each row straight to its strided positions, so no transposed copy of the big canvas is made.
+    scatter writes the transposed ``(C, N)`` features straight to their strided positions, so no transposed copy of
+    the big canvas is made.
     """
     h, w = spatial_shape
     n, c = features.shape
@@ -134,7 +135,10 @@ def scatter_to_dense(
         return out.index_put_((keys,), features).view(batch_size, h, w, c)
     b = torch.div(keys, hw, rounding_mode="floor")
     base = b * (c * hw) + (keys - b * hw)  # flat offset of channel 0 of each site
-    idx = base[:, None] + torch.arange(c, device=keys.device, dtype=torch.int64)[None, :] * hw  # (N, C)
+    # Channel-major order: all N sites of channel 0, then of channel 1, ... Consecutive writes then stay inside one
+    # (H, W) plane (a few hundred KB) instead of jumping a whole plane per write (site-major order touches C pages
+    # per site): measured 3x faster on the 384-channel Matterport map (docs/sparse.md).
+    idx = torch.arange(c, device=keys.device, dtype=torch.int64)[:, None] * hw + base[None, :]  # (C, N)
     # in-place scatter_ into a fresh zero buffer: the out-of-place scatter would copy the whole canvas once more
     out = features.new_zeros(batch_size * c * hw)
-    return out.scatter_(0, idx.reshape(-1), features.reshape(-1)).view(batch_size, c, h, w)
+    return out.scatter_(0, idx.reshape(-1), features.t().reshape(-1)).view(batch_size, c, h, w)
