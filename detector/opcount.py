@@ -17,8 +17,9 @@ and the sparse rows bound the active sites after block i by ``min(D HW, HW / 4^i
   tables, the transposed conv's parent lookup on the block-1 set). This is what a gather-scatter sparse engine must
   multiply; it is never above the bound (tested on real-ish and uniform-random sites).
 - ``sparse_computed``: what ``detector.sparse`` actually multiplies, zero rows included: the one-GEMM SubM path does
-  all ``k^2`` taps of every site, the 2x2 down-conv multiplies an ``(M, 4 C_in)`` buffer with empty slots, and a
-  transposed conv multiplies every coarse site by all ``s^2`` taps. This one *can* exceed the bound (the down-conv).
+  all ``k^2`` taps of every site and the 2x2 down-conv multiplies an ``(M, 4 C_in)`` buffer with empty slots; a
+  transposed conv multiplies only the (target, parent tap) pairs, as the exact count. This one *can* exceed the bound
+  (the down-conv).
 
 Conv types are ``"3x3 conv"`` (dense 3x3 of stride 1 and 2 together, and SubM 3x3, as the table), ``"2x2 conv"``
 (sparse down), ``"9x9 conv"`` (Sparse+WideConv), ``"1x1 convT"``, ``"2x2 convT"``, ``"4x4 convT"``; blocks are
@@ -153,7 +154,7 @@ class _Recorder:
             else:
                 t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
                 pairs = int((t.parent_rows >= 0).sum())  # each target site takes one tap of its parent
-                computed = x.num_active * s * s * cc
+                computed = pairs * cc  # detector.sparse groups targets by slot: only the products targets need
             return LayerCount(name, f"{s}x{s} convT", block, "sparse_convT", s, module.in_channels,
                               module.out_channels, x.spatial_shape, x.num_active, target.num_active, pairs,
                               pairs * cc, computed,
