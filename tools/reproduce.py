@@ -212,6 +212,36 @@ def _ap(metrics: dict, kind: str, recall: str) -> str:
     return " / ".join(f"{v:.2f}" for v in vals) if vals else "n/a"
 
 
+def _summary(res: Path) -> list[str]:
+    """The issue's targets next to what this run measured (from the eval and bench JSON outputs)."""
+    rows = []
+    ev = {m: json.loads(t) for m in ("dense", "sparse") if (t := _read(res / f"eval_{m}" / "metrics.json"))}
+    if "dense" in ev:
+        d3 = ev["dense"]["Chair"]["3d"]["R40"][1]
+        rows.append(f"| dense 3D AP, Moderate, R40 | >= 80 (paper 80.66) | {d3:.2f} |")
+        if "sparse" in ev:
+            s3 = ev["sparse"]["Chair"]["3d"]["R40"][1]
+            rows.append(f"| sparse - dense, 3D AP Moderate R40 | >= -5 (paper -4.61) | {s3 - d3:+.2f} |")
+    for alloc in ("default", "reuse"):
+        text = _read(res / f"bench_{alloc}.json")
+        if not text:
+            continue
+        models = {m["name"]: m["components"] for m in json.loads(text)["models"]}
+        dense = models.get("dense")
+        for name, comps in models.items():
+            if name == "dense" or dense is None:
+                continue
+            exact_head = "sparse_head" in name
+            targets = [("total", ">= 10 (exact sparse head)")] if exact_head else [
+                ("backbone", ">= 15 (paper 13.3 on a robot CPU)"), ("total", "paper 4.6 (dense head)")]
+            for comp, target in targets:
+                ratio = dense[comp]["mean_ms"] / max(comps[comp]["mean_ms"], 1e-9)
+                rows.append(f"| dense / {name}, {comp} time, allocator {alloc} | {target} | {ratio:.1f}x |")
+    if not rows:
+        return []
+    return ["## Targets (issue) and this run", "", "| quantity | target | measured |", "|---|---|---|", *rows, ""]
+
+
 def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_s: float) -> None:
     """docs/results.md from the step outputs that exist (missing ones are named)."""
     from mpchair.atomic import write_text
@@ -225,14 +255,18 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         shutil.copyfile(src, img_dir / name)
         return os.path.relpath(img_dir / name, path.parent)
 
+    log = _read(out / "commands.log") or ""
+    # Sum of the recorded commands (a resumed reproduction spans several invocations; each command is logged once).
+    steps_s = sum(float(line.split()[0]) for line in log.splitlines() if line.strip())
     lines = [
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, epochs {sc.epochs or 'from the configs'}); wall time of this invocation {total_s / 60:.1f} min. "
-        "Synthetic houses are not Matterport3D: absolute AP and density are not the paper's; the comparison is the "
-        "dense-vs-sparse *difference* and *ratio*.",
+        f"frames, epochs {sc.epochs or 'from the configs'}); the commands below took {steps_s / 60:.1f} min in all on "
+        "this machine (each command's wall time is listed). Synthetic houses are not Matterport3D: absolute AP and "
+        "density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
         "",
+        *_summary(res),
         "## Detection (val split, Chair, IoU 0.5; Easy / Moderate / Hard)",
         "",
         "| model | BEV AP R40 | 3D AP R40 | BEV AP R11 | 3D AP R11 |",
@@ -273,8 +307,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
     else:
         lines.append("not run")
     lines += ["## Commands", "", "```"]
-    log = _read(out / "commands.log")
-    lines += (log or "").rstrip().splitlines() + ["```", ""]
+    lines += log.rstrip().splitlines() + ["```", ""]
     write_text(path, "\n".join(lines))
 
 
