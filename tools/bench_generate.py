@@ -7,7 +7,10 @@ Reports, in one run:
   around it) from the generated frames' own poses, repeated until it reaches the rays the pipeline cast
   (scan + dense visibility rays, as counted in the frame records);
 * the ratio ``pipeline CPU-seconds / raw raycast seconds``, with pipeline CPU-seconds = wall time x workers (an
-  upper bound on the CPU the pipeline used).
+  upper bound on the CPU the pipeline used);
+* the same ratio against the pipeline's *own* rays: the frames are generated once more in one process with every
+  Embree call recorded (viewpoint checks, dense visibility, silhouettes, scans), and exactly those calls are replayed
+  and timed alone (``pipeline_cpu_over_replay``, the issue's measure).
 
 Usage: ``python tools/bench_generate.py [--frames 100] [--workers 2] [--seed 0] [--subdivide 0] [--json]``
 (``--subdivide 3`` gives the house a real Matterport3D face count at the same geometry).
@@ -26,6 +29,35 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+
+def _record_engine_calls(run) -> list[tuple]:
+    """Run ``run()`` with every Embree scene call recorded: ``[(scene, args, kwargs)]`` with copies of the arrays."""
+    import numpy as np
+
+    from mpchair.scan import raycast
+
+    calls: list[tuple] = []
+    original = raycast.EmbreeRaycaster.__init__
+
+    class Recorder:
+        def __init__(self, scene):
+            self.scene = scene
+
+        def run(self, *a, **kw):
+            calls.append((self.scene, tuple(np.array(x, copy=True) for x in a), kw))
+            return self.scene.run(*a, **kw)
+
+    def init(self, *a, **kw):
+        original(self, *a, **kw)
+        self._scene = Recorder(self._scene)
+
+    raycast.EmbreeRaycaster.__init__ = init
+    try:
+        run()
+    finally:
+        raycast.EmbreeRaycaster.__init__ = original
+    return calls
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,12 +107,25 @@ def main(argv: list[str] | None = None) -> int:
         for o32, d32 in batches:
             rc._scene.run(o32, d32)  # the raw engine call (what EmbreeRaycaster.cast wraps)
         raw = time.perf_counter() - t1
+        # The same frames again in one process, recording every engine call (viewpoint checks, dense visibility,
+        # silhouettes, scans: the rays the pipeline really casts), then replaying exactly those calls, timed alone.
+        calls = _record_engine_calls(lambda: generate(GenerateRequest(
+            root=tmp / "houses", houses=(house.id,), frames=args.frames, out=tmp / "ds_rec", seed=args.seed,
+            workers=1, progress=False)))
+        t2 = time.perf_counter()
+        for scene, a, kw in calls:
+            scene.run(*a, **kw)
+        replay = time.perf_counter() - t2
+        replay_rays = int(sum(len(a[1]) for _, a, _ in calls))
     result = {
         "house": house.id, "faces": len(house.faces), "frames": args.frames, "workers": args.workers,
         "wall_s": round(wall, 3), "frames_per_s": round(args.frames / wall, 2), "rays": rays,
         "rays_per_frame": round(rays / args.frames), "raw_embree_s": round(raw, 3),
         "raw_embree_mrays_per_s": round(rays / raw / 1e6, 2),
-        "pipeline_cpu_over_raw": round(wall * args.workers / raw, 2), "kept_boxes": summary.kept,
+        "pipeline_cpu_over_raw": round(wall * args.workers / raw, 2),
+        "replayed_rays": replay_rays, "replayed_rays_per_frame": round(replay_rays / args.frames),
+        "replay_embree_s": round(replay, 3), "replay_mrays_per_s": round(replay_rays / replay / 1e6, 2),
+        "pipeline_cpu_over_replay": round(wall * args.workers / replay, 2), "kept_boxes": summary.kept,
         "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
@@ -89,8 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         for key, value in result.items():
             print(f"{key:>24}: {value}")
-        print(f"targets: frames/s >= 25 ({result['frames_per_s']}), pipeline/raw <= 1.5 "
-              f"({result['pipeline_cpu_over_raw']})")
+        print(f"targets: frames/s >= 25 ({result['frames_per_s']}), pipeline / raw raycast of its own rays <= 1.5 "
+              f"({result['pipeline_cpu_over_replay']}; against scan-pattern rays: {result['pipeline_cpu_over_raw']})")
     return 0
 
 
