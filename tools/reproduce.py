@@ -330,7 +330,8 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         lines.append("not run")
     lines += ["## Commands", "", "```"]
     lines += log.rstrip().splitlines() + ["```", ""]
-    write_text(path, "\n".join(lines))
+    # Paths relative to the checkout, so the report reads the same on every machine.
+    write_text(path, "\n".join(lines).replace(str(ROOT) + os.sep, ""))
 
 
 if __name__ == "__main__":
