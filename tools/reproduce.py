@@ -25,6 +25,7 @@ stays valid when ``out/`` is deleted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shlex
@@ -116,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="training epochs of both models instead of the scale's (full scale: the configs')")
     args = p.parse_args(argv)
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     bad = [s for s in steps if s not in STEPS]
@@ -123,6 +126,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown step(s) {bad}; choose from {list(STEPS)}", file=sys.stderr)
         return 2
     sc = SCALES[args.scale]
+    if args.epochs is not None:
+        if args.epochs < 1:
+            print("error: --epochs must be >= 1", file=sys.stderr)
+            return 2
+        sc = dataclasses.replace(sc, epochs=args.epochs)
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     r = Runner(args.dry_run, out / "commands.log")
