@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from mpchair.geometry import invert_rigid, points_in_boxes, transform_boxes
+from mpchair.geometry import invert_rigid, points_in_boxes, transform_boxes, transform_points
 from mpchair.kitti import Calib
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.visibility import (
@@ -25,6 +25,7 @@ from mpchair.labels.visibility import (
     grid_regions,
     merge_hits,
     object_visibility,
+    region_mask,
     vertex_region,
     visible_fraction,
 )
@@ -145,6 +146,7 @@ def decide_boxes(
         regions[idx] = grid_regions(cover, calib, camera)
         # Stage 1: a coarse grid of each region plus every pixel where the object could hit outside its box.
         mask = np.zeros((camera.height, camera.width), dtype=bool)
+        world_to_sensor = invert_rigid(pose)
         for k in idx:
             r0, r1, c0, c1 = regions[k]
             if r1 < r0 or c1 < c0:
@@ -152,8 +154,7 @@ def decide_boxes(
             s = coarse_stride(regions[k], coarse_rays if outside is not None else None)
             sub = None
             if s > 1:
-                local = (outside[k] - pose[:3, 3]) @ pose[:3, :3]  # world → sensor frame (pose is rigid)
-                sub = vertex_region(local, camera, regions[k])
+                sub = vertex_region(transform_points(outside[k], world_to_sensor), camera, regions[k])
             if s == 1 or sub is None:
                 mask[r0 : r1 + 1, c0 : c1 + 1] = True
                 continue
@@ -166,10 +167,7 @@ def decide_boxes(
         # Stage 2: candidates not yet proven to pass get their whole region, so rejections use exact counts.
         redo = idx[~exact[idx] & ~_passes(ov, filters)]
         if len(redo):
-            more = np.zeros_like(mask)
-            for r0, r1, c0, c1 in regions[redo]:
-                more[r0 : r1 + 1, c0 : c1 + 1] = True
-            more &= ~mask
+            more = region_mask(regions[redo], camera) & ~mask
             hits = merge_hits(hits, cast_pixels(more, camera, pose, raycaster, face_object, objects[idx]))
             ov = object_visibility(hits, boxes[idx], objects[idx], filters.box_margin)
             exact[redo] = True

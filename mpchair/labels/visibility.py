@@ -56,6 +56,15 @@ class DenseHits:
         return img
 
 
+def _faces_by_object(faces: np.ndarray, face_object: np.ndarray, objects: np.ndarray):
+    """Yield the (K,3) faces of each object position in ``objects``, in order (one stable sort for all of them)."""
+    order = np.argsort(face_object, kind="stable")
+    sorted_obj = face_object[order]
+    for obj in np.asarray(objects).reshape(-1):
+        lo, hi = np.searchsorted(sorted_obj, obj, "left"), np.searchsorted(sorted_obj, obj, "right")
+        yield faces[order[lo:hi]]
+
+
 def covering_boxes(
     vertices: np.ndarray, faces: np.ndarray, face_object: np.ndarray, objects: np.ndarray, boxes: np.ndarray
 ) -> np.ndarray:
@@ -66,13 +75,10 @@ def covering_boxes(
     object positions (``face_object`` values), ``boxes`` (N,7) their aligned boxes, world frame.
     """
     out = np.asarray(boxes, dtype=np.float64).reshape(-1, 7).copy()
-    order = np.argsort(face_object, kind="stable")
-    sorted_obj = face_object[order]
-    for k, obj in enumerate(np.asarray(objects).reshape(-1)):
-        lo, hi = np.searchsorted(sorted_obj, obj, "left"), np.searchsorted(sorted_obj, obj, "right")
-        if hi == lo:
+    for k, f in enumerate(_faces_by_object(faces, face_object, objects)):
+        if len(f) == 0:
             continue
-        v = vertices[np.unique(faces[order[lo:hi]].reshape(-1))] - out[k, :3]
+        v = vertices[np.unique(f.reshape(-1))] - out[k, :3]
         c, s = np.cos(out[k, 6]), np.sin(out[k, 6])
         local = np.column_stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]])
         half = out[k, 3:6] / 2
@@ -127,12 +133,8 @@ def outside_vertices(
     """
     from mpchair.geometry import points_in_boxes
 
-    order = np.argsort(face_object, kind="stable")
-    sorted_obj = face_object[order]
     out = []
-    for k, obj in enumerate(np.asarray(objects).reshape(-1)):
-        lo, hi = np.searchsorted(sorted_obj, obj, "left"), np.searchsorted(sorted_obj, obj, "right")
-        f = faces[order[lo:hi]]
+    for k, f in enumerate(_faces_by_object(faces, face_object, objects)):
         grown = np.asarray(boxes[k : k + 1], dtype=np.float64).copy()
         grown[0, 3:6] += margin
         inside = points_in_boxes(vertices[f.reshape(-1)], grown)[0].reshape(-1, 3).all(axis=1)
