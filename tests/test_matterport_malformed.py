@@ -89,6 +89,9 @@ def test_bad_ply_files(tmp_path: Path) -> None:
         read_ply(encode_ply(np.array([[0, 0, 0], [np.nan, 0, 0], [1, 1, 1]]), np.array([[0, 1, 2]]), [1], [0], [7]))
     with pytest.raises(InputError, match="unknown PLY header line"):
         read_ply(good.replace(b"element vertex 4", b"elephant vertex 4"), "x.ply")
+    with pytest.raises(InputError, match="property 'x' appears twice in element 'vertex'") as e:
+        read_ply(good.replace(b"property float y", b"property float x", 1), "dup.ply")
+    assert str(e.value).startswith("dup.ply:")
 
 
 def test_missing_and_short_ply_in_a_house(tmp_path: Path) -> None:

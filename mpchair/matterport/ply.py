@@ -86,6 +86,8 @@ def _parse_header(data: bytes | memoryview, path: str) -> tuple[str, list[_Eleme
         elif t[0] == "property":
             if cur is None:
                 raise InputError("property before any element", path, lineno)
+            if len(t) in (3, 5) and any(prop[0] == t[-1] for prop in cur[2]):
+                raise InputError(f"property {t[-1]!r} appears twice in element {cur[0]!r}", path, lineno)
             if len(t) == 5 and t[1] == "list" and t[2] in _TYPES and t[3] in _TYPES:
                 cur[2].append((t[4], _TYPES[t[3]], _TYPES[t[2]]))
             elif len(t) == 3 and t[1] in _TYPES:
