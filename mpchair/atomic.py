@@ -8,21 +8,28 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-_UMASK_LOCK = threading.Lock()
 
+def _create_temp(path: Path) -> tuple[int, Path]:
+    """Create a new, empty temporary file beside ``path``: ``(fd, temp path)``.
 
-def _default_file_mode() -> int:
-    """0o666 minus the process umask: what ``open(path, "w")`` would give (mkstemp alone gives 0o600)."""
-    with _UMASK_LOCK:  # os.umask can only be read by setting it
-        mask = os.umask(0)
-        os.umask(mask)
-    return 0o666 & ~mask
+    Named ``.<name>.<random>.tmp`` (so a resumed run can find and delete what a killed one left) and created with
+    mode 0o666, which the kernel narrows by the umask exactly as ``open(path, "w")`` would. (``tempfile.mkstemp``
+    creates 0o600 and needs a chmod and two umask calls after it, per file.)
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{os.urandom(6).hex()}.tmp")
+        try:
+            return os.open(tmp, flags, 0o666), tmp
+        except FileExistsError:
+            continue
+        except FileNotFoundError:
+            path.parent.mkdir(parents=True, exist_ok=True)
+    raise FileExistsError(f"no free temporary name beside {path}")
 
 
 @contextlib.contextmanager
@@ -34,8 +41,7 @@ def atomic_open(path: str | Path, mode: str = "w", fsync: bool = False) -> Itera
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open mode must be 'w' or 'wb', got {mode!r}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = _create_temp(path)
     try:
         kwargs = {"encoding": "utf-8", "newline": "\n"} if mode == "w" else {}
         with os.fdopen(fd, mode, **kwargs) as f:
@@ -43,7 +49,6 @@ def atomic_open(path: str | Path, mode: str = "w", fsync: bool = False) -> Itera
             if fsync:
                 f.flush()
                 os.fsync(f.fileno())
-        os.chmod(tmp, _default_file_mode())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -142,3 +142,15 @@ def test_atomic_writes(tmp_path):
     with pytest.raises(ValueError, match="mode"):
         with atomic_open(target, "a"):
             pass
+
+
+def test_atomic_files_get_the_mode_open_would_give(tmp_path):
+    old = os.umask(0o027)
+    try:
+        write_text(tmp_path / "deep" / "er" / "a.txt", "x")
+        with open(tmp_path / "plain.txt", "w") as f:
+            f.write("x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "deep" / "er" / "a.txt").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "plain.txt").stat().st_mode & 0o777 == 0o640

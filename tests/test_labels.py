@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_generate_scenes import WALL, HouseBuilder
+from helpers_scenes import WALL, HouseBuilder
 
 from mpchair.dataset.frame import cast_scan
 from mpchair.geometry import points_in_boxes, transform_points

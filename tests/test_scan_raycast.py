@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_generate_scenes import HouseBuilder
+from helpers_scenes import HouseBuilder
 
 from mpchair.scan.raycast import EmbreeRaycaster, make_raycaster
 from mpchair.scan.sensors import load_sensor, scan_directions

@@ -67,3 +67,25 @@ def test_unknown_sensor_lists_the_available_ones(tmp_path):
     bad.write_text("name: x\ndescription: y\npattern: pinhole\nrange_mode: planar\nmax_range: 5\ncamera: {}\n")
     with pytest.raises(InputError, match="bad.yaml.*pinhole"):
         load_sensor(bad)
+
+
+def test_mask_rays_equal_the_rotated_grid_directions_in_float32():
+    from mpchair.geometry import rotate_vectors
+    from mpchair.scan.grid_rays import mask_rays
+
+    cam = load_sensor("mp3d-depth90").camera
+    rng = np.random.default_rng(3)
+    mask = np.zeros((cam.height, cam.width), dtype=bool)
+    mask[100:140:3, 700:900] = True
+    mask[rng.integers(0, cam.height, 500), rng.integers(0, cam.width, 500)] = True
+    a = rng.uniform(0, 2 * np.pi)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    pixels, dw = mask_rays(mask, cam, R)
+    er, ec = np.nonzero(mask)  # row-major, like the kernel
+    np.testing.assert_array_equal(pixels, er * cam.width + ec)
+    assert dw.dtype == np.float32
+    np.testing.assert_array_equal(dw, rotate_vectors(grid_directions(cam, er, ec), R).astype(np.float32))
+    empty = mask_rays(np.zeros_like(mask), cam, R)
+    assert [len(x) for x in empty] == [0, 0]
+    with pytest.raises(ValueError, match="camera grid"):
+        mask_rays(mask[:10], cam, R)

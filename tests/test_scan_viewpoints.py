@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import shapely
-from test_generate_scenes import TABLE, HouseBuilder
+from helpers_scenes import TABLE, HouseBuilder
 
 from mpchair.dataset.frame import FrameSettings, build_context, frame_rng, make_frame
 from mpchair.errors import InputError

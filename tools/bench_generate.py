@@ -10,9 +10,13 @@ Reports, in one run:
   upper bound on the CPU the pipeline used);
 * the same ratio against the pipeline's *own* rays: the frames are generated once more in one process with every
   Embree call recorded (viewpoint checks, dense visibility, silhouettes, scans), and exactly those calls are replayed
-  and timed alone (``pipeline_cpu_over_replay``, the issue's measure).
+  and timed alone (``pipeline_cpu_over_replay``, the issue's measure: the whole command, start-up included);
+  ``frames_cpu_over_replay`` is the same for the frame loop alone (``startup_and_manifest_s`` is the rest: reading
+  and hashing the house, loading the compiled kernels, writing the manifest: fixed costs that 1,000 frames amortise);
+* image_2 timings (``image_2_ms``): the compiled depth projection and the ISA-L PNG encoder against their plain
+  versions (numpy; Pillow at its fastest level) on the benchmark's own frames.
 
-Usage: ``python tools/bench_generate.py [--frames 100] [--workers 2] [--seed 0] [--subdivide 0] [--json]``
+Usage: ``python tools/bench_generate.py [--frames 1000] [--workers 2] [--seed 0] [--subdivide 0] [--json]``
 (``--subdivide 3`` gives the house a real Matterport3D face count at the same geometry).
 """
 
@@ -31,9 +35,27 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
+def _keep(x):
+    """A copy of an engine-call argument; a shared origin (a stride-0 view, see ``raycast._ray_origins``) is kept as
+    its one row and expanded again by :func:`_expand` (1,000 frames of dense rays would otherwise need gigabytes)."""
+    import numpy as np
+
+    if x.ndim == 2 and x.strides[0] == 0:
+        return ("shared", np.array(x[:1], copy=True), len(x))
+    return np.array(x, copy=True)
+
+
+def _expand(x):
+    import numpy as np
+
+    if isinstance(x, tuple):
+        _, row, n = x
+        return np.lib.stride_tricks.as_strided(row, shape=(n, 3), strides=(0, row.strides[1]), writeable=True)
+    return x
+
+
 def _record_engine_calls(run) -> list[tuple]:
     """Run ``run()`` with every Embree scene call recorded: ``[(scene, args, kwargs)]`` with copies of the arrays."""
-    import numpy as np
 
     from mpchair.scan import raycast
 
@@ -45,7 +67,7 @@ def _record_engine_calls(run) -> list[tuple]:
             self.scene = scene
 
         def run(self, *a, **kw):
-            calls.append((self.scene, tuple(np.array(x, copy=True) for x in a), kw))
+            calls.append((self.scene, tuple(_keep(x) for x in a), kw))
             return self.scene.run(*a, **kw)
 
     def init(self, *a, **kw):
@@ -60,6 +82,40 @@ def _record_engine_calls(run) -> list[tuple]:
     return calls
 
 
+def _time_image_2(dataset: Path, sensor) -> dict[str, float]:
+    """ms per frame of the image_2 steps against their plain versions, on the benchmark's own frames (same run)."""
+    import io
+    import time
+
+    from PIL import Image
+
+    from mpchair.dataset.image import depth_image, depth_image_reference, png_bytes
+    from mpchair.kitti import read_velodyne
+    from mpchair.scan.sensors import camera_calib
+
+    calib, size = camera_calib(sensor.camera), (sensor.camera.width, sensor.camera.height)
+    scans = [read_velodyne(p) for p in sorted((dataset / "training" / "velodyne").glob("*.bin"))[:50]]
+    images = [depth_image(s, calib, size, sensor.max_range) for s in scans]
+
+    def pillow(img):
+        buf = io.BytesIO()
+        Image.fromarray(img, mode="L").save(buf, format="PNG", compress_level=1)
+        return buf.getvalue()
+
+    out = {}
+    for name, fn, inputs in [
+        ("depth_image", lambda s: depth_image(s, calib, size, sensor.max_range), scans),
+        ("depth_image_numpy", lambda s: depth_image_reference(s, calib, size, sensor.max_range), scans),
+        ("png_isal", png_bytes, images),
+        ("png_pillow_level1", pillow, images),
+    ]:
+        t = time.perf_counter()
+        for x in inputs:
+            fn(x)
+        out[name] = round((time.perf_counter() - t) / len(inputs) * 1e3, 3)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
@@ -71,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     from mpchair.synth import subdivide_house, synthesize_house, write_house
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--frames", type=int, default=1000)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=0, help="seed of the reference house and of the dataset")
     p.add_argument("--subdivide", type=int, default=0,
@@ -79,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
+    from mpchair.heap import keep_freed_memory
+
+    keep_freed_memory()  # as `mpchair generate` does (its workers do it too)
     with tempfile.TemporaryDirectory(prefix="mpchair-bench-") as tmp:
         tmp = Path(tmp)
         house = subdivide_house(synthesize_house(args.seed, levels=1), args.subdivide)
@@ -87,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = generate(GenerateRequest(root=tmp / "houses", houses=(house.id,), frames=args.frames,
                                            out=tmp / "ds", seed=args.seed, workers=args.workers, progress=False))
         wall = time.perf_counter() - t0
+        frames_s = summary.made / summary.frames_per_second  # the frame loop alone (no start-up, no manifest)
         records = json.loads((tmp / "ds" / "manifest.json").read_text())["frames"]
         rays = int(sum(r["rays"] for r in records))
         h = read_house(find_houses(tmp / "houses")[house.id])
@@ -112,11 +172,13 @@ def main(argv: list[str] | None = None) -> int:
         calls = _record_engine_calls(lambda: generate(GenerateRequest(
             root=tmp / "houses", houses=(house.id,), frames=args.frames, out=tmp / "ds_rec", seed=args.seed,
             workers=1, progress=False)))
+        calls = [(scene, tuple(_expand(x) for x in a), kw) for scene, a, kw in calls]
         t2 = time.perf_counter()
         for scene, a, kw in calls:
             scene.run(*a, **kw)
         replay = time.perf_counter() - t2
         replay_rays = int(sum(len(a[1]) for _, a, _ in calls))
+        image_ms = _time_image_2(tmp / "ds", load_sensor("mp3d-depth90"))
     result = {
         "house": house.id, "faces": len(house.faces), "frames": args.frames, "workers": args.workers,
         "wall_s": round(wall, 3), "frames_per_s": round(args.frames / wall, 2), "rays": rays,
@@ -125,7 +187,10 @@ def main(argv: list[str] | None = None) -> int:
         "pipeline_cpu_over_raw": round(wall * args.workers / raw, 2),
         "replayed_rays": replay_rays, "replayed_rays_per_frame": round(replay_rays / args.frames),
         "replay_embree_s": round(replay, 3), "replay_mrays_per_s": round(replay_rays / replay / 1e6, 2),
-        "pipeline_cpu_over_replay": round(wall * args.workers / replay, 2), "kept_boxes": summary.kept,
+        "pipeline_cpu_over_replay": round(wall * args.workers / replay, 2),
+        "startup_and_manifest_s": round(wall - frames_s, 3),
+        "frames_cpu_over_replay": round(frames_s * args.workers / replay, 2), "kept_boxes": summary.kept,
+        "image_2_ms": image_ms,
         "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }

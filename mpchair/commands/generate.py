@@ -62,6 +62,9 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
     """
     from mpchair.dataset.generate import GenerateRequest
     from mpchair.dataset.generate import generate as run
+    from mpchair.heap import keep_freed_memory
+
+    keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/heap.py)
 
     req = GenerateRequest(
         root=root, houses=tuple(houses), frames=frames, out=out, sensor=sensor, seed=seed, height=height,

@@ -11,25 +11,26 @@ Frames: the scan and boxes are in the sensor frame (x forward, y left, z up, met
 from __future__ import annotations
 
 import dataclasses
-import io
+import functools
 import json
 import zlib
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from mpchair.atomic import write_bytes, write_text
+from mpchair.dataset.image import depth_image, png_bytes
 from mpchair.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image, rotate_vectors
-from mpchair.kitti import DONTCARE, Calib, Labels, frame_paths, write_calib, write_labels, write_velodyne
+from mpchair.jit import njit_cached
+from mpchair.kitti import DONTCARE, Calib, Labels, format_calib, frame_paths, write_labels, write_velodyne
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
-from mpchair.labels.visibility import ObjectScenes, covering_boxes, outside_vertices
+from mpchair.labels.visibility import ObjectScenes, cast_pixels, covering_boxes, outside_vertices
 from mpchair.matterport.categories import resolve_category
 from mpchair.matterport.house import House
 from mpchair.scan.raycast import Raycaster, make_raycaster
-from mpchair.scan.sensors import SensorConfig, camera_calib, range_of
+from mpchair.scan.sensors import CameraConfig, SensorConfig, camera_calib
 from mpchair.scan.viewpoints import (
     FloorArea,
     FloorSampler,
@@ -154,27 +155,52 @@ def frame_rng(seed: int, house_id: str, index: int) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(house_id.encode("utf-8")), index])
 
 
+@njit_cached
+def _scan_points(t, face, directions, planar, min_range, max_range, z_min, z_max, reflectance):  # pragma: no cover
+    """(M,4) float32 ``[x, y, z, reflectance]`` of the hits within the range limits and the open z crop."""
+    out = np.empty((len(t), 4), dtype=np.float32)
+    m = 0
+    for i in range(len(t)):
+        if face[i] < 0:
+            continue
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        r = t[i] * dx if planar else t[i] * np.sqrt(dx * dx + dy * dy + dz * dz)
+        z = t[i] * dz
+        if r < min_range or r > max_range or not (z_min < z < z_max):
+            continue
+        out[m, 0], out[m, 1], out[m, 2], out[m, 3] = t[i] * dx, t[i] * dy, z, reflectance
+        m += 1
+    return out[:m].copy()
+
+
 def cast_scan(sensor: SensorConfig, directions: np.ndarray, pose: np.ndarray, raycaster: Raycaster) -> np.ndarray:
     """Cast the scan from ``pose`` (sensor → world); (M,4) float32 sensor-frame points ``[x, y, z, REFLECTANCE]``.
 
     Misses are dropped (the original wrote them at the origin), as are hits outside ``[min_range, max_range]``
-    (planar or Euclidean, per profile) and outside the ``z_min < z < z_max`` crop.
+    (planar depth ``t * d_x`` or Euclidean ``t * |d|``, per ``SensorConfig.range_mode``) and outside the
+    ``z_min < z < z_max`` crop. ``directions`` (R,3) float64 sensor frame (``scan_directions``).
     """
     R, p = pose[:3, :3], pose[:3, 3]
     t, face = raycaster.cast(p, rotate_vectors(directions, R))
-    ok = face >= 0
-    rng_ = range_of(sensor, directions, np.where(ok, t, 0.0))
-    ok &= (rng_ >= sensor.min_range) & (rng_ <= sensor.max_range)
-    pts = t[ok, None] * directions[ok]
-    keep = np.ones(len(pts), dtype=bool)
-    if sensor.z_min is not None:
-        keep &= pts[:, 2] > sensor.z_min
-    if sensor.z_max is not None:
-        keep &= pts[:, 2] < sensor.z_max
-    out = np.empty((int(keep.sum()), 4), dtype=np.float32)
-    out[:, :3] = pts[keep]
-    out[:, 3] = REFLECTANCE
-    return out
+    z_min = -np.inf if sensor.z_min is None else sensor.z_min
+    z_max = np.inf if sensor.z_max is None else sensor.z_max
+    return _scan_points(t, face, np.ascontiguousarray(directions, dtype=np.float64), sensor.range_mode == "planar",
+                        float(sensor.min_range), float(sensor.max_range), float(z_min), float(z_max), REFLECTANCE)
+
+
+def warm_up(sensor: SensorConfig) -> None:
+    """Load (or compile) the compiled kernels a frame uses, in this process, on tiny inputs of the real types.
+
+    ``generate`` calls it before forking its workers, which then inherit the machine code instead of each loading
+    it again (about 0.4 s per process, numba's start-up included).
+    """
+    camera = sensor.camera
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    mask[camera.height // 2, camera.width // 2] = True
+    tri = make_raycaster(np.array([[1.0, -1, -1], [1, 1, -1], [1, 0, 1]]), np.array([[0, 1, 2]]), "embree")
+    cast_pixels(mask, camera, np.eye(4), tri, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+    cast_scan(sensor, np.array([[1.0, 0.0, 0.0]]), np.eye(4), tri)
+    depth_image(np.zeros((1, 4), dtype=np.float32), camera_calib(camera), (camera.width, camera.height), 1.0)
 
 
 def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, directions: np.ndarray) -> FrameResult:
@@ -209,26 +235,6 @@ def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, direction
                      f"(frame {index}) but none keeps a box; use --keep-empty or a house with more objects")
 
 
-def depth_image(points: np.ndarray, calib: Calib, size: tuple[int, int], max_range: float) -> np.ndarray:
-    """(H,W) uint8 image_2: the scan's points projected through ``P2``; 0 = no point, else
-    ``1 + round(254 * (1 - depth / max_range))`` (brighter = nearer; depth = camera z, metres), nearest point wins."""
-    W, H = size
-    img = np.zeros((H, W), dtype=np.uint8)
-    if len(points) == 0:
-        return img
-    M = calib.velo_to_image()
-    uvw = points[:, :3].astype(np.float64) @ M[:, :3].T + M[:, 3]
-    z = uvw[:, 2]
-    front = z > 1e-6
-    u = np.floor(uvw[front, 0] / z[front]).astype(np.int64)
-    v = np.floor(uvw[front, 1] / z[front]).astype(np.int64)
-    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    val = 1 + np.rint(254 * (1 - np.clip(z[front][inside] / max_range, 0, 1))).astype(np.int64)
-    flat = np.zeros(H * W, dtype=np.int64)
-    np.maximum.at(flat, v[inside] * W + u[inside], val)
-    return flat.reshape(H, W).astype(np.uint8)
-
-
 def frame_labels(result: FrameResult, names: list[str], calib: Calib, size: tuple[int, int]) -> Labels:
     """KITTI labels of the kept boxes (``names`` = KITTI type per candidate); one DontCare row when none is kept.
 
@@ -245,13 +251,6 @@ def frame_labels(result: FrameResult, names: list[str], calib: Calib, size: tupl
     loc, dims, ry, alpha = boxes_to_kitti_camera(boxes, calib)
     bbox, trunc = project_boxes_to_image(boxes, calib, size)
     return Labels(np.array([names[i] for i in k]), trunc, dec.occluded[k], alpha, bbox, dims, loc, ry)
-
-
-def png_bytes(img: np.ndarray) -> bytes:
-    """Deterministic PNG encoding of an 8-bit grey image (fast zlib level; no timestamps in PNG)."""
-    buf = io.BytesIO()
-    Image.fromarray(img, mode="L").save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()
 
 
 def _r(x: float, nd: int = 6) -> float | None:
@@ -300,6 +299,12 @@ def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dic
     }
 
 
+@functools.lru_cache(maxsize=4)
+def _calib_text(camera: CameraConfig) -> str:
+    """The calib file of every frame of a camera (the same text each time: formatted once per process)."""
+    return format_calib(camera_calib(camera))
+
+
 def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResult, sensor: SensorConfig) -> dict:
     """Write one frame's KITTI files (velodyne, label_2, calib, image_2, pose), then its record (``.frames/``, last:
     a record on disk means the whole frame is). Returns the record."""
@@ -310,7 +315,7 @@ def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResu
     paths = frame_paths(out, fid)
     write_velodyne(paths.velodyne, result.points)
     write_labels(paths.label_2, frame_labels(result, names, calib, size))
-    write_calib(paths.calib, calib)
+    write_text(paths.calib, _calib_text(camera))
     write_bytes(paths.image_2, png_bytes(depth_image(result.points, calib, size, sensor.max_range)))
     pose = result.viewpoint.pose()
     write_text(out / "training" / "pose" / f"{fid}.txt", " ".join(f"{v:.9e}" for v in pose[:3].reshape(-1)) + "\n")

@@ -23,7 +23,6 @@ from mpchair.labels.visibility import (
     cast_pixels,
     coarse_stride,
     grid_regions,
-    merge_hits,
     object_visibility,
     region_mask,
     vertex_region,
@@ -165,15 +164,16 @@ def decide_boxes(
         hits = cast_pixels(mask, camera, pose, raycaster, face_object, objects[idx])
         ov = object_visibility(hits, boxes[idx], objects[idx], filters.box_margin)
         # Stage 2: candidates not yet proven to pass get their whole region, so rejections use exact counts.
+        casts = [hits]
         redo = idx[~exact[idx] & ~_passes(ov, filters)]
         if len(redo):
-            more = region_mask(regions[redo], camera) & ~mask
-            hits = merge_hits(hits, cast_pixels(more, camera, pose, raycaster, face_object, objects[idx]))
-            ov = object_visibility(hits, boxes[idx], objects[idx], filters.box_margin)
+            more = cast_pixels(region_mask(regions[redo], camera) & ~mask, camera, pose, raycaster, face_object,
+                               objects[idx])
+            ov = ov + object_visibility(more, boxes[idx], objects[idx], filters.box_margin)  # disjoint pixels
+            casts.append(more)
             exact[redo] = True
-        dense_rays = len(hits.rows)
+        dense_rays = sum(len(h.pixels) for h in casts)
         vis[idx], inb[idx], frac[idx] = ov.visible_pixels, ov.points_in_box, ov.in_box_fraction
-        obj_img = None
         for j, k in enumerate(idx):
             if ov.visible_pixels[j] <= filters.min_visible_pixels:
                 reasons[k] = "visible_pixels"
@@ -182,9 +182,7 @@ def decide_boxes(
             elif ov.in_box_fraction[j] < filters.min_in_box_fraction:
                 reasons[k] = "in_box_fraction"
             elif scenes is not None:
-                if obj_img is None:
-                    obj_img = hits.object_image(camera)
-                vfrac[k] = visible_fraction(scenes, int(objects[k]), regions[k], obj_img, camera, pose)
+                vfrac[k] = visible_fraction(scenes, int(objects[k]), regions[k], casts, camera, pose)
                 occ[k] = int(occlusion_level(np.array([vfrac[k]]), filters.occlusion_cutoffs)[0])
     return BoxDecisions(objects, boxes, tuple(reasons), vis, inb, frac, np.full(n, -1, dtype=np.int64), vfrac, occ,
                         regions, dense_rays, exact)

@@ -26,8 +26,10 @@ import dataclasses
 
 import numpy as np
 
-from mpchair.geometry import points_in_boxes, project_boxes_to_image, rotate_vectors
+from mpchair.geometry import points_in_boxes, project_boxes_to_image
+from mpchair.jit import njit_cached
 from mpchair.kitti import Calib
+from mpchair.scan.grid_rays import mask_rays
 from mpchair.scan.raycast import Raycaster, make_raycaster
 from mpchair.scan.sensors import CameraConfig, grid_directions
 
@@ -39,21 +41,44 @@ COARSE_RAYS = 4096
 
 @dataclasses.dataclass(frozen=True)
 class DenseHits:
-    """Hits of the dense camera-grid rays cast in one frame: ``rows``/``cols`` (P,) int64 pixel indices, ``points``
-    (P,3) sensor frame metres (NaN on a miss), ``face`` (P,) int64 (-1 on a miss), ``object`` (P,) int64 position in
-    the house's objects (-1 none)."""
+    """Dense camera-grid rays cast in one frame: ``pixels`` (P,) int64 increasing row-major grid indices
+    (``row * W + col``) of every ray cast; of those that hit a requested object: ``picked`` (K,) int64 indices into
+    ``pixels``, ``object`` (K,) int64 the object position hit and ``points`` (K,3) the sensor-frame hit points
+    (metres)."""
 
-    rows: np.ndarray
-    cols: np.ndarray
-    points: np.ndarray
-    face: np.ndarray
+    pixels: np.ndarray
+    picked: np.ndarray
     object: np.ndarray
+    points: np.ndarray
 
-    def object_image(self, camera: CameraConfig) -> np.ndarray:
-        """(H,W) int32 object position per grid pixel: -1 no object / miss, -2 not cast."""
-        img = np.full((camera.height, camera.width), -2, dtype=np.int32)
-        img[self.rows, self.cols] = self.object
-        return img
+
+def objects_at(casts: list[DenseHits], pixels: np.ndarray) -> np.ndarray:
+    """(K,) int64 requested object hit at grid ``pixels`` (flat indices) in disjoint ``casts``, -1 where none (not
+    cast, or no requested object there). A binary search in each cast's sorted pixels: no full-grid image."""
+    out = np.full(len(pixels), -1, dtype=np.int64)
+    for h in casts:
+        if len(h.picked) == 0:
+            continue
+        hp = h.pixels[h.picked]
+        i = np.minimum(np.searchsorted(hp, pixels), len(hp) - 1)
+        found = hp[i] == pixels
+        out[found] = h.object[i[found]]
+    return out
+
+
+@njit_cached
+def _requested_hits(face, face_object, requested):  # pragma: no cover - compiled
+    """Indices of the rays whose hit face belongs to an object with ``requested[object]`` (faces -1: misses)."""
+    out = np.empty(len(face), dtype=np.int64)
+    k = 0
+    for i in range(len(face)):
+        f = face[i]
+        if f >= 0:
+            o = face_object[f]
+            if 0 <= o < len(requested) and requested[o]:
+                out[k] = i
+                k += 1
+    return out[:k].copy()
 
 
 def _faces_by_object(faces: np.ndarray, face_object: np.ndarray, objects: np.ndarray):
@@ -168,32 +193,25 @@ def cast_pixels(
 ) -> DenseHits:
     """Cast every grid pixel set in ``mask`` (H,W bool) once, from the sensor at ``pose`` (4,4 sensor → world).
 
-    ``face_object`` (F,) maps the mesh's faces to object positions (-1 none). Pixels come back row-major. Points are
-    computed only for pixels that hit one of ``objects`` (all hits when ``None``); other points are NaN.
+    ``face_object`` (F,) int64 maps the mesh's faces to object positions (-1 none). Pixels come back row-major
+    (increasing flat index). Points are computed only for pixels that hit one of ``objects`` (every hit when ``None``):
+    ``DenseHits.picked``.
     """
-    rows, cols = _nonzero_rows(mask)
-    d = grid_directions(camera, rows, cols)
-    R, p = pose[:3, :3], pose[:3, 3]
-    dw = rotate_vectors(d, R)
+    pixels, dw = mask_rays(mask, camera, pose[:3, :3])
+    p = pose[:3, 3]
     face = raycaster.first_faces(p, dw)
-    obj = np.where(face >= 0, face_object[np.maximum(face, 0)], -1)
-    need = np.flatnonzero(np.isin(obj, objects) if objects is not None else face >= 0)
-    pts = np.full((len(d), 3), np.nan)
-    if len(need):
-        # Exact distances only where the in-box test needs them; t is along the sensor-frame direction too.
-        t, _ = raycaster.cast(p, dw[need])
-        pts[need] = t[:, None] * d[need]
-    return DenseHits(rows.astype(np.int64), cols.astype(np.int64), pts, face, obj)
-
-
-def _nonzero_rows(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.nonzero`` of a 2D mask, scanning only the rows that have a set pixel (most of a frame's grid is empty)."""
-    used = np.flatnonzero(mask.any(axis=1))
-    if len(used) == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    r0, r1 = int(used[0]), int(used[-1]) + 1
-    rows, cols = np.nonzero(mask[r0:r1])
-    return rows + r0, cols
+    if objects is None:
+        picked = np.flatnonzero(face >= 0)
+    else:
+        objects = np.asarray(objects, dtype=np.int64)
+        requested = np.zeros(int(objects.max(initial=-1)) + 1, dtype=bool)
+        requested[objects] = True
+        picked = _requested_hits(face, np.ascontiguousarray(face_object, dtype=np.int64), requested)
+    # Exact distances only where the in-box test needs them; t is along the sensor-frame direction too.
+    t, _ = raycaster.cast(p, dw[picked])
+    rows, cols = np.divmod(pixels[picked], camera.width)
+    pts = t[:, None] * grid_directions(camera, rows, cols)
+    return DenseHits(pixels, picked, face_object[face[picked]].astype(np.int64), pts)
 
 
 def region_mask(regions: np.ndarray, camera: CameraConfig) -> np.ndarray:
@@ -217,23 +235,31 @@ def cast_dense(
     return cast_pixels(region_mask(regions, camera), camera, pose, raycaster, face_object, objects)
 
 
-def merge_hits(a: DenseHits, b: DenseHits) -> DenseHits:
-    """The hits of two disjoint pixel sets together."""
-    return DenseHits(*(np.concatenate([getattr(a, f.name), getattr(b, f.name)]) for f in dataclasses.fields(DenseHits)))
-
-
 @dataclasses.dataclass(frozen=True)
 class ObjectVisibility:
     """Per-candidate dense counts: ``visible_pixels`` (N,) object pixels seen; ``points_in_box`` (N,) of those whose
-    back-projected point lies inside the object's box; ``in_box_fraction`` (N,) their ratio (0 when none seen)."""
+    back-projected point lies inside the object's box; ``in_box_fraction`` (N,) their ratio (0 when none seen).
+
+    Counts of disjoint pixel sets add up: ``a + b`` is the visibility over both."""
 
     visible_pixels: np.ndarray
     points_in_box: np.ndarray
     in_box_fraction: np.ndarray
 
+    @staticmethod
+    def of_counts(visible: np.ndarray, in_box: np.ndarray) -> ObjectVisibility:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            frac = np.where(visible > 0, in_box / np.maximum(visible, 1), 0.0)
+        return ObjectVisibility(visible, in_box, frac)
+
+    def __add__(self, other: ObjectVisibility) -> ObjectVisibility:
+        return ObjectVisibility.of_counts(self.visible_pixels + other.visible_pixels,
+                                          self.points_in_box + other.points_in_box)
+
 
 def object_visibility(hits: DenseHits, boxes: np.ndarray, objects: np.ndarray, margin: float = 0.0) -> ObjectVisibility:
-    """Counts of each candidate object (``objects`` (N,) positions, ``boxes`` (N,7) sensor frame) in ``hits``.
+    """Counts of each candidate object (``objects`` (N,) positions, ``boxes`` (N,7) sensor frame) in ``hits`` (cast
+    with those objects requested).
 
     ``margin`` (metres) enlarges every box side for the in-box test (hits on the box's own faces are on its boundary
     and float rounding would put half of them outside).
@@ -248,9 +274,7 @@ def object_visibility(hits: DenseHits, boxes: np.ndarray, objects: np.ndarray, m
             grown = boxes[k : k + 1].copy()
             grown[0, 3:6] += 2.0 * margin
             inb[k] = int(np.count_nonzero(points_in_boxes(hits.points[sel], grown)[0]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.where(vis > 0, inb / np.maximum(vis, 1), 0.0)
-    return ObjectVisibility(vis, inb, frac)
+    return ObjectVisibility.of_counts(vis, inb)
 
 
 class ObjectScenes:
@@ -282,11 +306,11 @@ def visible_fraction(
     scenes: ObjectScenes,
     obj: int,
     region: np.ndarray,
-    object_image: np.ndarray,
+    casts: list[DenseHits],
     camera: CameraConfig,
     pose: np.ndarray,
 ) -> float:
-    """Fraction of object ``obj``'s unoccluded silhouette that is visible in ``hits`` (1.0 if it has none).
+    """Fraction of object ``obj``'s unoccluded silhouette that is visible in the dense ``casts`` (1.0 if it has none).
 
     Evaluated on the coarse grid of ``region`` (:func:`coarse_stride`, at most about :data:`COARSE_RAYS` rays cast
     against the object alone; those pixels were all cast in the dense stage): visible = pixels whose dense hit is
@@ -297,14 +321,11 @@ def visible_fraction(
     if scene is None or r1 < r0 or c1 < c0:
         return 1.0
     stride = coarse_stride(region)
-    rows, cols = np.mgrid[r0 : r1 + 1 : stride, c0 : c1 + 1 : stride]
-    rows, cols = rows.reshape(-1), cols.reshape(-1)
-    d = grid_directions(camera, rows, cols)
-    R, p = pose[:3, :3], pose[:3, 3]
-    face = scene.first_faces(p, rotate_vectors(d, R))
-    full = face >= 0
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    mask[r0 : r1 + 1 : stride, c0 : c1 + 1 : stride] = True
+    pixels, dw = mask_rays(mask, camera, pose[:3, :3])
+    full = scene.first_faces(pose[:3, 3], dw) >= 0
     n_full = int(np.count_nonzero(full))
     if n_full == 0:
         return 1.0
-    seen = object_image[rows[full], cols[full]] == obj
-    return float(np.count_nonzero(seen)) / n_full
+    return float(np.count_nonzero(objects_at(casts, pixels[full]) == obj)) / n_full

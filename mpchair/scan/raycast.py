@@ -9,7 +9,8 @@ directions), ``inf`` on a miss; ``face_id`` (N,) int64 indexes the mesh's faces,
 Precision: both backends work in float32. Matterport houses sit at an arbitrary global offset, so every scene is
 built on a *recentred* copy of the mesh (vertices minus their bounding-box centre, in float64, then float32) and rays
 are recentred the same way before the cast; float32 then resolves ~1e-6 of a house's size instead of ~1e-6 of its
-offset. The Embree backend further recomputes ``t`` from the hit face's plane in float64.
+offset. Directions are rounded to float32 once (float32 input is used as is); the Embree backend then recomputes
+``t`` in float64 on the hit face's plane, along that float32 direction.
 
 The scene is built once per mesh and reused for every frame. Open3D is imported only when its backend is used.
 """
@@ -21,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from mpchair.errors import InputError
+from mpchair.jit import njit_cached
 
 #: Ray-triangle cosines below this count as grazing when recomputing ``t`` from the face plane (then the backend's
 #: float32 hit position is used instead, since the plane equation is ill-conditioned there).
@@ -52,12 +54,46 @@ def _check_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np
 
 
 def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,3) or (1,3) float64 origins (a (3,) origin is shared by all rays) and (N,3) float64 directions."""
+    """(N,3) or (1,3) float64 origins (a (3,) origin is shared by all rays) and (N,3) contiguous float32 directions
+    (both engines trace float32; float32 input passes without a copy)."""
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(np.reshape(directions, (-1, 3)), dtype=np.float32)
     if len(o) != 1 and o.shape != d.shape:
         raise ValueError(f"origins {o.shape} and directions {d.shape} differ")
     return o, d
+
+
+def _ray_origins(origins: np.ndarray, n: int) -> np.ndarray:
+    """(n,3) float32 origins for embreex's ``run`` from (n,3) or (1,3) ones.
+
+    A shared origin becomes a stride-0 view of one row instead of n copies: ``run`` only reads row i of it (it needs
+    one row per ray), and a sensor's ~100k dense rays would otherwise fill 1.2 MB per call.
+    """
+    o32 = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+    if len(o32) == n:
+        return o32
+    return np.lib.stride_tricks.as_strided(o32, shape=(n, 3), strides=(0, o32.strides[1]), writeable=True)
+
+
+@njit_cached
+def _plane_distances(face, normal, offset, origins, directions, t):  # pragma: no cover - compiled
+    """Fill ``t[i]`` with the ray parameter of ray i on the plane of its hit face ``face[i]`` (misses: left as is);
+    return the (N,) bool mask of hits too grazing for the plane equation (left as is too)."""
+    grazing = np.zeros(len(face), dtype=np.bool_)
+    shared = origins.shape[0] == 1
+    for i in range(len(face)):
+        f = face[i]
+        if f < 0:
+            continue
+        j = 0 if shared else i
+        dx, dy, dz = np.float64(directions[i, 0]), np.float64(directions[i, 1]), np.float64(directions[i, 2])
+        nx, ny, nz = normal[f, 0], normal[f, 1], normal[f, 2]
+        denom = nx * dx + ny * dy + nz * dz
+        if abs(denom) > _GRAZING_COS * np.sqrt(dx * dx + dy * dy + dz * dz):
+            t[i] = (offset[f] - (nx * origins[j, 0] + ny * origins[j, 1] + nz * origins[j, 2])) / denom
+        else:
+            grazing[i] = True
+    return grazing
 
 
 class EmbreeRaycaster:
@@ -87,43 +123,29 @@ class EmbreeRaycaster:
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """See :class:`Raycaster`."""
-        o, d = _check_rays(origins, directions)
-        n = len(d)
+        o, d32 = _check_rays(origins, directions)
+        n = len(d32)
         t = np.full(n, np.inf)
         if n == 0:
             return t, np.zeros(0, dtype=np.int64)
         oc = o - self.centre
-        shared = o.shape[0] == 1  # one origin for all rays (a sensor): no per-ray origin gathers below
-        o32 = np.empty((n, 3), dtype=np.float32)
-        o32[:] = oc.astype(np.float32)
-        face = self._scene.run(o32, np.ascontiguousarray(d, dtype=np.float32)).astype(np.int64)
-        hit = np.flatnonzero(face >= 0)
-        if len(hit):
-            fh = face[hit]
-            nrm = self._normal[fh]
-            dh = d[hit]
-            denom = np.einsum("ij,ij->i", nrm, dh)
-            # (no BLAS matvec for the shared origin: its threads oversubscribe the cores beside worker processes)
-            oo = oc[0] if shared else None
-            num = self._offset[fh] - (nrm[:, 0] * oo[0] + nrm[:, 1] * oo[1] + nrm[:, 2] * oo[2] if shared
-                                      else np.einsum("ij,ij->i", nrm, oc[hit]))
-            good = np.abs(denom) > _GRAZING_COS * np.sqrt(np.einsum("ij,ij->i", dh, dh))
-            t[hit] = num / np.where(good, denom, 1.0)
-            if not good.all():  # grazing hits: ask Embree for its own (float32) distance
-                g = hit[~good]
-                og = o32[g]
-                res = self._scene.run(og, np.ascontiguousarray(d[g], dtype=np.float32), output=1)
-                t[g] = np.asarray(res["tfar"], dtype=np.float64)
+        o32 = _ray_origins(oc, n)
+        face = self._scene.run(o32, d32).astype(np.int64)
+        # t on the hit face's plane, in float64, along the float32 direction Embree traced (one compiled pass:
+        # the numpy version's gathers and temporaries cost half as much as the raycast itself).
+        grazing = _plane_distances(face, self._normal, self._offset, oc, d32, t)
+        if grazing.any():  # grazing hits: ask Embree for its own (float32) distance
+            g = np.flatnonzero(grazing)
+            res = self._scene.run(np.ascontiguousarray(o32[g]), np.ascontiguousarray(d32[g]), output=1)
+            t[g] = np.asarray(res["tfar"], dtype=np.float64)
         return t, face
 
     def first_faces(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """See :class:`Raycaster` (no distance work: the dense visibility grid needs only faces for most rays)."""
-        o, d = _check_rays(origins, directions)
-        if len(d) == 0:
+        o, d32 = _check_rays(origins, directions)
+        if len(d32) == 0:
             return np.zeros(0, dtype=np.int64)
-        o32 = np.empty((len(d), 3), dtype=np.float32)
-        o32[:] = (o - self.centre).astype(np.float32)
-        return self._scene.run(o32, np.ascontiguousarray(d, dtype=np.float32)).astype(np.int64)
+        return self._scene.run(_ray_origins(o - self.centre, len(d32)), d32).astype(np.int64)
 
 
 class Open3DRaycaster:

@@ -240,14 +240,3 @@ def scan_directions(sensor: SensorConfig) -> np.ndarray:
     el, az = np.meshgrid(el, az, indexing="ij")
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
     return d.reshape(-1, 3)
-
-
-def range_of(sensor: SensorConfig, directions: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The range the profile's limits apply to, for ray parameters ``t`` along ``directions`` (metres).
-
-    ``planar``: the +x component of the hit offset (``t * d_x``); ``euclidean``: ``t * |d|``.
-    """
-    d = np.asarray(directions, dtype=np.float64)
-    if sensor.range_mode == "planar":
-        return t * d[:, 0]
-    return t * np.linalg.norm(d, axis=1)
