@@ -169,3 +169,17 @@ def test_split_modes():
     assert not (houses[0] & houses[1]) and not (houses[0] & houses[2]) and sum(map(len, houses)) == 5
     with pytest.raises(InputError, match="at least 3 houses"):
         split_frames(2, 10, "house", seed=0)
+
+
+def test_manifest_holds_the_frame_records_whatever_the_root_is_named(dataset, house_root, tmp_path):
+    out, _ = dataset
+    manifest = json.loads((out / "manifest.json").read_text())
+    records = [json.loads((out / ".frames" / f"{g:06d}.json").read_text()) for g in range(FRAMES)]
+    assert manifest["frames"] == records
+    # A root named like the manifest's internal placeholder still gives the same records (the slow encoder path).
+    root, house = house_root
+    odd = tmp_path / "@@frame records@@"
+    odd.symlink_to(root, target_is_directory=True)
+    generate(_req(odd, house, tmp_path / "odd", workers=1))
+    again = json.loads((tmp_path / "odd" / "manifest.json").read_text())
+    assert again["frames"] == records and "@@frame records@@" in again["command"]
