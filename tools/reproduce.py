@@ -119,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs of both models instead of the scale's (full scale: the configs')")
+    p.add_argument("--bench-frames", type=int, default=None,
+                   help="frames per `detector bench` trial instead of the scale's (full: 50, medium: 20)")
     args = p.parse_args(argv)
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     bad = [s for s in steps if s not in STEPS]
@@ -131,6 +133,11 @@ def main(argv: list[str] | None = None) -> int:
             print("error: --epochs must be >= 1", file=sys.stderr)
             return 2
         sc = dataclasses.replace(sc, epochs=args.epochs)
+    if args.bench_frames is not None:
+        if args.bench_frames < 1:
+            print("error: --bench-frames must be >= 1", file=sys.stderr)
+            return 2
+        sc = dataclasses.replace(sc, bench_frames=args.bench_frames)
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     r = Runner(args.dry_run, out / "commands.log")
