@@ -49,11 +49,11 @@ def _keep(x):
 
 
 def _expand(x):
-    import numpy as np
+    from mpchair.scan.raycast import _ray_origins  # the pipeline's own stride-0 origin view
 
     if isinstance(x, tuple):
         _, row, n = x
-        return np.lib.stride_tricks.as_strided(row, shape=(n, 3), strides=(0, row.strides[1]), writeable=True)
+        return _ray_origins(row, n)
     return x
 
 
