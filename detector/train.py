@@ -51,7 +51,7 @@ from torch import nn
 from tqdm import tqdm
 
 from detector.data import AugmentOptions, GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
-from detector.models import ExperimentConfig, build_model, compute_loss, load_experiment
+from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
 from detector.models.config import experiment_from_dict
 from mpchair.atomic import atomic_open, write_text
 from mpchair.config import to_dict
@@ -384,6 +384,7 @@ def train(
     out_dir: str | Path,
     *,
     epochs: int | None = None,
+    precision: str | None = None,
     resume: bool = False,
     max_steps: int | None = None,
     device: str = "cpu",
@@ -394,11 +395,11 @@ def train(
 ) -> TrainResult:
     """Train the experiment ``config_path`` on ``data_dir`` (KITTI layout) into the run folder ``out_dir``.
 
-    ``epochs`` overrides ``train.epochs``; ``max_steps`` stops after that many global steps (counted over the whole
-    run, resumed parts included) and saves ``last.pt``; ``resume`` continues from ``out_dir/last.pt`` (a fresh start
-    if there is none). Under torchrun (``WORLD_SIZE`` > 1) the process group is joined here (gloo on CPU, nccl on
-    CUDA). Raises :class:`InputError` for bad input and :class:`TrainingError` for a non-finite loss or gradient (no
-    checkpoint is written for the failing step).
+    ``epochs`` overrides ``train.epochs`` and ``precision`` ``train.precision``; ``max_steps`` stops after that many
+    global steps (counted over the whole run, resumed parts included) and saves ``last.pt``; ``resume`` continues
+    from ``out_dir/last.pt`` (a fresh start if there is none). Under torchrun (``WORLD_SIZE`` > 1) the process group
+    is joined here (gloo on CPU, nccl on CUDA). Raises :class:`InputError` for bad input and :class:`TrainingError`
+    for a non-finite loss or gradient (no checkpoint is written for the failing step).
     """
     info = dist_info_from_env()
     if threads is not None:
@@ -413,7 +414,14 @@ def train(
     cfg = load_experiment(config_path)
     if epochs is not None:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, epochs=epochs))
+    if precision is not None:
+        if precision not in ("fp32", "bf16"):
+            raise InputError(f"--precision must be fp32 or bf16, got {precision!r}")
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, precision=precision))
     tc = cfg.train
+    if tc.precision == "bf16" and dev.type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise InputError(f"train.precision bf16: {torch.cuda.get_device_name(dev)} has no bfloat16 support; use fp32",
+                         config_path)
     out = Path(out_dir)
     last_path = out / "last.pt"
     state = None
@@ -547,7 +555,9 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                     break
                 t0 = time.perf_counter()
                 batch = batch.to(dev)
-                preds = ddp(list(batch.points))
+                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=tc.precision == "bf16"):
+                    preds = ddp(list(batch.points))
+                preds = HeadOutput(*(p.float() for p in preds))  # losses in fp32 (a no-op for fp32 training)
                 raw = _unwrap(ddp)
                 targets = raw.targets(list(batch.boxes), list(batch.labels))
                 losses = compute_loss(preds, targets, num_classes=raw.num_classes, **raw.loss_params)

@@ -156,6 +156,7 @@ def test_train_config_errors(data, tmp_path, capsys):
         (dict(schedule="onecycle", beta1_range=[0.95, 1.0]), "train.beta1_range"),
         (dict(schedule="onecycle", beta1_range=[0.95]), "train.beta1_range: expected 2 values"),
         (dict(lr=0.0), "train.lr"),
+        (dict(precision="fp16"), "train.precision: 'fp16' is not one of 'fp32', 'bf16'"),
         # 1 epoch x 2 steps: the warm-up would last 0.8 steps.
         (dict(schedule="onecycle", epochs=1, samples_per_epoch=4), "one-cycle warm-up needs more than one step"),
     ]
@@ -164,6 +165,31 @@ def test_train_config_errors(data, tmp_path, capsys):
         code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", tmp_path / f"run{i}"], capsys)
         assert code == 2 and err.startswith("error: ") and msg in err, (values, err)
         assert not (tmp_path / f"run{i}").exists()
+
+
+def test_bf16_training_autocasts_the_forward_and_keeps_fp32_state(data, tmp_path, capsys):
+    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=2))
+    fp32 = train(cfg, data, tmp_path / "fp32", max_steps=3, threads=1, progress=False)
+    bf16 = train(cfg, data, tmp_path / "bf16", max_steps=3, threads=1, precision="bf16", progress=False)
+    assert fp32.step == bf16.step == 3
+    a = torch.load(tmp_path / "fp32" / "last.pt", weights_only=False)
+    b = torch.load(tmp_path / "bf16" / "last.pt", weights_only=False)
+    assert b["config"]["train"]["precision"] == "bf16" and a["config"]["train"]["precision"] == "fp32"
+    # Weights and AdamW moments stay fp32; the bf16 forward changes them slightly (a different run, not a broken one).
+    assert all(v.dtype == a["model"][k].dtype for k, v in b["model"].items())
+    assert all(s["exp_avg"].dtype == torch.float32 for s in b["optimizer"]["state"].values())
+    w = [k for k, v in a["model"].items() if v.is_floating_point() and v.dim() == 4]
+    assert any(not torch.equal(a["model"][k], b["model"][k]) for k in w)
+    losses = [(x["loss_total"], y["loss_total"]) for x, y in zip(_steps(tmp_path / "fp32"), _steps(tmp_path / "bf16"))]
+    # Step 1 has identical weights and data: only the bf16 rounding of the forward differs (~0.4 % per value).
+    assert losses[0][0] != losses[0][1] and losses[0][1] == pytest.approx(losses[0][0], rel=0.05)
+    # bf16 is part of the run's identity: resuming it as fp32 is refused.
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", tmp_path / "bf16", "--resume",
+                         "--threads", "1", "--precision", "fp32"], capsys)
+    assert code == 2 and "the config differs" in err
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", tmp_path / "x", "--precision", "fp16"],
+                        capsys)
+    assert code == 2 and "'fp16' is not one of" in err and not (tmp_path / "x").exists()
 
 
 def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():

@@ -119,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs of both models instead of the scale's (full scale: the configs')")
+    p.add_argument("--precision", choices=["fp32", "bf16"], default=None,
+                   help="training precision of both models (default: the configs', fp32); bf16 = bfloat16 autocast, "
+                        "~1.6x faster dense steps on CPUs with AVX512-BF16 / AMX")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 50, medium: 20)")
     args = p.parse_args(argv)
@@ -178,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
                    "--no-progress"]
             if sc.epochs is not None:
                 cmd += ["--epochs", str(sc.epochs)]
+            if args.precision is not None:
+                cmd += ["--precision", args.precision]
             if (runs / m / "last.pt").exists() and not args.force:
                 cmd.append("--resume")
             # glibc otherwise returns every large freed tensor to the OS and page-faults it back in on the next step
@@ -278,6 +283,21 @@ def _status(scale: str, out: Path) -> list[str]:
     return lines
 
 
+def _precision(out: Path) -> str:
+    """The ``train.precision`` each model was trained with, from its run's config.yaml ("fp32" if not recorded)."""
+    import yaml
+
+    found = {}
+    for m in ("dense", "sparse"):
+        text = _read(out / "runs" / m / "config.yaml")
+        if text:
+            found[m] = (yaml.safe_load(text).get("train") or {}).get("precision", "fp32")
+    values = set(found.values())
+    if len(values) == 1:
+        return values.pop()
+    return ", ".join(f"{m} {v}" for m, v in found.items()) or "n/a"
+
+
 def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_s: float) -> None:
     """docs/results.md from the step outputs that exist (missing ones are named)."""
     from mpchair.atomic import write_text
@@ -298,7 +318,8 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, epochs {sc.epochs or 'from the configs'}); the commands below took {steps_s / 60:.1f} min in all on "
+        f"frames, epochs {sc.epochs or 'from the configs'}, training precision {_precision(out)}); the commands "
+        f"below took {steps_s / 60:.1f} min in all on "
         "this machine (each command's wall time is listed). Synthetic houses are not Matterport3D: absolute AP and "
         "density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
         "",

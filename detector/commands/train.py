@@ -15,6 +15,9 @@ import click
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Run folder: checkpoints, last.pt, metrics.jsonl, config.yaml.")
 @click.option("--epochs", type=int, default=None, help="Override train.epochs.")
+@click.option("--precision", type=click.Choice(["fp32", "bf16"]), default=None,
+              help="Override train.precision: bf16 runs the forward pass under torch.autocast (weights, optimiser "
+                   "and losses stay fp32); ~1.6x faster dense steps on CPUs with AVX512-BF16/AMX.")
 @click.option("--resume", is_flag=True, help="Continue from OUT/last.pt (identical to an uninterrupted run).")
 @click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps (whole run) and save.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
@@ -23,8 +26,9 @@ import click
 @click.option("--eval-split", default="val", show_default=True,
               help="Split evaluated every train.eval_every epochs (skipped if the dataset lacks it).")
 @click.option("--no-progress", is_flag=True, help="No progress bars.")
-def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, resume: bool, max_steps: int | None,
-          device: str, threads: int | None, split: str, eval_split: str, no_progress: bool) -> None:
+def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, precision: str | None, resume: bool,
+          max_steps: int | None, device: str, threads: int | None, split: str, eval_split: str,
+          no_progress: bool) -> None:
     """Train dense or sparse PointPillars on a KITTI-format dataset.
 
     \b
@@ -37,9 +41,9 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, res
     from detector.train import train as run_training
 
     try:
-        result = run_training(config_path, data_dir, out_dir, epochs=epochs, resume=resume, max_steps=max_steps,
-                              device=device, threads=threads, split=split, eval_split=eval_split,
-                              progress=not no_progress)
+        result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
+                              max_steps=max_steps, device=device, threads=threads, split=split,
+                              eval_split=eval_split, progress=not no_progress)
     except TrainingError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(1)

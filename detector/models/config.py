@@ -125,6 +125,7 @@ class DataConfig:
 
 
 Schedule = Literal["constant", "onecycle"]
+Precision = Literal["fp32", "bf16"]
 """Learning-rate schedule: ``constant`` (the reference) or ``onecycle`` (OpenPCDet's ``adam_onecycle``)."""
 
 
@@ -144,6 +145,12 @@ class TrainConfig:
     ``lr / (div_factor * final_div_factor)``; AdamW's beta1 runs ``beta1_range[0] → beta1_range[1]`` (at the peak)
     ``→ beta1_range[0]`` and replaces ``betas[0]``. The defaults are OpenPCDet's ``adam_onecycle`` (pct_start 0.4,
     div_factor 10, final LR = initial / 1e4, moms [0.95, 0.85]). The one-cycle keys are ignored by ``constant``.
+
+    ``precision``: ``fp32`` (the paper's), or ``bf16``: the forward pass runs under ``torch.autocast`` in bfloat16
+    (convolutions and matmuls in bf16, accumulated in fp32 inside the kernels) while weights, optimiser state,
+    gradients, losses and target assignment stay fp32; no loss scaling is needed (bf16 has fp32's exponent range).
+    Evaluation always runs in fp32. Measured on the 2-core AVX512-BF16 CPU: 1.6x faster dense training steps, 1.2x
+    sparse (docs/training.md, "Precision").
     """
 
     optimizer: Literal["adamw"] = "adamw"
@@ -164,6 +171,7 @@ class TrainConfig:
     num_workers: int = 0
     checkpoint_every: int = 2
     eval_every: int = 5
+    precision: Precision = "fp32"
 
 
 @dataclass(frozen=True)
