@@ -318,10 +318,10 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, epochs {sc.epochs or 'from the configs'}, training precision {_precision(out)}); the commands "
-        f"below took {steps_s / 60:.1f} min in all on "
-        "this machine (each command's wall time is listed). Synthetic houses are not Matterport3D: absolute AP and "
-        "density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
+        f"frames, epochs {sc.epochs or 'from the configs'}, training precision {_precision(out)}, bench "
+        f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
+        "all on this machine (each command's wall time is listed). Synthetic houses are not Matterport3D: absolute "
+        "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
         "",
         *_summary(res),
         *_status(scale, out),
