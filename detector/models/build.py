@@ -14,6 +14,7 @@ from detector.models.head import AnchorHead, SparseExactHead
 from detector.models.neck import SecondFPN
 from detector.models.pillar_net import PillarFeatureNet
 from detector.models.pointpillars import PointPillars
+from detector.models.sparse_backbone import SparseBackboneNeck
 
 
 def head_feature_size(cfg: ModelConfig) -> tuple[int, int]:
@@ -101,15 +102,8 @@ def build_model(cfg: ModelConfig) -> PointPillars:
     )
 
 
-def _sparse_backbone(cfg: ModelConfig, *, sparse_blocks: int, first_subm_kernel: int):
-    """The sparse backbone + neck module (written in ``sparse_backbone.py``); a clear error until it exists."""
-    try:
-        from detector.models.sparse_backbone import SparseBackboneNeck
-    except ImportError as e:
-        raise RuntimeError(
-            f"backbone {cfg.backbone!r} needs detector.models.sparse_backbone.SparseBackboneNeck, which failed to "
-            f"import: {e}"
-        ) from e
+def _sparse_backbone(cfg: ModelConfig, *, sparse_blocks: int, first_subm_kernel: int) -> SparseBackboneNeck:
+    """The sparse backbone + neck module (one module: its neck reads the sparse blocks' active sites)."""
     return SparseBackboneNeck(
         in_channels=cfg.pfn_channels,
         layer_channels=cfg.layer_channels,
