@@ -9,6 +9,7 @@ worst case for sparse convolution. Coordinates are grid indices ``[batch, iy, ix
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -53,6 +54,24 @@ def _clustered_mask(shape: tuple[int, int], count: int, gen: torch.Generator) ->
     return mask
 
 
+def _sites(
+    spatial_shape: tuple[int, int],
+    density: float,
+    batch_size: int,
+    seed: int,
+    device: str | torch.device,
+    item_yx: Callable[[int, torch.Generator], Tensor],
+) -> Tensor:
+    """``(N, 3)`` ``[b, iy, ix]`` from ``item_yx(count, generator)`` → sorted ``(count, 2)`` ``[iy, ix]`` per item."""
+    gen = torch.Generator().manual_seed(seed)
+    count = max(1, round(density * spatial_shape[0] * spatial_shape[1]))
+    out = []
+    for b in range(batch_size):
+        yx = item_yx(count, gen)
+        out.append(torch.cat([torch.full((yx.shape[0], 1), b, dtype=torch.int64), yx], dim=1))
+    return torch.cat(out).to(device)
+
+
 def clustered_sites(
     spatial_shape: tuple[int, int],
     density: float,
@@ -61,17 +80,13 @@ def clustered_sites(
     device: str | torch.device = "cpu",
 ) -> Tensor:
     """``(N, 3)`` int64 ``[b, iy, ix]`` sorted sites: blobs and wall segments, ``round(density * H * W)`` per item."""
-    gen = torch.Generator().manual_seed(seed)
-    h, w = spatial_shape
-    count = max(1, round(density * h * w))
-    out = []
-    for b in range(batch_size):
-        mask = _clustered_mask(spatial_shape, count, gen)
-        yx = mask.nonzero()
+
+    def item(count: int, gen: torch.Generator) -> Tensor:
+        yx = _clustered_mask(spatial_shape, count, gen).nonzero()
         # trim the overshoot of the last shape at random so every item has exactly `count` sites
-        yx = yx[torch.randperm(yx.shape[0], generator=gen)[:count].sort().values]
-        out.append(torch.cat([torch.full((yx.shape[0], 1), b, dtype=torch.int64), yx], dim=1))
-    return torch.cat(out).to(device)
+        return yx[torch.randperm(yx.shape[0], generator=gen)[:count].sort().values]
+
+    return _sites(spatial_shape, density, batch_size, seed, device, item)
 
 
 def uniform_sites(
@@ -82,14 +97,13 @@ def uniform_sites(
     device: str | torch.device = "cpu",
 ) -> Tensor:
     """``(N, 3)`` int64 ``[b, iy, ix]`` sorted sites, uniform without replacement, ``round(density * H * W)`` each."""
-    gen = torch.Generator().manual_seed(seed)
-    h, w = spatial_shape
-    count = max(1, round(density * h * w))
-    out = []
-    for b in range(batch_size):
-        flat = torch.randperm(h * w, generator=gen)[:count].sort().values
-        out.append(torch.stack([torch.full_like(flat, b), flat // w, flat % w], dim=1))
-    return torch.cat(out).to(device)
+    w = spatial_shape[1]
+
+    def item(count: int, gen: torch.Generator) -> Tensor:
+        flat = torch.randperm(spatial_shape[0] * w, generator=gen)[:count].sort().values
+        return torch.stack([flat // w, flat % w], dim=1)
+
+    return _sites(spatial_shape, density, batch_size, seed, device, item)
 
 
 def mean_active_neighbours(coords: Tensor, spatial_shape: tuple[int, int]) -> float:
