@@ -42,6 +42,7 @@ import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 import torch
@@ -52,7 +53,7 @@ from tqdm import tqdm
 
 from detector.data import AugmentOptions, GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
 from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
-from detector.models.config import experiment_from_dict
+from detector.models.config import Precision, experiment_from_dict
 from mpchair.atomic import atomic_open, write_text
 from mpchair.config import to_dict
 from mpchair.errors import InputError
@@ -415,8 +416,8 @@ def train(
     if epochs is not None:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, epochs=epochs))
     if precision is not None:
-        if precision not in ("fp32", "bf16"):
-            raise InputError(f"--precision must be fp32 or bf16, got {precision!r}")
+        if precision not in get_args(Precision):
+            raise InputError(f"--precision must be one of {', '.join(get_args(Precision))}, got {precision!r}")
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, precision=precision))
     tc = cfg.train
     if tc.precision == "bf16" and dev.type == "cuda" and not torch.cuda.is_bf16_supported():

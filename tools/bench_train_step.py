@@ -24,12 +24,14 @@ import statistics
 import sys
 import tempfile
 from pathlib import Path
+from typing import get_args
 
 import torch
 
+from detector.models.config import Precision
 from detector.train import train
 
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = get_args(Precision)  # ("fp32", "bf16"): the ratio is fp32 / bf16
 
 
 def step_seconds(run: Path, warmup: int) -> list[float]:

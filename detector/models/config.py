@@ -125,8 +125,9 @@ class DataConfig:
 
 
 Schedule = Literal["constant", "onecycle"]
-Precision = Literal["fp32", "bf16"]
 """Learning-rate schedule: ``constant`` (the reference) or ``onecycle`` (OpenPCDet's ``adam_onecycle``)."""
+Precision = Literal["fp32", "bf16"]
+"""Training precision: ``fp32`` (the reference) or ``bf16`` (bfloat16 autocast of the forward pass)."""
 
 
 @dataclass(frozen=True)
