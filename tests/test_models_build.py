@@ -148,6 +148,25 @@ def test_stage_methods_chain_like_forward() -> None:
     assert torch.equal(whole.cls[0], whole.cls[1])  # samples are independent in eval mode
 
 
+def test_canvas_is_channels_last_only_under_bf16_autocast() -> None:
+    torch.manual_seed(0)
+    model = build_model(_tiny_config()).eval()
+    pts, _ = _scene(1)
+    with torch.no_grad():
+        feats, coords = model.pillar_net(model.voxelize([pts, pts]))
+        nchw = model.feature_net(feats, coords, 2)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            nhwc = model.feature_net(feats, coords, 2)
+            head_bf16 = model([pts])
+        # same values, only the strides differ; fp32 keeps the reference's NCHW
+        assert nchw.is_contiguous() and not nhwc.is_contiguous()
+        assert nhwc.is_contiguous(memory_format=torch.channels_last) and torch.equal(nchw, nhwc)
+        head_fp32 = model([pts])
+    # the bf16 forward on the channels-last canvas is the fp32 forward up to bf16 rounding
+    for a, b in zip(head_fp32, head_bf16):
+        assert a.shape == b.shape and torch.allclose(a, b.float(), atol=0.05, rtol=0.05)
+
+
 def test_sparse_variants_build_and_run() -> None:
     pytest.importorskip("detector.models.sparse_backbone")
     pts, box = _scene(2)

@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="training epochs of both models instead of the scale's (full scale: the configs')")
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None,
                    help="training precision of both models (default: the configs', fp32); bf16 = bfloat16 autocast, "
-                        "~1.6x faster dense steps on CPUs with AVX512-BF16 / AMX")
+                        "~1.85x faster dense steps on CPUs with AVX512-BF16 / AMX")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 50, medium: 20)")
     args = p.parse_args(argv)
@@ -298,6 +298,33 @@ def _precision(out: Path) -> str:
     return ", ".join(f"{m} {v}" for m, v in found.items()) or "n/a"
 
 
+def _epoch_seconds(run: Path) -> float:
+    """Training seconds of one run: the sum of its epochs' ``time_s`` in metrics.jsonl (0 if there is none)."""
+    text = _read(run / "metrics.jsonl") or ""
+    return sum(r["time_s"] for r in map(json.loads, text.splitlines()) if r["kind"] == "epoch")
+
+
+def _elapsed(out: Path) -> tuple[float, dict[str, float]]:
+    """(seconds of the whole reproduction, {model: training seconds}) from commands.log and the runs' metrics.
+
+    A resumed reproduction spans several invocations and commands.log records each *finished* command once, so a
+    training cut by an interruption and resumed logs only its last part; its run's epoch times (which survive the
+    resume) count all of it. Each training command counts as the larger of the two."""
+    logged = {"dense": 0.0, "sparse": 0.0}
+    total = 0.0
+    for line in (_read(out / "commands.log") or "").splitlines():
+        if not line.strip():
+            continue
+        seconds = float(line.split()[0])
+        model = next((m for m in logged if " train " in line and f"/runs/{m} " in line + " "), None)
+        if model is None:
+            total += seconds
+        else:
+            logged[model] += seconds
+    train = {m: max(t, _epoch_seconds(out / "runs" / m)) for m, t in logged.items()}
+    return total + sum(train.values()), train
+
+
 def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_s: float) -> None:
     """docs/results.md from the step outputs that exist (missing ones are named)."""
     from mpchair.atomic import write_text
@@ -312,15 +339,17 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         return os.path.relpath(img_dir / name, path.parent)
 
     log = _read(out / "commands.log") or ""
-    # Sum of the recorded commands (a resumed reproduction spans several invocations; each command is logged once).
-    steps_s = sum(float(line.split()[0]) for line in log.splitlines() if line.strip())
+    steps_s, train_s = _elapsed(out)
     lines = [
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
         f"frames, epochs {sc.epochs or 'from the configs'}, training precision {_precision(out)}, bench "
         f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
-        "all on this machine (each command's wall time is listed). Synthetic houses are not Matterport3D: absolute "
+        "all on this machine (each command's wall time is listed; training took "
+        + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
+        + " by its runs' epoch clocks, which also count the part of a training that ran before a resume). "
+        "Synthetic houses are not Matterport3D: absolute "
         "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
         "",
         *_summary(res),

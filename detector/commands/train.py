@@ -17,7 +17,7 @@ import click
 @click.option("--epochs", type=int, default=None, help="Override train.epochs.")
 @click.option("--precision", type=click.Choice(["fp32", "bf16"]), default=None,
               help="Override train.precision: bf16 runs the forward pass under torch.autocast (weights, optimiser "
-                   "and losses stay fp32); ~1.6x faster dense steps on CPUs with AVX512-BF16/AMX.")
+                   "and losses stay fp32); ~1.85x faster dense steps on CPUs with AVX512-BF16/AMX.")
 @click.option("--resume", is_flag=True, help="Continue from OUT/last.pt (identical to an uninterrupted run).")
 @click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps (whole run) and save.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)

@@ -11,18 +11,24 @@ from torch import nn
 
 
 def scatter_to_canvas(
-    features: torch.Tensor, coords: torch.Tensor, batch_size: int, output_shape: tuple[int, int]
+    features: torch.Tensor,
+    coords: torch.Tensor,
+    batch_size: int,
+    output_shape: tuple[int, int],
+    channels_last: bool = False,
 ) -> torch.Tensor:
     """features (P, C), coords (P, 3) int64 [b, iy, ix] → canvas (B, C, ny, nx), zero where no pillar.
 
-    Coordinates must be unique and inside the canvas (the voxelizer guarantees both).
+    Coordinates must be unique and inside the canvas (the voxelizer guarantees both). ``channels_last=True`` returns
+    the same values with ``torch.channels_last`` strides (the scatter's own (B, ny, nx, C) buffer, no copy).
     """
     ny, nx = output_shape
     c = features.shape[1]
     flat = (coords[:, 0] * ny + coords[:, 1]) * nx + coords[:, 2]
     canvas = features.new_zeros((batch_size * ny * nx, c))
     canvas = canvas.index_copy(0, flat, features)
-    return canvas.view(batch_size, ny, nx, c).permute(0, 3, 1, 2).contiguous()
+    canvas = canvas.view(batch_size, ny, nx, c).permute(0, 3, 1, 2)
+    return canvas if channels_last else canvas.contiguous()
 
 
 class PointPillarsScatter(nn.Module):

@@ -1,0 +1,43 @@
+"""tools/reproduce.py's time accounting: a training resumed after an interruption counts all of its epochs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _reproduce():
+    spec = importlib.util.spec_from_file_location("reproduce", ROOT / "tools" / "reproduce.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up while the file executes
+    spec.loader.exec_module(module)
+    return module
+
+
+def _metrics(run: Path, epoch_seconds: list[float]) -> None:
+    run.mkdir(parents=True)
+    records = [{"kind": "step", "step": 1, "time_s": 99.0}]  # step records must not be counted again
+    records += [{"kind": "epoch", "epoch": i + 1, "time_s": t} for i, t in enumerate(epoch_seconds)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
+    out = tmp_path / "reproduce-full"
+    log = [
+        f"     60.0 s  /v/bin/mpchair generate --root {out}/houses --out {out}/dataset",
+        f"   1000.0 s  ENV=1 /v/bin/detector train --config c.yaml --out {out}/runs/dense --threads 2",
+        # sparse was cut after 3 of its 5 epochs; only the resumed command (the last 2 epochs) finished and was logged
+        f"    250.0 s  ENV=1 /v/bin/detector train --config c.yaml --out {out}/runs/sparse --threads 2 --resume",
+        f"     30.0 s  /v/bin/detector eval --checkpoint {out}/runs/sparse/last.pt --split val",
+    ]
+    out.mkdir()
+    (out / "commands.log").write_text("\n".join(log) + "\n")
+    _metrics(out / "runs" / "dense", [190.0] * 5)  # 950 s: less than its logged command (start-up, periodic eval)
+    _metrics(out / "runs" / "sparse", [120.0] * 5)  # 600 s: the cut part is in the epochs, not in the log
+    total, train = _reproduce()._elapsed(out)
+    assert train == {"dense": 1000.0, "sparse": 600.0}
+    assert total == 60.0 + 1000.0 + 600.0 + 30.0
