@@ -38,6 +38,6 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
     (out / "commands.log").write_text("\n".join(log) + "\n")
     _metrics(out / "runs" / "dense", [190.0] * 5)  # 950 s: less than its logged command (start-up, periodic eval)
     _metrics(out / "runs" / "sparse", [120.0] * 5)  # 600 s: the cut part is in the epochs, not in the log
-    total, train = _reproduce()._elapsed(out)
+    total, train = _reproduce()._elapsed((out / "commands.log").read_text(), out / "runs")
     assert train == {"dense": 1000.0, "sparse": 600.0}
     assert total == 60.0 + 1000.0 + 600.0 + 30.0

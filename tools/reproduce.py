@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         r.run(cmd, stdout=res / "viz.json")
     total = time.perf_counter() - t0
     if "report" in steps and not args.dry_run:
-        write_report(args.results, out, res, args.scale, sc, total)
+        write_report(args.results, out, res, args.scale, sc)
         print(f"wrote {args.results}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0
@@ -304,15 +304,15 @@ def _epoch_seconds(run: Path) -> float:
     return sum(r["time_s"] for r in map(json.loads, text.splitlines()) if r["kind"] == "epoch")
 
 
-def _elapsed(out: Path) -> tuple[float, dict[str, float]]:
-    """(seconds of the whole reproduction, {model: training seconds}) from commands.log and the runs' metrics.
+def _elapsed(log: str, runs: Path) -> tuple[float, dict[str, float]]:
+    """(seconds of the whole reproduction, {model: training seconds}) from commands.log's text and the runs' metrics.
 
     A resumed reproduction spans several invocations and commands.log records each *finished* command once, so a
     training cut by an interruption and resumed logs only its last part; its run's epoch times (which survive the
     resume) count all of it. Each training command counts as the larger of the two."""
     logged = {"dense": 0.0, "sparse": 0.0}
     total = 0.0
-    for line in (_read(out / "commands.log") or "").splitlines():
+    for line in log.splitlines():
         if not line.strip():
             continue
         seconds = float(line.split()[0])
@@ -321,11 +321,11 @@ def _elapsed(out: Path) -> tuple[float, dict[str, float]]:
             total += seconds
         else:
             logged[model] += seconds
-    train = {m: max(t, _epoch_seconds(out / "runs" / m)) for m, t in logged.items()}
+    train = {m: max(t, _epoch_seconds(runs / m)) for m, t in logged.items()}
     return total + sum(train.values()), train
 
 
-def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_s: float) -> None:
+def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale) -> None:
     """docs/results.md from the step outputs that exist (missing ones are named)."""
     from mpchair.atomic import write_text
 
@@ -339,7 +339,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         return os.path.relpath(img_dir / name, path.parent)
 
     log = _read(out / "commands.log") or ""
-    steps_s, train_s = _elapsed(out)
+    steps_s, train_s = _elapsed(log, out / "runs")
     lines = [
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
@@ -348,7 +348,8 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, total_
         f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
         "all on this machine (each command's wall time is listed; training took "
         + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
-        + " by its runs' epoch clocks, which also count the part of a training that ran before a resume). "
+        + "; a training cut and resumed counts by its run's epoch clocks, which include the part before the "
+        "resume). "
         "Synthetic houses are not Matterport3D: absolute "
         "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*.",
         "",
