@@ -41,3 +41,24 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
     total, train = _reproduce()._elapsed((out / "commands.log").read_text(), out / "runs")
     assert train == {"dense": 1000.0, "sparse": 600.0}
     assert total == 60.0 + 1000.0 + 600.0 + 30.0
+
+
+def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
+    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, 15 bf16 epochs per model."""
+    reproduce = _reproduce()
+    assert reproduce.main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    synth = [ln for ln in lines if " synth " in ln]
+    generate = [ln for ln in lines if " generate " in ln]
+    train = [ln for ln in lines if " train " in ln]
+    assert len(synth) == 1 and "--houses 8" in synth[0]
+    assert len(generate) == 1 and "--frames 625" in generate[0]
+    assert len(train) == 2 and all("--epochs 15 --precision bf16" in ln for ln in train)
+
+    # a flag overrides the scale's precision; the quick scale keeps the configs' precision
+    assert reproduce.main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
+    train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
+    assert len(train) == 2 and all(ln.endswith("--epochs 15 --precision fp32") for ln in train)
+    assert reproduce.main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
+    train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
+    assert len(train) == 2 and all(ln.endswith("--epochs 2") for ln in train)
