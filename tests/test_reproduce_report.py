@@ -62,3 +62,14 @@ def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, 
     assert reproduce.main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
     assert len(train) == 2 and all(ln.endswith("--epochs 2") for ln in train)
+
+
+def test_quick_scale_report_stays_in_its_work_folder(tmp_path: Path, capsys) -> None:
+    """Only ``--scale full`` replaces the committed docs/results.md; a small run writes <work folder>/results.md."""
+    reproduce = _reproduce()
+    committed = (ROOT / "docs" / "results.md").read_bytes()
+    assert reproduce.main(["--scale", "small", "--steps", "report", "--out", str(tmp_path / "small")]) == 0
+    report = (tmp_path / "small" / "results.md").read_text()
+    assert report.startswith("# Results") and "`tools/reproduce.py --scale small`" in report
+    assert f"wrote {tmp_path.resolve() / 'small' / 'results.md'}" in capsys.readouterr().out
+    assert (ROOT / "docs" / "results.md").read_bytes() == committed
