@@ -17,7 +17,7 @@ test: venv
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-# The paper's experiment on synthetic houses (~3 h on 2 cores); `make reproduce SCALE=small` is a ~10-minute check.
+# The paper's experiment on synthetic houses (~3 h on 2 cores); `make reproduce SCALE=small` is a 3-minute check.
 SCALE ?= full
 reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)

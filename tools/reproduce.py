@@ -16,7 +16,7 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run.
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
 1,000 val / 1,000 test, both models 15 epochs in bfloat16 autocast (measured: dense 80.8 / sparse 79.3 3D AP, about
-three hours on 2 cores with AVX512-BF16; ``--precision fp32`` on a CPU without it). ``--scale small`` is a ~10-minute
+three hours on 2 cores with AVX512-BF16; ``--precision fp32`` on a CPU without it). ``--scale small`` is a 3-minute
 end-to-end check (2 houses, 300 frames, 2 epochs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs (about two
 hours on 2 cores).
 
@@ -115,7 +115,7 @@ def house_ids(houses_dir: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default="full",
-                   help="full (default): the issue's experiment, ~3 h on 2 cores; small: ~10-minute check")
+                   help="full (default): the issue's experiment, ~3 h on 2 cores; small: 3-minute check")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/reproduce-<scale>)")
     p.add_argument("--results", type=Path, default=None,
