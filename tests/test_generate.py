@@ -17,7 +17,14 @@ import pytest
 from mpchair.dataset.generate import GenerateRequest, generate
 from mpchair.dataset.splits import split_frames
 from mpchair.errors import InputError
-from mpchair.geometry import fov_mask, labels_to_boxes, points_in_boxes, transform_boxes
+from mpchair.geometry import (
+    canonical_yaw,
+    fov_mask,
+    labels_to_boxes,
+    points_in_boxes,
+    transform_boxes,
+    wrap_angle,
+)
 from mpchair.kitti import read_calib, read_image_size, read_imageset, read_labels, read_velodyne
 from mpchair.synth import synthesize_house, write_house
 
@@ -83,7 +90,8 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
         assert list(labels.names) == ["Chair"] * len(rec["kept"])
         expect = transform_boxes(np.stack([truth[k["object"]].aligned_box for k in rec["kept"]]), np.linalg.inv(T))
         np.testing.assert_allclose(boxes[:, :6], expect[:, :6], atol=0.006)
-        dyaw = np.mod(boxes[:, 6] - expect[:, 6] + np.pi / 2, np.pi) - np.pi / 2  # a box's axis has no direction
+        # The heading is the canonical one (long side's direction in [-pi/2, pi/2)), up to the file's 2 decimals.
+        dyaw = wrap_angle(boxes[:, 6] - canonical_yaw(expect[:, 6]))
         np.testing.assert_allclose(dyaw, 0, atol=0.006)
         # OpenPCDet's FOV crop keeps every labelled box: each box's 2D box has area inside image_2 (its centre can sit
         # below the image when the chair is close) and all its points are inside image_2.
@@ -99,6 +107,26 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
         for k in rec["kept"]:
             assert k["visible_pixels"] > 35 and k["points_in_box"] >= 35 and k["in_box_fraction"] >= 0.8
         assert all(r["reason"] for r in rec["rejected"])
+
+
+@pytest.mark.parametrize("sensor", ["mp3d-depth90", "lidar64", "lidar16"])
+def test_every_profile_writes_canonical_chair_yaws(house_root, tmp_path, sensor):
+    """Each sensor profile generates end to end, and every label's heading is canonical in the sensor frame:
+    yaw in [-pi/2, pi/2), i.e. KITTI rotation_y in (-pi, 0] (the long side's direction, as the original did)."""
+    root, house = house_root
+    out = tmp_path / sensor
+    summary = generate(GenerateRequest(root=root, houses=(house.id,), frames=4, out=out, seed=5, sensor=sensor,
+                                       progress=False))
+    assert summary.complete and summary.kept > 0
+    n = 0
+    for fid in (f"{i:06d}" for i in range(4)):
+        labels = read_labels(out / "training" / "label_2" / f"{fid}.txt")
+        calib = read_calib(out / "training" / "calib" / f"{fid}.txt")
+        assert ((labels.rotation_y > -np.pi) & (labels.rotation_y <= 0)).all(), labels.rotation_y
+        yaw = labels_to_boxes(labels.objects(), calib)[:, 6]
+        assert ((yaw >= -np.pi / 2) & (yaw < np.pi / 2)).all()
+        n += len(yaw)
+    assert n == summary.kept
 
 
 def test_two_workers_give_identical_bytes(dataset, house_root, tmp_path):

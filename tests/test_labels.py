@@ -9,8 +9,8 @@ import pytest
 from helpers_scenes import WALL, HouseBuilder
 
 from mpchair.dataset.frame import cast_scan
-from mpchair.geometry import points_in_boxes, transform_points
-from mpchair.labels import ObjectScenes, decide_boxes
+from mpchair.geometry import box_corners, canonical_yaw, points_in_boxes, transform_boxes, transform_points
+from mpchair.labels import ObjectScenes, boxes_to_sensor, decide_boxes
 from mpchair.labels.visibility import covering_boxes, outside_vertices
 from mpchair.scan.raycast import make_raycaster
 from mpchair.scan.sensors import camera_calib, load_sensor, scan_directions
@@ -53,7 +53,7 @@ def test_boxes_follow_the_pose_and_scan_points_inside_are_the_chair():
     for k, (x, y, yaw, size) in zip((a, b), ((3.0, 2.5, 0.3, (0.5, 0.45, 0.9)), (4.0, 4.2, -1.1, (0.6, 0.5, 1.0)))):
         c, s = np.cos(-0.2), np.sin(-0.2)
         dx, dy = x - 1.0, y - 3.0
-        expect = [c * dx - s * dy, s * dx + c * dy, size[2] / 2 - 1.0, *size, yaw - 0.2]
+        expect = [c * dx - s * dy, s * dx + c * dy, size[2] / 2 - 1.0, *size, canonical_yaw(yaw - 0.2)]
         np.testing.assert_allclose(dec.boxes[list(dec.objects).index(k)], expect, atol=1e-9)
     assert (dec.visible_pixels > 35).all() and (dec.in_box_fraction >= 0.99).all()
     assert set(dec.occluded) <= {0, 1, 2}
@@ -73,6 +73,25 @@ def test_boxes_follow_the_pose_and_scan_points_inside_are_the_chair():
         on_chair = house.face_object[face] == k
         dist = np.min(np.linalg.norm(world[:, None] - hit_world[on_chair][None], axis=2), axis=1)
         assert dist.max() < 1e-4
+
+
+def test_sensor_boxes_have_a_canonical_yaw():
+    """A front-less box's yaw in the sensor frame is its long side's direction in [-pi/2, pi/2), whatever the fit's
+    world yaw and the sensor's heading: same box (corner set), canonical angle."""
+    world = np.array([[2.0 + 0.1 * k, 1.0, 0.45, 0.6, 0.4, 0.9, yaw] for k, yaw in
+                      enumerate(np.linspace(-3 * np.pi, 3 * np.pi, 41))])
+    for sensor_yaw in (0.0, 2.0, -2.9, np.pi / 2):
+        pose = _pose(0.5, -0.5, sensor_yaw)
+        out = boxes_to_sensor(world, pose)
+        assert ((out[:, 6] >= -np.pi / 2) & (out[:, 6] < np.pi / 2)).all()
+        plain = transform_boxes(world, np.linalg.inv(pose))
+        assert (np.abs(out[:, 6] - plain[:, 6]) > 1).any()  # some yaws really were turned by pi
+        # The same physical box: corner sets match (a pi turn only permutes the corners).
+        a, b = box_corners(out), box_corners(plain)
+        for ca, cb in zip(a, b):
+            d = np.linalg.norm(ca[:, None] - cb[None], axis=2)
+            assert d.min(axis=1).max() < 1e-9
+        np.testing.assert_allclose(out[:, :6], plain[:, :6], atol=1e-12)
 
 
 def test_filters_on_constructed_cases():

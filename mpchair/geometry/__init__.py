@@ -18,6 +18,7 @@ from mpchair.geometry.camera import (
 )
 from mpchair.geometry.frames import (
     SENSOR_TO_CAMERA,
+    canonical_yaw,
     invert_rigid,
     make_tr_velo_to_cam,
     rigid_from,
@@ -36,6 +37,7 @@ __all__ = [
     "SENSOR_TO_CAMERA",
     "bev_polygons",
     "box_corners",
+    "canonical_yaw",
     "boxes_to_kitti_camera",
     "fov_mask",
     "grid_size",

@@ -31,6 +31,16 @@ def wrap_angle(a: np.ndarray | float, offset: float = 0.5, period: float = 2 * m
     return np.where(out >= upper, out - period, out)
 
 
+def canonical_yaw(yaw: np.ndarray | float) -> np.ndarray:
+    """The heading of a box without a front (a chair's fitted axes): its long side's direction, in ``[-pi/2, pi/2)``.
+
+    Adding pi turns a front-less box onto itself, so the label is made a function of what the sensor sees, as the
+    original Matterport-Chair generator did: ``wrap_angle(yaw, offset=0.5, period=pi)``. Applied to sensor-frame
+    label boxes, KITTI ``rotation_y = -yaw - pi/2`` then lies in ``(-pi, 0]``.
+    """
+    return wrap_angle(yaw, offset=0.5, period=math.pi)
+
+
 def rigid_from(R: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
     """(4,4) rigid transform from a (3,3) rotation and an optional (3,) translation (metres)."""
     T = np.eye(4)

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from mpchair.geometry import invert_rigid, points_in_boxes, transform_boxes, transform_points
+from mpchair.geometry import canonical_yaw, invert_rigid, points_in_boxes, transform_boxes, transform_points
 from mpchair.kitti import Calib
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.visibility import (
@@ -65,8 +65,15 @@ class BoxDecisions:
 
 
 def boxes_to_sensor(world_boxes: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(N,7) world-frame yaw-only boxes → sensor frame, for ``pose`` = (4,4) sensor → world (yaw-only rotation)."""
-    return transform_boxes(np.asarray(world_boxes, dtype=np.float64).reshape(-1, 7), invert_rigid(pose))
+    """(N,7) world-frame yaw-only boxes → sensor frame, for ``pose`` = (4,4) sensor → world (yaw-only rotation).
+
+    Matterport object boxes have no front (their axes come from a fit), so the yaw is made canonical in the sensor
+    frame: the long side's direction in ``[-pi/2, pi/2)`` (:func:`mpchair.geometry.canonical_yaw`), a function of
+    what the sensor sees rather than of the fit's arbitrary sign, as in the original generator.
+    """
+    boxes = transform_boxes(np.asarray(world_boxes, dtype=np.float64).reshape(-1, 7), invert_rigid(pose))
+    boxes[:, 6] = canonical_yaw(boxes[:, 6])
+    return boxes
 
 
 def centre_reasons(boxes: np.ndarray, filters: LabelFilters, camera: CameraConfig) -> list[str]:
