@@ -44,7 +44,8 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
 
 
 def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
-    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, 15 bf16 epochs per model."""
+    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, bf16, dense 16 epochs and
+    sparse 20 (the paper's 250 / 200 ratio)."""
     reproduce = _reproduce()
     assert reproduce.main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -53,15 +54,17 @@ def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, 
     train = [ln for ln in lines if " train " in ln]
     assert len(synth) == 1 and "--houses 8" in synth[0]
     assert len(generate) == 1 and "--frames 625" in generate[0]
-    assert len(train) == 2 and all("--epochs 15 --precision bf16" in ln for ln in train)
+    assert len(train) == 2 and "--epochs 16 --precision bf16" in train[0] and "dense_cpu" in train[0]
+    assert "--epochs 20 --precision bf16" in train[1] and "sparse_cpu" in train[1]
 
     # a flag overrides the scale's precision; the quick scale keeps the configs' precision
     assert reproduce.main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
-    assert len(train) == 2 and all(ln.endswith("--epochs 15 --precision fp32") for ln in train)
+    assert len(train) == 2 and train[0].endswith("--epochs 16 --precision fp32")
+    assert train[1].endswith("--epochs 20 --precision fp32")
     assert reproduce.main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
-    assert len(train) == 2 and all(ln.endswith("--epochs 2") for ln in train)
+    assert len(train) == 2 and train[0].endswith("--epochs 2") and train[1].endswith("--epochs 3")
 
 
 def test_quick_scale_report_stays_in_its_work_folder(tmp_path: Path, capsys) -> None:
