@@ -44,8 +44,8 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
 
 
 def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
-    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, bf16, dense 16 epochs and
-    sparse 20 (the paper's 250 / 200 ratio)."""
+    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, dense 16 epochs and sparse 20
+    (the paper's 250 / 200 ratio), bf16 where the CPU computes it natively, else fp32."""
     reproduce = _reproduce()
     assert reproduce.main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -54,8 +54,9 @@ def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, 
     train = [ln for ln in lines if " train " in ln]
     assert len(synth) == 1 and "--houses 8" in synth[0]
     assert len(generate) == 1 and "--frames 625" in generate[0]
-    assert len(train) == 2 and "--epochs 16 --precision bf16" in train[0] and "dense_cpu" in train[0]
-    assert "--epochs 20 --precision bf16" in train[1] and "sparse_cpu" in train[1]
+    auto = "bf16" if reproduce.cpu_has_native_bf16() else "fp32"
+    assert len(train) == 2 and f"--epochs 16 --precision {auto}" in train[0] and "dense_cpu" in train[0]
+    assert f"--epochs 20 --precision {auto}" in train[1] and "sparse_cpu" in train[1]
 
     # a flag overrides the scale's precision; the quick scale keeps the configs' precision
     assert reproduce.main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
@@ -76,3 +77,15 @@ def test_quick_scale_report_stays_in_its_work_folder(tmp_path: Path, capsys) -> 
     assert report.startswith("# Results") and "`tools/reproduce.py --scale small`" in report
     assert f"wrote {tmp_path.resolve() / 'small' / 'results.md'}" in capsys.readouterr().out
     assert (ROOT / "docs" / "results.md").read_bytes() == committed
+
+
+def test_auto_precision_reads_the_cpu_flags(tmp_path: Path) -> None:
+    """bf16 only where the CPU has native bfloat16 (AVX512-BF16 or AMX-BF16); missing cpuinfo means fp32."""
+    reproduce = _reproduce()
+    amd = tmp_path / "amd"
+    amd.write_text("processor : 0\nflags : fpu sse4_2 avx avx2 fma\n")
+    intel = tmp_path / "spr"
+    intel.write_text("processor : 0\nflags : fpu avx2 avx512f avx512_bf16 amx_tile amx_bf16\n")
+    assert not reproduce.cpu_has_native_bf16(amd)
+    assert reproduce.cpu_has_native_bf16(intel)
+    assert not reproduce.cpu_has_native_bf16(tmp_path / "missing")
