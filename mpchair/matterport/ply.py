@@ -115,6 +115,11 @@ def _parse_header(data: bytes | memoryview, path: str) -> tuple[str, list[_Eleme
     return fmt, els, body_start
 
 
+def _values_per_record(el: _Element) -> int:
+    """Numbers one record of ``el`` holds in an ASCII body (a list is its count plus 3 entries: triangles only)."""
+    return sum(4 if c is not None else 1 for _, _, c in el.props)
+
+
 def _dtype(el: _Element, endian: str) -> np.dtype:
     fields = []
     for name, typ, count_type in el.props:
@@ -168,7 +173,7 @@ def ply_byte_limit(head: bytes, path: str = "<ply>") -> int:
     need = 0
     for el in elements:
         if fmt == "ascii":
-            need += el.count * ASCII_VALUE_BYTES * sum(4 if c is not None else 1 for _, _, c in el.props)
+            need += el.count * ASCII_VALUE_BYTES * _values_per_record(el)
         else:
             need += el.count * _dtype(el, "<").itemsize
     return body_start + need + BODY_SLACK
@@ -204,7 +209,7 @@ def _read_ascii_body(data: bytes | memoryview, pos: int, elements: list[_Element
     at = 0
     for el in elements:
         dt = _dtype(el, "<")
-        width = sum(4 if c is not None else 1 for _, _, c in el.props)
+        width = _values_per_record(el)
         need = width * el.count
         if at + need > len(tokens):
             raise InputError(
