@@ -463,7 +463,8 @@ def evaluate(
     classes: Sequence[str],
     min_overlaps: Mapping[str, Sequence[float]] | None = None,
 ) -> EvalResult:
-    """Evaluate detections against ground truth with the KITTI protocol; AP in percent.
+    """Evaluate detections against ground truth with the KITTI protocol; AP in percent, at Easy / Moderate / Hard
+    (``EvalResult.ap``) and at ``overall`` (``EvalResult.overall``: every GT box of the class counts).
 
     ``gt[f]`` / ``dt[f]`` are the labels of frame f (rectified camera frame, image_2 pixel boxes); detections need
     scores (an empty ``Labels`` may lack them). ``classes`` are matched case-insensitively against GT and detection
