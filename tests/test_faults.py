@@ -79,15 +79,39 @@ def _wait_for(cond, proc: subprocess.Popen) -> None:
         time.sleep(0.01)
 
 
+def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=600, **kw)
+
+
+def _start(cmd: list[str]) -> subprocess.Popen:
+    """Start ``cmd`` in its own process group (stdout dropped, stderr kept)."""
+    return subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _finish(proc: subprocess.Popen) -> str:
+    """Wait for ``proc`` (a hang fails here) and return its stderr; a test that failed earlier kills its group."""
+    try:
+        return proc.communicate(timeout=600)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+def _reference(houses, tmp_path: Path, frames: int) -> dict[str, bytes]:
+    """What an uninterrupted run writes (in this process)."""
+    generate(_req(houses, tmp_path / "ref", frames))
+    return tree(tmp_path / "ref")
+
+
 # --- generate -----------------------------------------------------------------------------------------------------
 
 
 def test_sigkill_before_every_rename_then_the_same_command_resumes_byte_identical(houses, tmp_path):
     frames = 2
-    ref = tmp_path / "ref"
-    renames = count_replaces(lambda: generate(_req(houses, ref, frames)))
+    renames = count_replaces(lambda: generate(_req(houses, tmp_path / "ref", frames)))
     assert renames == 1 + frames * 6 + 3 + 1  # settings, 5 KITTI files + record per frame, ImageSets, manifest
-    want = tree(ref)
+    want = tree(tmp_path / "ref")
     for k in range(1, renames + 1):
         out = tmp_path / f"k{k}"
 
@@ -105,12 +129,10 @@ def test_sigkill_before_every_rename_then_the_same_command_resumes_byte_identica
 
 def test_a_killed_pool_worker_stops_the_run_with_one_error_line_and_the_run_resumes(houses, tmp_path):
     frames = 12
-    ref = tmp_path / "ref"
-    generate(_req(houses, ref, frames))
+    want = _reference(houses, tmp_path, frames)
     out = tmp_path / "out"
     cmd = _cmd(houses, out, frames, "--workers", "2")
-    proc = subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = _start(cmd)
     try:
         _wait_for(lambda: len(_children(proc.pid)) == 2, proc)
         os.killpg(proc.pid, signal.SIGSTOP)  # freeze the job, so the kill lands while frames are still pending
@@ -118,17 +140,15 @@ def test_a_killed_pool_worker_stops_the_run_with_one_error_line_and_the_run_resu
         assert len(list((out / ".frames").glob("*.json"))) < frames
         os.kill(workers[0], signal.SIGKILL)  # as the out-of-memory killer would
         os.killpg(proc.pid, signal.SIGCONT)
-        _, err = proc.communicate(timeout=300)  # a hang fails here
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+        err = _finish(proc)
     assert proc.returncode == 1
     line = _one_error_line(err)
     assert f"worker process {workers[0]} was killed by SIGKILL" in line and "run the same command" in line
     assert not Path(f"/proc/{workers[1]}").exists()  # the other worker was stopped, not orphaned
-    res = subprocess.run(cmd + ["--json"], env=ENV, capture_output=True, text=True, timeout=600)
+    res = _run(cmd + ["--json"])
     assert res.returncode == 0, res.stderr
-    assert json.loads(res.stdout)["complete"] and tree(out) == tree(ref)
+    assert json.loads(res.stdout)["complete"] and tree(out) == want
 
 
 def _limit_file_size() -> None:
@@ -138,18 +158,17 @@ def _limit_file_size() -> None:
 def test_an_os_error_inside_a_worker_is_one_line_exit_2_and_the_run_resumes(houses, tmp_path):
     """RLIMIT_FSIZE makes the kernel refuse the scans' writes (EFBIG) inside the pool workers; any platform, no root."""
     frames = 4
-    ref = tmp_path / "ref"
-    generate(_req(houses, ref, frames))
+    want = _reference(houses, tmp_path, frames)
     out = tmp_path / "out"
     cmd = _cmd(houses, out, frames, "--workers", "2")
-    res = subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=600, preexec_fn=_limit_file_size)
+    res = _run(cmd, preexec_fn=_limit_file_size)
     assert res.returncode == 2
     line = _one_error_line(res.stderr)
     assert f"{out}/training/velodyne/0000" in line and "File too large" in line and "same command" in line
     assert (out / ".generate.json").is_file() and not list((out / ".frames").glob("*.json"))
-    res = subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=600)
+    res = _run(cmd)
     assert res.returncode == 0, res.stderr
-    assert tree(out) == tree(ref)
+    assert tree(out) == want
 
 
 @pytest.fixture
@@ -167,39 +186,36 @@ def small_disk(tmp_path):
 
 def test_a_full_disk_is_one_line_exit_2_and_the_run_resumes_after_space_is_freed(houses, tmp_path, small_disk):
     frames = 3
-    ref = tmp_path / "ref"
-    generate(_req(houses, ref, frames))
+    want = _reference(houses, tmp_path, frames)
     out = small_disk / "ds"
     cmd = _cmd(houses, out, frames)
-    res = subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=600)
+    res = _run(cmd)
     assert res.returncode == 2
     line = _one_error_line(res.stderr)
     assert f"error: {out}/" in line and "No space left on device" in line and "same command" in line
     subprocess.run(["mount", "-o", "remount,size=8m", str(small_disk)], check=True)
-    assert subprocess.run(cmd, env=ENV, capture_output=True, timeout=600).returncode == 0
-    assert tree(out) == tree(ref)
+    assert _run(cmd).returncode == 0
+    assert tree(out) == want
 
     # The disk fills up while ImageSets and the manifest are written (the state a kill before them leaves).
     (out / "manifest.json").unlink()
     shutil.rmtree(out / "ImageSets")
     st = os.statvfs(small_disk)
     (small_disk / "filler").write_bytes(b"\0" * (st.f_bavail * st.f_frsize - 4096))
-    res = subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=600)
+    res = _run(cmd)
     assert res.returncode == 2
     assert "No space left on device" in _one_error_line(res.stderr) and not (out / "manifest.json").exists()
     (small_disk / "filler").unlink()
-    assert subprocess.run(cmd, env=ENV, capture_output=True, timeout=600).returncode == 0
-    assert tree(out) == tree(ref)
+    assert _run(cmd).returncode == 0
+    assert tree(out) == want
 
 
 def test_a_second_generate_on_a_busy_folder_is_refused_and_the_first_finishes(houses, tmp_path, capsys):
     frames = 6
-    ref = tmp_path / "ref"
-    generate(_req(houses, ref, frames))
+    want = _reference(houses, tmp_path, frames)
     out = tmp_path / "out"
     cmd = _cmd(houses, out, frames)
-    first = subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)
+    first = _start(cmd)
     try:
         _wait_for(lambda: any((out / ".frames").glob("*.json")), first)
         os.killpg(first.pid, signal.SIGSTOP)  # the first run holds the folder, mid-way
@@ -210,12 +226,10 @@ def test_a_second_generate_on_a_busy_folder_is_refused_and_the_first_finishes(ho
         code, _, err = _cli(mpchair_main, cmd[3:] + ["--shard", "1/2"], capsys)
         assert code == 2 and "must share N" in _one_error_line(err)
         os.killpg(first.pid, signal.SIGCONT)
-        _, err = first.communicate(timeout=600)
     finally:
-        if first.poll() is None:
-            os.killpg(first.pid, signal.SIGKILL)
+        err = _finish(first)
     assert first.returncode == 0, err
-    assert tree(out) == tree(ref)
+    assert tree(out) == want
 
 
 def test_settings_that_cannot_make_frames_leave_nothing_and_the_corrected_command_runs(houses, tmp_path, capsys):
@@ -240,8 +254,7 @@ def test_a_folder_killed_before_its_first_frame_takes_corrected_settings(houses,
     status = run_forked(lambda: (kill_at_replace(2), generate(_req(houses, out, 2, height=1.1))))
     assert os.WTERMSIG(status) == signal.SIGKILL and (out / ".generate.json").is_file()
     generate(_req(houses, out, 2))  # other settings; the folder holds no frame yet
-    generate(_req(houses, tmp_path / "ref", 2))
-    assert tree(out) == tree(tmp_path / "ref")
+    assert tree(out) == _reference(houses, tmp_path, 2)
 
 
 # --- detector -----------------------------------------------------------------------------------------------------
@@ -289,8 +302,7 @@ def test_a_second_train_on_a_busy_run_folder_is_refused(data, tmp_path, capsys):
     cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=1, samples_per_epoch=4))
     run = tmp_path / "run"
     args = ["train", "--config", cfg, "--data", data, "--out", run, "--threads", "1", "--no-progress"]
-    first = subprocess.Popen([sys.executable, "-m", "detector", *map(str, args)], env=ENV, start_new_session=True,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    first = _start([sys.executable, "-m", "detector", *map(str, args)])
     try:
         _wait_for(lambda: (run / "metrics.jsonl").is_file(), first)
         os.killpg(first.pid, signal.SIGSTOP)
@@ -298,10 +310,8 @@ def test_a_second_train_on_a_busy_run_folder_is_refused(data, tmp_path, capsys):
         assert code == 2
         assert _one_error_line(err).startswith(f"error: {run}: another detector train is writing this folder")
         os.killpg(first.pid, signal.SIGCONT)
-        _, err = first.communicate(timeout=600)
     finally:
-        if first.poll() is None:
-            os.killpg(first.pid, signal.SIGKILL)
+        err = _finish(first)
     assert first.returncode == 0, err
     assert not (run / ".train.lock").exists()
 
@@ -320,9 +330,8 @@ def test_a_kill_during_evaluation_or_a_checkpoint_write_resumes_to_the_uninterru
     assert [r["epoch"] for r in want if r["kind"] == "eval"] == [1, 2]
     for target in ("/last.pt", "eval/epoch_001/metrics.json"):
         run = tmp_path / target.replace("/", "_")
-        killed = subprocess.run([sys.executable, str(ROOT / "tests" / "helpers_faults.py"), target, "--",
-                                 "detector", "train", "--config", str(cfg), "--data", str(data), "--out", str(run),
-                                 "--threads", "1", "--no-progress"], env=ENV, capture_output=True, timeout=600)
+        killed = _run([sys.executable, str(ROOT / "tests" / "helpers_faults.py"), target, "--", "detector", "train",
+                       "--config", str(cfg), "--data", str(data), "--out", str(run), "--threads", "1", "--no-progress"])
         assert killed.returncode == -signal.SIGKILL, killed.stderr
         if target == "/last.pt":
             assert list(run.glob(".last.pt.*.tmp"))  # the killed run left its temp checkpoint
