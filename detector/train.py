@@ -507,9 +507,12 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                 emit({"kind": "eval", "epoch": epoch, "step": step, "split": eval_split, **result})
         _barrier()
 
-    if (state is not None and step_in_epoch == 0 and epoch > 0 and tc.eval_every > 0 and epoch % tc.eval_every == 0
-            and not _has_eval(logged, epoch)):
-        evaluate()  # the run was stopped during this epoch's evaluation: the checkpoint holds the weights it evaluates
+    # A run stopped during an epoch's evaluation resumes from that epoch's end: evaluate those weights first. (Rank 0
+    # decides from its log; the others follow, so that every rank meets the same barriers.)
+    redo = (info.is_main and state is not None and step_in_epoch == 0 and epoch > 0 and tc.eval_every > 0
+            and epoch % tc.eval_every == 0 and not _has_eval(logged, epoch))
+    if _all_reduce_sum(torch.tensor([float(redo)], device=dev))[0] > 0:
+        evaluate()
 
     def checkpoint(path: Path) -> None:
         if info.is_main:

@@ -13,6 +13,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,17 +22,26 @@ from mpchair.errors import InputError
 _BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
 
 
+#: Tries before a held lock counts as busy: a probe (:func:`held`) holds a lock for microseconds, a run for its life.
+_TRIES = 5
+
+
 def _acquire(path: Path, wait: bool) -> int | None:
     """A descriptor of ``path`` holding its exclusive lock, or None when another process holds it (``wait=False``)."""
+    busy = 0
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except OSError as e:
             os.close(fd)
-            if e.errno in _BUSY and not wait:
+            if e.errno not in _BUSY or wait:
+                raise
+            busy += 1
+            if busy == _TRIES:
                 return None
-            raise
+            time.sleep(0.05)
+            continue
         try:
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
@@ -87,22 +97,35 @@ def wait_lock(path: str | Path) -> Iterator[None]:
         _release(path, fd)
 
 
-def is_locked(path: str | Path) -> bool:
-    """True when a process holds the lock file ``path`` (a missing file is not locked).
-
-    Probes by taking the lock for an instant: a process starting to take it at that very instant is refused, so call
-    it only where that process would conflict with the caller anyway.
-    """
+def _probe(path: Path) -> bool:
+    """Whether ``path`` is locked right now (taking its lock for an instant when it is not)."""
     try:
         fd = os.open(path, os.O_RDWR | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         return False
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return False
     except OSError as e:
-        if e.errno in _BUSY:
-            return True
-        raise
+        if e.errno not in _BUSY:
+            raise
+        return True
     finally:
         os.close(fd)
-    return False
+
+
+def held(paths: list[Path]) -> list[Path]:
+    """The lock files among ``paths`` that some process holds (a missing file is not held).
+
+    Probes by taking each lock for an instant, in a few rounds a moment apart: only a lock held through every round
+    counts, so two probes never take each other for a holder, and :func:`folder_lock` (which retries the same way)
+    never takes a probe for one.
+    """
+    busy = list(paths)
+    for i in range(_TRIES):
+        busy = [p for p in busy if _probe(p)]
+        if not busy:
+            break
+        if i + 1 < _TRIES:
+            time.sleep(0.05)
+    return busy

@@ -52,7 +52,7 @@ from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.errors import InputError, RunError
 from mpchair.heap import keep_freed_memory
 from mpchair.kitti import write_imageset
-from mpchair.lock import folder_lock, is_locked, wait_lock
+from mpchair.lock import folder_lock, held, wait_lock
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House, objects_of, read_house
 from mpchair.matterport.source import HouseSource, find_houses
@@ -199,12 +199,12 @@ def _shard_lock(out: Path, shard: tuple[int, int]) -> Path:
 
 def _others_running(out: Path, shard: tuple[int, int]) -> list[tuple[int, int]]:
     """Shards ``(i, N)`` of other live ``generate`` processes on ``out`` (their lock files are held)."""
-    found = []
+    files = {}
     for p in out.glob(".generate-*-of-*.lock"):
         m = _LOCK_NAME.fullmatch(p.name)
-        if m and (int(m.group(1)), int(m.group(2))) != tuple(shard) and is_locked(p):
-            found.append((int(m.group(1)), int(m.group(2))))
-    return sorted(found)
+        if m and (int(m.group(1)), int(m.group(2))) != tuple(shard):
+            files[p] = (int(m.group(1)), int(m.group(2)))
+    return sorted(files[p] for p in held(list(files)))
 
 
 def _is_ours(name: str) -> bool:
@@ -302,8 +302,9 @@ def generate(req: GenerateRequest) -> GenerateSummary:
     before anything is written. Frames that cannot be made with these settings (no valid viewpoint: the cause is
     named) raise :class:`InputError` when the first failing frame is reached; a run that started on a folder without
     frames then removes what it wrote, so the corrected command starts afresh. Another process on the same shard
-    of ``out`` is an :class:`InputError`; a dead worker process a :class:`RunError`; an ``OSError`` (full disk)
-    propagates with a hint to resume. After any of the last three, and after SIGKILL, the same request resumes.
+    of ``out`` is an :class:`InputError`; a dead worker process (or another error inside one) a :class:`RunError`; an
+    ``OSError`` (full disk) propagates with a hint to resume. After any of the last three, and after SIGKILL, the same
+    request resumes.
     """
     t0 = time.perf_counter()
     _check_numbers(req)
@@ -399,6 +400,11 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
         raise RunError(f"{out}: {e}; stopped the other workers; {resume}") from None
     except OSError as e:
         raise _with_hint(e, resume) from None
+    except Exception as e:
+        if req.workers > 1 and len(pending) > 1:  # a worker's unexpected error: its traceback stayed in the worker
+            raise RunError(f"{out}: a worker process failed: {type(e).__name__}: {e}; stopped the other workers; "
+                           f"{resume}") from e
+        raise
     finally:
         bar.close()
     made_seconds = time.perf_counter() - t_frames
