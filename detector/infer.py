@@ -20,8 +20,10 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from detector.checkpoint import load_checkpoint
 from detector.data import Frame, KittiDataset
 from detector.data.pipeline import make_eval_sample
+from detector.experiment import augment_options, open_split
 from detector.models import Detections, ExperimentConfig, build_model, load_experiment
 from mpchair.atomic import write_text
 from mpchair.errors import InputError
@@ -66,8 +68,6 @@ def predict_split(
     batch_size: int | None = None, progress: bool = True,
 ) -> Iterator[tuple[Frame, Detections]]:
     """Run ``model`` (put in eval mode here) over every frame of ``frames``, yielding ``(frame, detections)``."""
-    from detector.train import augment_options
-
     options = augment_options(cfg)
     bs = batch_size or cfg.eval.batch_size
     model.eval()
@@ -95,8 +95,6 @@ def recalibrate_batchnorm(
     network is far from the trained one. Averaging fresh batch statistics of the final weights (forward passes in
     train mode without gradients, no augmentation) fixes that without touching any weight.
     """
-    from detector.train import augment_options
-
     options = augment_options(cfg)
     bs = batch_size or cfg.train.batch_size
     norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
@@ -168,9 +166,10 @@ def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> 
     """
     out = Path(out_dir)
     final = out / RESULTS_SUBDIR
+    if out.is_dir():  # what a killed run left (its pid is in the name)
+        for old in [*out.glob(f".{RESULTS_SUBDIR}.tmp*"), *out.glob(f".{RESULTS_SUBDIR}.old*")]:
+            shutil.rmtree(old, ignore_errors=True)
     tmp = out / f".{RESULTS_SUBDIR}.tmp{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     for fid, lab in zip(ids, labels):
         write_labels(tmp / f"{fid}.txt", lab)
@@ -188,8 +187,6 @@ def load_model_from_checkpoint(
     checkpoint: str | Path, cfg: ExperimentConfig, device: torch.device | str = "cpu"
 ) -> nn.Module:
     """Build ``cfg.model`` and load the checkpoint's weights (a mismatching checkpoint is an :class:`InputError`)."""
-    from detector.train import load_checkpoint
-
     state = load_checkpoint(checkpoint, map_location=device)
     model = build_model(cfg.model).to(device)
     try:
@@ -238,10 +235,11 @@ def evaluate_checkpoint(
         raise InputError("--device cuda: no CUDA device is available")
     cfg = load_experiment(config_path)
     model = load_model_from_checkpoint(checkpoint, cfg, device)
-    KittiDataset(data_dir, split, classes=cfg.data.classes)  # fail on a missing folder / split before any output
+    # A missing folder, split or frame file fails here, before any output (a progress bar included).
+    open_split(cfg, data_dir, split).check()
     if recalibrate_bn_split is not None:
-        frames = KittiDataset(data_dir, recalibrate_bn_split, classes=cfg.data.classes, name_map=dict(cfg.data.rename),
-                              fov_crop=cfg.data.fov_crop)
+        frames = open_split(cfg, data_dir, recalibrate_bn_split)
+        frames.check()
         recalibrate_batchnorm(model, frames, cfg, device=device, progress=progress)
     if out_dir is None:
         ckpt = Path(checkpoint)

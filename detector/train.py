@@ -34,6 +34,7 @@ length is fixed when it starts: resuming it with another ``train.epochs`` (or st
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -51,14 +52,18 @@ import yaml
 from torch import nn
 from tqdm import tqdm
 
-from detector.data import AugmentOptions, GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
+from detector.checkpoint import load_checkpoint, save_checkpoint
+from detector.data import GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
+from detector.experiment import augment_options, open_split
+from detector.infer import evaluate_model
 from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
 from detector.models.config import Precision, experiment_from_dict
-from mpchair.atomic import atomic_open, write_text
+from mpchair.atomic import write_text
 from mpchair.config import to_dict
 from mpchair.errors import InputError
+from mpchair.kitti import imageset_path
+from mpchair.lock import folder_lock
 
-CHECKPOINT_FORMAT = 1
 #: Seconds between mid-epoch ``last.pt`` saves (rank 0), so a long epoch interrupted late loses little work.
 SAVE_INTERVAL_S = 900.0
 #: Config keys that may change between a run and its resume: they do not change the trained weights. (``epochs`` only
@@ -225,34 +230,9 @@ class _SlotDataset(torch.utils.data.Dataset):
         return self.base.sample(epoch, slot, frame)
 
 
-def augment_options(cfg: ExperimentConfig) -> AugmentOptions:
-    """The training transform described by the experiment's ``data`` section (and the model's range / channels)."""
-    d = cfg.data
-    counts = tuple((c, d.gt_sampling.sample) for c in d.classes)
-    minimum = tuple((c, d.gt_sampling.min_points) for c in d.classes)
-    return AugmentOptions(
-        point_cloud_range=cfg.model.point_cloud_range,
-        num_point_features=cfg.model.in_channels,
-        range_filter=d.range_filter,
-        gt_sampling=d.gt_sampling.enabled,
-        sample_counts=counts,
-        min_points=minimum,
-        flip=d.flip_y,
-        rotation=d.rotation,
-        scaling=d.scaling,
-        shuffle=d.point_shuffle,
-    )
-
-
-def open_split(cfg: ExperimentConfig, data_dir: str | Path, split: str) -> KittiDataset:
-    """The frames of ``split`` read as the experiment's ``data`` section says (classes, renames, FOV crop)."""
-    return KittiDataset(
-        data_dir, split, classes=cfg.data.classes, name_map=dict(cfg.data.rename), fov_crop=cfg.data.fov_crop
-    )
-
-
-def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) -> GTDatabase:
-    """The GT database of ``frames``, cached at ``path`` (rebuilt when the split, classes or options differ)."""
+def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) -> tuple[GTDatabase, bool]:
+    """The GT database of ``frames`` as cached at ``path``, or built anew when the split, classes or options differ
+    (then ``True``: the caller saves it, once the run may write)."""
     meta = {
         "root": str(frames.root.resolve()),
         "split": frames.split,
@@ -265,12 +245,10 @@ def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) 
         try:
             db = GTDatabase.load(path)
             if db.meta == json.loads(json.dumps(meta)):
-                return db
+                return db, False
         except InputError:
             pass  # a damaged cache is rebuilt
-    db = build_gt_database(frames, meta=meta, progress=progress)
-    db.save(path)
-    return db
+    return build_gt_database(frames, meta=meta, progress=progress), True
 
 
 # --- checkpoints ------------------------------------------------------------------------------------------------------
@@ -278,43 +256,6 @@ def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) 
 
 def _unwrap(model: nn.Module) -> nn.Module:
     return model.module if isinstance(model, nn.parallel.DistributedDataParallel) else model
-
-
-def save_checkpoint(path: Path, *, model: nn.Module, optimizer: torch.optim.Optimizer, cfg: ExperimentConfig,
-                    epoch: int, step_in_epoch: int, step: int, global_batch: int,
-                    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> None:
-    """Write a checkpoint atomically (``torch.save`` into a temp file renamed into place)."""
-    state = {
-        "format": CHECKPOINT_FORMAT,
-        "model": _unwrap(model).state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "scheduler": scheduler.state_dict() if scheduler is not None else None,
-        "epoch": epoch,
-        "step_in_epoch": step_in_epoch,
-        "step": step,
-        "global_batch": global_batch,
-        "rng": {
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-        },
-        "config": to_dict(cfg),
-    }
-    with atomic_open(path, "wb") as f:
-        torch.save(state, f)
-
-
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint written by :func:`save_checkpoint`; a missing or foreign file is an :class:`InputError`."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("checkpoint not found", path)
-    try:
-        state = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # torch raises many types for damaged files (pickle, zip, runtime)
-        raise InputError(f"cannot read checkpoint: {type(e).__name__}: {e}", path) from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
-        raise InputError("not a detector checkpoint (missing format/model keys)", path)
-    return state
 
 
 def _comparable(cfg_dict: dict) -> dict:
@@ -338,6 +279,22 @@ def _read_metrics(path: Path, max_step: int) -> list[str]:
         if int(rec.get("step", 0)) <= max_step:
             kept.append(line)
     return kept
+
+
+def _has_eval(lines: list[str], epoch: int) -> bool:
+    """Whether the metrics ``lines`` hold the evaluation record of ``epoch``."""
+    for line in lines:
+        rec = json.loads(line)
+        if rec.get("kind") == "eval" and rec.get("epoch") == epoch:
+            return True
+    return False
+
+
+def _remove_stale_temps(out: Path) -> None:
+    """Delete temp files (``.<name>.<random>.tmp``) a killed run left in the run folder (the caller holds its lock)."""
+    for p in out.rglob(".*.tmp"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
 
 
 # --- the loop --------------------------------------------------------------------------------------------------------
@@ -457,6 +414,14 @@ def train(
                              f"{total_steps} (train.epochs {tc.epochs} x {steps_per_epoch} steps per epoch). The "
                              "schedule's length is fixed when a run starts: resume with the original train.epochs "
                              "/ --epochs and split, or start a new run", config_path)
+    # Every frame's files are checked (and the GT database built in memory) before the run writes anything.
+    frames.check()
+    if tc.eval_every > 0 and imageset_path(data_dir, eval_split).is_file():
+        open_split(cfg, data_dir, eval_split).check()
+    database, new_database = None, False
+    if cfg.data.gt_sampling.enabled and info.is_main:
+        database, new_database = load_or_build_database(frames, out / "gt_database.npz",
+                                                        progress=progress and info.is_main)
 
     if info.distributed and not dist.is_initialized():
         backend = "nccl" if dev.type == "cuda" else "gloo"
@@ -465,9 +430,12 @@ def train(
         # Rank 0 may evaluate or build the GT database while the others wait at a barrier: allow hours, not minutes.
         dist.init_process_group(backend=backend, timeout=datetime.timedelta(hours=6))
     try:
-        return _train_loop(cfg, frames, out, dev, info, state, max_steps=max_steps, global_batch=global_batch,
-                           steps_per_epoch=steps_per_epoch, samples_per_epoch=samples_per_epoch,
-                           total_steps=total_steps, data_dir=data_dir, eval_split=eval_split, progress=progress)
+        # One process per run folder (rank 0 writes for the job); the kernel drops the lock of a killed run.
+        with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
+            return _train_loop(cfg, frames, out, dev, info, state, max_steps=max_steps, global_batch=global_batch,
+                               steps_per_epoch=steps_per_epoch, samples_per_epoch=samples_per_epoch,
+                               total_steps=total_steps, data_dir=data_dir, eval_split=eval_split, progress=progress,
+                               database=database, new_database=new_database)
     finally:
         if info.distributed and dist.is_initialized():
             dist.destroy_process_group()
@@ -476,18 +444,17 @@ def train(
 def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: torch.device, info: DistInfo,
                 state: dict | None, *, max_steps: int | None, global_batch: int, steps_per_epoch: int,
                 samples_per_epoch: int, total_steps: int, data_dir: str | Path, eval_split: str,
-                progress: bool) -> TrainResult:
+                progress: bool, database: GTDatabase | None, new_database: bool) -> TrainResult:
     tc = cfg.train
     show = progress and info.is_main
+    db_path = out / "gt_database.npz"
     if info.is_main:
-        out.mkdir(parents=True, exist_ok=True)
+        _remove_stale_temps(out)
         write_text(out / "config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
+        if new_database:
+            database.save(db_path)
     options = augment_options(cfg)
-    database = None
     if options.gt_sampling:
-        db_path = out / "gt_database.npz"
-        if info.is_main:
-            database = load_or_build_database(frames, db_path, progress=show)
         _barrier()
         if not info.is_main:
             database = GTDatabase.load(db_path)
@@ -516,15 +483,36 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
         ddp = nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
 
     metrics_path = out / "metrics.jsonl"
+    logged: list[str] = []
     if info.is_main:
         # Drop log lines past the checkpoint (written after it by an interrupted run), so the log replays cleanly.
-        write_text(metrics_path, "".join(line + "\n" for line in _read_metrics(metrics_path, step)))
+        logged = _read_metrics(metrics_path, step)
+        write_text(metrics_path, "".join(line + "\n" for line in logged))
     log = open(metrics_path, "a", encoding="utf-8") if info.is_main else None  # noqa: SIM115 (closed below)
 
     def emit(record: dict) -> None:
         if log is not None:
-            log.write(json.dumps(record) + "\n")
-            log.flush()
+            try:
+                log.write(json.dumps(record) + "\n")
+                log.flush()
+            except OSError as e:
+                e.filename = e.filename or str(metrics_path)
+                raise
+
+    def evaluate() -> None:
+        """The end-of-epoch evaluation (rank 0; the others wait)."""
+        if info.is_main:
+            result = _evaluate_during_training(model, cfg, data_dir, eval_split, out, epoch, dev, show)
+            if result is not None:
+                emit({"kind": "eval", "epoch": epoch, "step": step, "split": eval_split, **result})
+        _barrier()
+
+    # A run stopped during an epoch's evaluation resumes from that epoch's end: evaluate those weights first. (Rank 0
+    # decides from its log; the others follow, so that every rank meets the same barriers.)
+    redo = (info.is_main and state is not None and step_in_epoch == 0 and epoch > 0 and tc.eval_every > 0
+            and epoch % tc.eval_every == 0 and not _has_eval(logged, epoch))
+    if _all_reduce_sum(torch.tensor([float(redo)], device=dev))[0] > 0:
+        evaluate()
 
     def checkpoint(path: Path) -> None:
         if info.is_main:
@@ -615,11 +603,7 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
             checkpoint(out / "last.pt")
             last_save = time.monotonic()
             if tc.eval_every > 0 and epoch % tc.eval_every == 0:
-                if info.is_main:
-                    result = _evaluate_during_training(model, cfg, data_dir, eval_split, out, epoch, dev, show)
-                    if result is not None:
-                        emit({"kind": "eval", "epoch": epoch, "step": step, "split": eval_split, **result})
-                _barrier()
+                evaluate()
         if stopped:
             checkpoint(out / "last.pt")
     finally:
@@ -632,9 +616,6 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
 def _evaluate_during_training(model: nn.Module, cfg: ExperimentConfig, data_dir: str | Path, split: str, out: Path,
                               epoch: int, dev: torch.device, progress: bool) -> dict | None:
     """AP of the current weights on ``split`` (None when the dataset has no such split); results under RUN/eval/."""
-    from detector.infer import evaluate_model
-    from mpchair.kitti import imageset_path
-
     if not imageset_path(data_dir, split).is_file():
         return None
     was_training = model.training
@@ -645,7 +626,3 @@ def _evaluate_during_training(model: nn.Module, cfg: ExperimentConfig, data_dir:
         model.train(was_training)
     return result.to_json_dict()
 
-
-def config_from_checkpoint(state: dict, source: str) -> ExperimentConfig:
-    """The experiment a checkpoint was trained with."""
-    return experiment_from_dict(state["config"], source=source)

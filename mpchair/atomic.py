@@ -32,9 +32,16 @@ def _create_temp(path: Path) -> tuple[int, Path]:
     raise FileExistsError(f"no free temporary name beside {path}")
 
 
+def temp_glob(name: str) -> str:
+    """Glob pattern of the temporary files :func:`atomic_open` creates for a file called ``name`` (in its folder)."""
+    return f".{name}.*.tmp"
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "w", fsync: bool = False) -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing; on success rename it to ``path``, on error remove it.
+
+    An ``OSError`` raised inside (e.g. ``ENOSPC`` from a write) carries ``path`` as its ``filename`` if it had none.
 
     ``mode`` is ``"w"`` (text, utf-8, ``\\n`` newlines) or ``"wb"``.
     """
@@ -50,9 +57,11 @@ def atomic_open(path: str | Path, mode: str = "w", fsync: bool = False) -> Itera
                 f.flush()
                 os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(path)  # a write to the open file (a full disk) names no file: name the one meant
         raise
 
 

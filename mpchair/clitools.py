@@ -2,7 +2,8 @@
 
 * :class:`LazyGroup` registers subcommands by ``"module:attribute"`` so a command imports only what it needs
   (``mpchair houses`` never imports torch). ``--help`` lists every registered command.
-* :func:`run_cli` turns :class:`mpchair.errors.InputError` into one ``error: ...`` line and exit status 2.
+* :func:`run_cli` turns :class:`mpchair.errors.InputError`, ``OSError`` (``error: PATH: reason``) and click's usage
+  errors into one ``error: ...`` line and exit status 2, :class:`mpchair.errors.RunError` into one line and exit 1.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import sys
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.errors import InputError, RunError
 
 
 class LazyGroup(click.Group):
@@ -42,22 +43,40 @@ class LazyGroup(click.Group):
         return super().get_command(ctx, cmd_name)
 
 
-def run_cli(group: click.Group, args: list[str] | None = None) -> None:
-    """Run ``group`` as a console script: :class:`InputError` → ``error: <message>`` on stderr and exit 2.
+def os_error_line(e: OSError) -> str:
+    """``PATH: reason`` of an OS error (``reason`` alone when the error names no file)."""
+    reason = e.strerror or str(e)
+    return reason if e.filename is None else f"{e.filename}: {reason}"
 
-    Click's usage errors keep click's message and exit status 2; Ctrl-C exits 130 without a traceback.
+
+def run_cli(group: click.Group, args: list[str] | None = None) -> None:
+    """Run ``group`` as a console script; every failure a user can act on is one ``error: ...`` line on stderr.
+
+    :class:`InputError`, an ``OSError`` (``error: PATH: reason``: a full disk, a missing permission, ``--out`` under
+    a file) and click's usage errors (with the command's ``--help`` hint on the same line) exit with status 2,
+    :class:`RunError` with 1; Ctrl-C exits 130 without a traceback.
     """
     try:
         rv = group.main(args=args, standalone_mode=False)
     except InputError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
+    except RunError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(1)
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("interrupted", err=True)
         sys.exit(130)
-    except click.ClickException as e:
-        e.show()
+    except click.UsageError as e:
+        hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
+        click.echo(f"error: {' '.join(e.format_message().split())}{hint}", err=True)
         sys.exit(e.exit_code)
+    except click.ClickException as e:
+        click.echo(f"error: {e.format_message()}", err=True)
+        sys.exit(e.exit_code)
+    except OSError as e:
+        click.echo(f"error: {os_error_line(e)}", err=True)
+        sys.exit(2)
     except click.exceptions.Exit as e:
         sys.exit(e.exit_code)
     sys.exit(rv if isinstance(rv, int) else 0)

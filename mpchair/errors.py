@@ -20,3 +20,8 @@ class InputError(Exception):
             where = self.path + (f":{line}" if line is not None else "") + ": "
         super().__init__(where + message)
 
+
+
+class RunError(Exception):
+    """A run stopped for a reason outside its input (e.g. a worker process died); what it wrote is intact and the same
+    command resumes. Both CLIs print it as one ``error: ...`` line and exit with status 1."""

@@ -98,11 +98,20 @@ KITTI_GEOMETRY = PseudoimageGeometry((0.0, -39.68, -3.0, 69.12, 39.68, 1.0), (0.
 PRESETS: dict[str, PseudoimageGeometry] = {"matterport": MATTERPORT_GEOMETRY, "kitti": KITTI_GEOMETRY}
 
 
+#: Top-level sections of a detector experiment YAML (docs/model.md).
+EXPERIMENT_SECTIONS = ("data", "eval", "model", "train")
+
+
 def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
     """Read ``model.point_cloud_range``, ``model.voxel_size`` (first two used) and ``model.output_shape``
-    (``[ny, nx]``) from a detector model YAML. Other keys are ignored (mpchair never imports ``detector``).
+    (``[ny, nx]``) from a detector experiment YAML. A top-level key other than the experiment's sections is an
+    :class:`InputError`; the other keys inside the sections are the detector's to check (mpchair never imports
+    ``detector``).
     """
     data = load_yaml(path)
+    unknown = sorted(set(data) - set(EXPERIMENT_SECTIONS))
+    if unknown:
+        raise InputError(f"unknown key {unknown[0]!r} (allowed: {', '.join(EXPERIMENT_SECTIONS)})", path)
     model = data.get("model")
     if not isinstance(model, dict):
         raise InputError("expected a 'model:' mapping", path)
@@ -286,15 +295,15 @@ def box_records(root: str | Path, frame_ids: Sequence[str], classes: Sequence[st
     Fields: ``l, w, h`` (metres), ``points`` (scan points inside the box, faces inclusive), ``distance``
     (``hypot(x, y)`` of the centre, sensor frame, metres), ``yaw`` (radians ``[-pi, pi)``), ``occluded`` (label
     value), ``truncated`` (label value). ``boxes_per_frame`` counts the selected boxes of every frame (0 included).
-    DontCare rows are skipped; ``classes`` keeps only those label names.
+    DontCare rows are skipped; ``classes`` keeps only those label names (compared case-insensitively).
     """
     recs: dict[str, dict[str, list]] = {}
     per_frame = []
     for fid in frame_ids:
         paths = frame_paths(root, fid)
         labels = read_labels(paths.label_2).objects()
-        if classes:
-            labels = labels.with_names(*classes)
+        if classes:  # case-insensitive, as detector eval's --classes
+            labels = labels[np.isin(np.char.lower(labels.names.astype(str)), [c.lower() for c in classes])]
         per_frame.append(len(labels))
         if len(labels) == 0:
             continue

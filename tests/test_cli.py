@@ -1,4 +1,5 @@
-"""Both console scripts: every registered subcommand exists and has --help; InputError → one line + exit 2."""
+"""Both console scripts: every registered subcommand exists and has --help; InputError, OSError and click's usage
+errors → one line + exit 2."""
 
 from __future__ import annotations
 
@@ -55,4 +56,32 @@ def test_console_scripts_run_as_modules() -> None:
     out = subprocess.run([sys.executable, "-m", "detector", "--help"], capture_output=True, text=True, check=False)
     assert out.returncode == 0 and "Usage:" in out.stdout
     out = subprocess.run([sys.executable, "-m", "mpchair.cli", "nope"], capture_output=True, text=True, check=False)
-    assert out.returncode == 2 and "No such command" in out.stderr
+    assert out.returncode == 2 and out.stderr.startswith("error: No such command 'nope'")
+
+
+@pytest.mark.parametrize(("group", "args", "message", "command"), [
+    (mpchair_cli, ["generate", "--root", "r"], "Missing option '--house'.", "generate"),
+    (mpchair_cli, ["stats", "d"], "choose --density or --boxes", "stats"),
+    (detector_cli, ["train", "--config", "c", "--epochs", "x"],
+     "Invalid value for '--epochs': 'x' is not a valid integer.", "train"),
+])
+def test_usage_errors_are_one_line_and_exit_2(capsys: pytest.CaptureFixture[str], group, args, message,
+                                              command) -> None:
+    with pytest.raises(SystemExit) as exc:
+        run_cli(group, args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    # The hint names the program as it was started (``mpchair``, ``python -m mpchair.cli``, ...).
+    assert err.startswith(f"error: {message} (see '") and err.endswith(f" {command} --help')\n")
+    assert err.count("\n") == 1
+
+
+def test_an_os_error_is_one_line_with_its_path_and_exit_2(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    @click.command()
+    def full() -> None:
+        raise OSError(28, "No space left on device", str(tmp_path / "x.bin"))
+
+    with pytest.raises(SystemExit) as exc:
+        run_cli(full, [])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err == f"error: {tmp_path / 'x.bin'}: No space left on device\n"

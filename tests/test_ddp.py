@@ -58,8 +58,8 @@ def test_two_processes_equal_one_process_with_the_same_global_batch(tmp_path):
         assert a["num_pos"] == b["num_pos"] > 0  # the same samples (and augmentations) make up each global batch
         np.testing.assert_allclose(a["loss_total"], b["loss_total"], rtol=2e-3)
         np.testing.assert_allclose(a["grad_norm"], b["grad_norm"], rtol=5e-3)
-    ddp_state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=False)
-    one_state = torch.load(tmp_path / "one" / "last.pt", weights_only=False)
+    ddp_state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=True)
+    one_state = torch.load(tmp_path / "one" / "last.pt", weights_only=True)
     assert ddp_state["step"] == one_state["step"] == STEPS and ddp_state["global_batch"] == 2
     assert ddp_state["model"].keys() == one_state["model"].keys()
     for key, value in one_state["model"].items():  # measured max |diff| 4e-3 (3 AdamW steps of lr 1e-3)

@@ -91,7 +91,7 @@ def test_synth_zip_layout_is_read_by_houses(tmp_path: Path, capsys) -> None:
         (["houses", "--root", "{data}", "--house", "NOPE"], "error: {data}: house 'NOPE' not found (found: "),
         (["houses", "--root", "{data}", "--house", "MINI0000011", "--objects", "--category", "throne"],
          "error: unknown mpcat40 class 'throne'"),
-        (["houses", "--root", "{data}", "--objects"], "Error: --objects needs --house ID"),
+        (["houses", "--root", "{data}", "--objects"], "error: --objects needs --house ID (see "),
     ],
 )  # fmt: skip
 def test_bad_cli_input_exits_2_with_one_line(tmp_path: Path, capsys, args: list[str], message: str) -> None:

@@ -64,3 +64,34 @@ def test_no_room_for_the_robot_is_a_clear_error():
     settings = FrameSettings(sensor=sensor, viewpoints=ViewpointParams(robot_radius=2.5), seed=0, max_attempts=30)
     with pytest.raises(InputError, match="found 0 valid viewpoints in 30 attempts"):
         make_frame(ctx, settings, 0, scan_directions(sensor))
+
+
+def test_the_viewpoint_error_names_the_cause():
+    sensor = load_sensor("mp3d-depth90")
+    directions = scan_directions(sensor)
+
+    def error(ctx, index=0, **kw) -> str:
+        settings = FrameSettings(sensor=sensor, viewpoints=ViewpointParams(**kw.pop("params", {})), seed=0, **kw)
+        with pytest.raises(InputError) as e:
+            make_frame(ctx, settings, index, directions)
+        return str(e.value)
+
+    ctx = build_context(_house(), frozenset({3}))
+    assert "clearance: of " in error(ctx, params=dict(robot_radius=2.5), max_attempts=30)
+    assert "lower --robot-radius" in error(ctx, params=dict(robot_radius=2.5), max_attempts=30)
+    assert "headroom: of " in error(ctx, params=dict(height=3.0), max_attempts=30)  # the ceiling is at 2.6 m
+    # One attempt per frame: the frames whose single candidate is invalid fail for the attempt limit.
+    failing = []
+    for index in range(12):
+        try:
+            make_frame(ctx, FrameSettings(sensor=sensor, viewpoints=ViewpointParams(), seed=0, max_attempts=1,
+                                          keep_empty=True), index, directions)
+        except InputError as e:
+            failing.append(str(e))
+    assert failing and all("the attempt limit" in m and "raise --max-attempts (now 1)" in m for m in failing)
+    # Region floors 1.5 m above the mesh's floor: no drop ray lands within 0.2 m of them.
+    hb = HouseBuilder()
+    hb.room(0, 0, 6, 4)
+    hb.chair(2, 2, 0.5)
+    hb.regions[0] = (hb.regions[0][0], 1.5, hb.regions[0][2])
+    assert "the floor: none of 400 candidates" in error(build_context(hb.build(), frozenset({3})), max_attempts=30)

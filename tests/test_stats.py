@@ -15,6 +15,7 @@ from PIL import Image
 
 from mpchair.atomic import write_bytes, write_text
 from mpchair.cli import cli
+from mpchair.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, make_tr_velo_to_cam, project_boxes_to_image
 from mpchair.kitti import (
     Calib,
@@ -207,6 +208,10 @@ def test_config_yaml_picks_model_geometry(tmp_path):
     write_text(cfg, "model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: [0.5, 0.5, 2]\n"
                     "  output_shape: [16, 16]\n  other: ignored\n")
     assert geometry_from_model_yaml(cfg) == PseudoimageGeometry((0, -4, -1, 8, 4, 1), (0.5, 0.5), (16, 16))
+    write_text(cfg, "model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: [0.5, 0.5, 2]\n"
+                    "  output_shape: [16, 16]\nmodle: {}\n")
+    with pytest.raises(InputError, match="unknown key 'modle' \\(allowed: data, eval, model, train\\)"):
+        geometry_from_model_yaml(cfg)
 
 
 def test_density_plot_png(small, tmp_path):
@@ -318,6 +323,8 @@ def test_box_stats_on_vendored_kitti_and_plot(tmp_path):
     assert code == 0, text
     data = json.loads(text)
     assert list(data["classes"]) == ["Car"] and data["classes"]["Car"]["count"] == 5
+    code, lower = run("stats", "--boxes", KITTI, "--class", "car", "--json")  # case-insensitive, like detector eval
+    assert code == 0 and json.loads(lower)["classes"] == data["classes"]
     assert data["rejected"] is None
     # The real sample: every labelled car holds between 9 and 1351 LiDAR points (kitti_sample/SOURCE.md).
     assert 9 <= data["classes"]["Car"]["points"]["min"] and data["classes"]["Car"]["points"]["max"] <= 1351

@@ -70,8 +70,8 @@ def _onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 1
 
 def _assert_identical_runs(a_dir: Path, b_dir: Path) -> None:
     """Bit-identical last.pt (weights, optimiser state and param groups, scheduler) and step metrics."""
-    a = torch.load(a_dir / "last.pt", weights_only=False)
-    b = torch.load(b_dir / "last.pt", weights_only=False)
+    a = torch.load(a_dir / "last.pt", weights_only=True)
+    b = torch.load(b_dir / "last.pt", weights_only=True)
     assert (a["epoch"], a["step_in_epoch"], a["step"]) == (b["epoch"], b["step_in_epoch"], b["step"])
     for key, value in a["model"].items():
         assert torch.equal(value, b["model"][key]), key
@@ -102,7 +102,7 @@ def test_resume_reproduces_an_uninterrupted_run_exactly(data, tmp_path):
     first = train(cfg, data, tmp_path / "resumed", max_steps=2, threads=1, progress=False)
     assert (first.epoch, first.step) == (0, 2)
     # A checkpoint written before the schedule keys existed (no scheduler state, no train.schedule etc.) still resumes.
-    old = torch.load(tmp_path / "resumed" / "last.pt", weights_only=False)
+    old = torch.load(tmp_path / "resumed" / "last.pt", weights_only=True)
     del old["scheduler"]
     for key in ("schedule", "pct_start", "div_factor", "final_div_factor", "beta1_range"):
         del old["config"]["train"][key]
@@ -112,7 +112,7 @@ def test_resume_reproduces_an_uninterrupted_run_exactly(data, tmp_path):
     _assert_identical_runs(tmp_path / "straight", tmp_path / "resumed")
     assert (tmp_path / "straight" / "checkpoints" / "epoch_001.pt").is_file()
     # The default schedule is the reference's constant LR: no scheduler, lr and beta1 as configured on every step.
-    assert torch.load(tmp_path / "straight" / "last.pt", weights_only=False)["scheduler"] is None
+    assert torch.load(tmp_path / "straight" / "last.pt", weights_only=True)["scheduler"] is None
     assert {(r["lr"], r["beta1"]) for r in _steps(tmp_path / "straight")} == {(1e-3, 0.95)}
 
 
@@ -127,7 +127,7 @@ def test_onecycle_schedule_follows_the_global_steps_and_resumes_exactly(data, tm
     resumed = train(cfg, data, tmp_path / "resumed", epochs=3, resume=True, threads=1, progress=False)
     assert (straight.epoch, straight.step) == (resumed.epoch, resumed.step) == (3, 9)
     _assert_identical_runs(tmp_path / "straight", tmp_path / "resumed")  # resumed mid-warm-up, across 2 epoch ends
-    state = torch.load(tmp_path / "straight" / "last.pt", weights_only=False)
+    state = torch.load(tmp_path / "straight" / "last.pt", weights_only=True)
     assert state["scheduler"]["total_steps"] == 9
 
     # The logged lr / beta1 follow the one-cycle curve over 9 steps: 3e-4 → peak 3e-3 around step 0.4 x 9 → 3e-8.
@@ -174,8 +174,8 @@ def test_bf16_training_autocasts_the_forward_and_keeps_fp32_state(data, tmp_path
     fp32 = train(cfg, data, tmp_path / "fp32", max_steps=3, threads=1, progress=False)
     bf16 = train(cfg, data, tmp_path / "bf16", max_steps=3, threads=1, precision="bf16", progress=False)
     assert fp32.step == bf16.step == 3
-    a = torch.load(tmp_path / "fp32" / "last.pt", weights_only=False)
-    b = torch.load(tmp_path / "bf16" / "last.pt", weights_only=False)
+    a = torch.load(tmp_path / "fp32" / "last.pt", weights_only=True)
+    b = torch.load(tmp_path / "bf16" / "last.pt", weights_only=True)
     assert b["config"]["train"]["precision"] == "bf16" and a["config"]["train"]["precision"] == "fp32"
     # Weights and AdamW moments stay fp32; the bf16 forward changes them slightly (a different run, not a broken one).
     assert all(v.dtype == a["model"][k].dtype for k, v in b["model"].items())
@@ -220,7 +220,7 @@ def test_onecycle_length_counts_global_steps_under_torchrun(data, tmp_path):
            "--threads", "1", "--no-progress"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=False)
+    state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=True)
     assert state["step"] == 3 and state["global_batch"] == 2 and state["scheduler"]["total_steps"] == 4
     steps = _steps(tmp_path / "ddp")
     np.testing.assert_allclose([(r["lr"], r["beta1"]) for r in steps], _onecycle_curve(4, 0.003)[:3], rtol=1e-9)

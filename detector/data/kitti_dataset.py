@@ -26,6 +26,7 @@ from mpchair.kitti import (
     read_imageset,
     read_labels,
     read_velodyne,
+    velodyne_rows,
 )
 
 
@@ -151,6 +152,19 @@ class KittiDataset:
 
     def __getitem__(self, index: int) -> Frame:
         return self.load(self.ids[index])
+
+    def check(self) -> None:
+        """Parse every frame's calib and label file, check its scan's size and (with ``fov_crop``) its image header,
+        without reading the scans: a missing or malformed file is an :class:`InputError` naming it. Runs check their
+        splits this way before they write anything."""
+        for fid in self.ids:
+            paths = frame_paths(self.root, fid, split_dir=self.split_dir)
+            velodyne_rows(paths.velodyne)
+            read_calib(paths.calib)
+            if self.fov_crop:
+                read_image_size(paths.image_2)
+            if self.with_labels:
+                read_labels(paths.label_2)
 
     def load(self, frame_id: str) -> Frame:
         """The frame with id ``frame_id`` (6 digits), read with this dataset's options."""

@@ -25,7 +25,8 @@ from mpchair.errors import InputError
               help="Pseudoimage canvas (nx, ny); default: the range's own grid.")
 @click.option("--split", default=None, help="Use ImageSets/<split>.txt (default: every training/velodyne/*.bin).")
 @click.option("--fov-crop", is_flag=True, help="Crop scans to the image_2 field of view (calib + real image size).")
-@click.option("--class", "classes", multiple=True, help="Only these label names (--boxes; repeatable).")
+@click.option("--class", "classes", multiple=True,
+              help="Only these label names, case-insensitive (--boxes; repeatable).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON (with per-frame values) instead of text.")
 @click.option("--plot", type=click.Path(path_type=Path), default=None, help="Write a PNG figure here.")
 def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | None, pc_range, voxel, grid,

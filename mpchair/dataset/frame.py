@@ -39,6 +39,7 @@ from mpchair.scan.viewpoints import (
     Viewpoint,
     ViewpointParams,
     face_normals_z,
+    validate_candidates,
     viewpoint_stream,
 )
 
@@ -261,9 +262,50 @@ def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, direction
         return FrameResult(vp, dec, points, views, rays)
     if views == 0:
         raise InputError(f"house {ctx.house.id}: found 0 valid viewpoints in {settings.max_attempts} attempts "
-                         f"(frame {index}); the floor has no spot with {settings.viewpoints.robot_radius} m clearance")
+                         f"(frame {index}); {why_no_viewpoint(ctx, settings, index)}")
     raise InputError(f"house {ctx.house.id}: found {views} valid viewpoints in {settings.max_attempts} attempts "
-                     f"(frame {index}) but none keeps a box; use --keep-empty or a house with more objects")
+                     f"(frame {index}) but none keeps a box; use --keep-empty, a higher --max-attempts or a house "
+                     "with more objects")
+
+
+#: Candidates :func:`why_no_viewpoint` examines at least (the default ``--max-attempts``).
+DIAGNOSE_CANDIDATES = 400
+
+
+def why_no_viewpoint(ctx: HouseContext, settings: FrameSettings, index: int) -> str:
+    """Why frame ``index`` found no valid viewpoint: the attempt limit, or the check that failed every candidate.
+
+    Draws the frame's own candidates again (the same generator and order as ``viewpoint_stream``), at least
+    :data:`DIAGNOSE_CANDIDATES` of them, and validates them with each check of ``mpchair.scan.viewpoints`` added in
+    turn: landing on the floor, headroom, clearance.
+    """
+    params = settings.viewpoints
+    n = max(settings.max_attempts, DIAGNOSE_CANDIDATES)
+    rng = frame_rng(settings.seed, ctx.house.id, index)
+    cand = []
+    for _ in range(n):
+        cand.append(ctx.sampler.sample(rng))
+        rng.random()  # the candidate's yaw
+    xy = np.array([[c[1], c[2]] for c in cand])
+    z = np.array([c[3] for c in cand])  # the spot's floor height (region or navmesh)
+
+    def passing(p: ViewpointParams) -> int:
+        return int(validate_candidates(xy, z, ctx.raycaster, ctx.floor_ok, ctx.normal_z, p)[0].sum())
+
+    on_floor = passing(dataclasses.replace(params, robot_radius=0.0, head_margin=-np.inf))
+    headroom = passing(dataclasses.replace(params, robot_radius=0.0))
+    valid = passing(params)
+    if valid:
+        return (f"the attempt limit: {valid} of the frame's first {n} candidates are valid; raise --max-attempts "
+                f"(now {settings.max_attempts})")
+    if not on_floor:
+        return (f"the floor: none of {n} candidates landed on a floor face within {params.drop_tolerance} m of its "
+                "region's floor height (the house's floor polygons do not match its mesh)")
+    if not headroom:
+        return (f"headroom: of {on_floor} candidates on the floor of {n}, none has "
+                f"{params.height + params.head_margin:g} m free above it; lower --height (now {params.height:g})")
+    return (f"clearance: of {headroom} candidates on the floor with headroom, of {n}, none has {params.robot_radius:g} "
+            "m free around it; lower --robot-radius")
 
 
 def frame_labels(result: FrameResult, names: list[str], calib: Calib, size: tuple[int, int]) -> Labels:

@@ -17,12 +17,16 @@ that finds every frame present writes ImageSets and the manifest.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fnmatch
 import hashlib
 import json
-import multiprocessing
+import math
 import os
 import platform
+import re
+import shutil
 import sys
 import time
 from collections import Counter
@@ -32,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from mpchair import __version__
-from mpchair.atomic import write_text
+from mpchair.atomic import temp_glob, write_text
 from mpchair.config import to_dict
 from mpchair.dataset.frame import (
     FrameSettings,
@@ -46,9 +50,11 @@ from mpchair.dataset.frame import (
     write_frame,
 )
 from mpchair.dataset.splits import split_frames
-from mpchair.errors import InputError
+from mpchair.dataset.workers import WorkerDied, imap_unordered
+from mpchair.errors import InputError, RunError
 from mpchair.heap import keep_freed_memory
 from mpchair.kitti import write_imageset
+from mpchair.lock import folder_lock, held, wait_lock
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House, objects_of, read_house
 from mpchair.matterport.source import SUFFIXES, HouseSource, find_houses
@@ -56,6 +62,11 @@ from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 
 MANIFEST_FORMAT = "mpchair-kitti/1"
+#: Frame ids are 6 digits (KITTI file names).
+MAX_FRAMES = 1_000_000
+SPLIT_MODES = ("frame", "house", "paper")
+SETTINGS_FILE = ".generate.json"
+_LOCK_NAME = re.compile(r"\.generate-(\d+)-of-(\d+)\.lock")
 FRAME_DIRS = ("velodyne", "label_2", "calib", "image_2", "pose")
 
 
@@ -186,50 +197,126 @@ def _remove_stale_temps(out: Path, fids: set[str]) -> None:
                 p.unlink(missing_ok=True)
 
 
-def _check_settings(out: Path, settings: dict) -> None:
-    path = out / ".generate.json"
+def _shard_lock(out: Path, shard: tuple[int, int]) -> Path:
+    return out / f".generate-{shard[0]}-of-{shard[1]}.lock"
+
+
+def _others_running(out: Path, shard: tuple[int, int]) -> list[tuple[int, int]]:
+    """Shards ``(i, N)`` of other live ``generate`` processes on ``out`` (their lock files are held)."""
+    files = {}
+    for p in out.glob(".generate-*-of-*.lock"):
+        m = _LOCK_NAME.fullmatch(p.name)
+        if m and (int(m.group(1)), int(m.group(2))) != tuple(shard):
+            files[p] = (int(m.group(1)), int(m.group(2)))
+    return sorted(files[p] for p in held(list(files)))
+
+
+def _is_ours(name: str) -> bool:
+    """Files a run of ours may leave in a folder without a settings file: its lock files and a killed settings write."""
+    return bool(_LOCK_NAME.fullmatch(name)) or fnmatch.fnmatchcase(name, temp_glob(SETTINGS_FILE))
+
+
+def _has_records(out: Path) -> bool:
+    d = out / ".frames"
+    return d.is_dir() and any(p.suffix == ".json" and not p.name.startswith(".") for p in d.iterdir())
+
+
+def _check_settings(out: Path, settings: dict, alone: bool) -> None:
+    """Write ``.generate.json`` into a new folder, or check that an existing one holds these settings.
+
+    A folder whose settings differ but that holds no frame record yet (a run stopped before its first frame) takes
+    the new settings when no other ``generate`` is running on it. ``alone``: no other shard's process holds a lock.
+    """
+    path = out / SETTINGS_FILE
     text = json.dumps(settings, sort_keys=True, indent=1) + "\n"
+    if alone:  # temp files of a killed settings write (another live shard may be writing its own right now)
+        for p in out.glob(temp_glob(SETTINGS_FILE)):
+            p.unlink(missing_ok=True)
     if path.is_file():
-        if path.read_text(encoding="utf-8") != text:
-            old = json.loads(path.read_text(encoding="utf-8"))
-            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
-            raise InputError(f"holds a dataset made with other settings ({', '.join(diff)} differ); use a new --out "
-                             "or the same arguments to resume", path)
-        return
-    if out.exists() and any(p for p in out.iterdir() if p.name != ".generate.json"):
+        old_text = path.read_text(encoding="utf-8")
+        if old_text == text:
+            return
+        if not (alone and not _has_records(out)):
+            try:
+                old = json.loads(old_text)
+                diff = ", ".join(sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k)))
+            except (json.JSONDecodeError, AttributeError):
+                diff = "the file is not a settings object"
+            raise InputError(f"holds a dataset made with other settings ({diff} differ); use a new --out or the same "
+                             "arguments to resume", path)
+    elif any(not _is_ours(p.name) for p in out.iterdir()):
         raise InputError("exists and is not an mpchair dataset folder (no .generate.json); choose an empty --out",
                          out)
     write_text(path, text)
 
 
-def generate(req: GenerateRequest) -> GenerateSummary:
-    """Generate (or resume) the dataset described by ``req``; see the module docstring.
+def _undo(out: Path, fids: set[str], existed: bool, shard: tuple[int, int]) -> None:
+    """Remove what a run that could not make its frames wrote into a folder that held no frame before it: its frames'
+    files, then (when no other shard runs and no frame is left) the settings and the folders it created."""
+    for sub in [out / "training" / d for d in FRAME_DIRS] + [out / ".frames"]:
+        if sub.is_dir():
+            for p in sub.iterdir():
+                if p.name.split(".")[0] in fids or (p.name.startswith(".") and p.name[1:7] in fids):
+                    p.unlink(missing_ok=True)
+    if _has_records(out) or _others_running(out, shard):
+        return
+    (out / SETTINGS_FILE).unlink(missing_ok=True)
+    for d in [out / "training" / d for d in FRAME_DIRS] + [out / "training", out / ".frames"]:
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only if empty
+    if not existed and not any(not _is_ours(p.name) for p in out.iterdir()):
+        shutil.rmtree(out, ignore_errors=True)
 
-    Bad input (unknown house: the available ones are listed; house without objects of the class; unknown sensor;
-    too few valid viewpoints; an ``out`` made with other settings) raises :class:`InputError` before any frame file
-    is written, or, for viewpoints, when the failing frame is reached.
-    """
-    t0 = time.perf_counter()
+
+def _check_numbers(req: GenerateRequest) -> None:
+    """Every number of the request finite and in range, before anything is read or written."""
     if req.frames < 1:
         raise InputError(f"--frames must be >= 1, got {req.frames}")
-    if req.workers < 1:
-        raise InputError(f"--workers must be >= 1, got {req.workers}")
-    si, sn = req.shard
-    if not (sn >= 1 and 0 <= si < sn):
-        raise InputError(f"--shard must be i/N with 0 <= i < N, got {si}/{sn}")
     if not req.houses:
         raise InputError("give at least one --house")
     if len(set(req.houses)) != len(req.houses):
         raise InputError("a --house is repeated")
-    sensor = load_sensor(req.sensor)
-    try:
-        params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
-    except ValueError as e:
-        raise InputError(str(e)) from None
-    cat_idx = resolve_categories(list(req.categories))
-    cats = sorted(mpcat40_name(c) for c in cat_idx)
+    if len(req.houses) * req.frames > MAX_FRAMES:
+        raise InputError(f"{len(req.houses)} houses x --frames {req.frames} exceeds {MAX_FRAMES} frames (6-digit "
+                         "KITTI frame ids)")
+    if req.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {req.workers}")
+    if req.max_attempts < 1:
+        raise InputError(f"--max-attempts must be >= 1, got {req.max_attempts}")
+    if req.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {req.seed}")
+    si, sn = req.shard
+    if not (sn >= 1 and 0 <= si < sn):
+        raise InputError(f"--shard must be i/N with 0 <= i < N, got {si}/{sn}")
+    if not (math.isfinite(req.height) and req.height > 0):
+        raise InputError(f"--height must be a finite number > 0 (metres), got {req.height}")
+    if not (math.isfinite(req.robot_radius) and req.robot_radius >= 0):
+        raise InputError(f"--robot-radius must be a finite number >= 0 (metres), got {req.robot_radius}")
+    if req.split_mode not in SPLIT_MODES:
+        raise InputError(f"--split-mode must be one of {', '.join(SPLIT_MODES)}, got {req.split_mode!r}")
     if req.split_mode == "house" and len(req.houses) < 3:
         raise InputError(f"--split-mode house needs at least 3 houses, got {len(req.houses)}")
+
+
+def generate(req: GenerateRequest) -> GenerateSummary:
+    """Generate (or resume) the dataset described by ``req``; see the module docstring.
+
+    Bad input (a number out of range; unknown house: the available ones are listed; house without objects of the
+    class; unknown sensor; an ``out`` made with other settings or holding other files) raises :class:`InputError`
+    before anything is written. Frames that cannot be made with these settings (no valid viewpoint: the cause is
+    named) raise :class:`InputError` when the first failing frame is reached; a run that started on a folder without
+    frames then removes what it wrote, so the corrected command starts afresh. Another process on the same shard
+    of ``out`` is an :class:`InputError`; a dead worker process (or another error inside one) a :class:`RunError`; an
+    ``OSError`` (full disk) propagates with a hint to resume. After any of the last three, and after SIGKILL, the same
+    request resumes.
+    """
+    t0 = time.perf_counter()
+    _check_numbers(req)
+    si, sn = req.shard
+    sensor = load_sensor(req.sensor)
+    params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
+    cat_idx = resolve_categories(list(req.categories))
+    cats = sorted(mpcat40_name(c) for c in cat_idx)
 
     found = find_houses(req.root)
     unknown = [h for h in req.houses if h not in found]
@@ -255,10 +342,25 @@ def generate(req: GenerateRequest) -> GenerateSummary:
     settings = _settings(req, sensor, params, cats)
     if "navmesh" in sources.values():  # only then: regions-only runs keep the settings (and resume) they had
         settings["viewpoint_sources"] = sources
-    _check_settings(out, settings)
     fs = FrameSettings(sensor=sensor, viewpoints=params, seed=req.seed, keep_empty=req.keep_empty,
                        max_attempts=req.max_attempts, viewpoint_source=req.viewpoints)
+    existed = out.exists()
+    with folder_lock(_shard_lock(out, req.shard), f"mpchair generate --shard {si}/{sn}"):
+        others = _others_running(out, req.shard)
+        clash = [o for o in others if o[1] != sn]
+        if clash:
+            raise InputError(f"another mpchair generate (--shard {clash[0][0]}/{clash[0][1]}) is writing this folder; "
+                             f"shards running at the same time must share N (here {sn})", out)
+        _check_settings(out, settings, alone=not others)
+        fresh = not _has_records(out)
+        summary = _run(req, out, houses, hashes, fs, settings, cats, cat_idx, t0, fresh, existed)
+    return summary
 
+
+def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict, fs: FrameSettings, settings: dict,
+         cats: list[str], cat_idx: frozenset[int], t0: float, fresh: bool, existed: bool) -> GenerateSummary:
+    """Make this shard's missing frames, then (when every frame exists) ImageSets and the manifest."""
+    si, sn = req.shard
     n_total = len(req.houses) * req.frames
     tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
     mine = [t for t in tasks if t[0] % sn == si]
@@ -287,18 +389,31 @@ def generate(req: GenerateRequest) -> GenerateSummary:
         bar.update(1)
         bar.set_postfix(kept=kept, rejected=sum(rejected.values()), refresh=False)
 
+    resume = "the frames written so far are kept: run the same command again to resume"
     try:
         if req.workers == 1 or len(pending) <= 1:
             _init_state(houses, fs, cat_idx, req.backend, out)
             for task in pending:
                 account(_work(task))
         else:
-            ctx = multiprocessing.get_context("fork")  # workers inherit the parsed houses instead of re-reading them
-            with ctx.Pool(min(req.workers, len(pending)), initializer=_init_worker,
-                          initargs=(houses, fs, cat_idx, req.backend, out)) as pool:
-                # Chunks of 4 frames: one pipe round trip per frame cost the parent ~1 ms of CPU per frame.
-                for rec in pool.imap(_work, pending, chunksize=4):
-                    account(rec)
+            # Forked workers inherit the parsed houses instead of re-reading them; chunks of 4 frames: one pipe round
+            # trip per frame cost the parent ~1 ms of CPU per frame.
+            for rec in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
+                                      initargs=(houses, fs, cat_idx, req.backend, out), chunksize=4):
+                account(rec)
+    except InputError:
+        if fresh:  # these settings cannot make the dataset: leave the folder as it was for the corrected command
+            _undo(out, {f"{t[0]:06d}" for t in pending}, existed, req.shard)
+        raise
+    except WorkerDied as e:
+        raise RunError(f"{out}: {e}; stopped the other workers; {resume}") from None
+    except OSError as e:
+        raise _with_hint(e, resume) from None
+    except Exception as e:
+        if req.workers > 1 and len(pending) > 1:  # a worker's unexpected error: its traceback stayed in the worker
+            raise RunError(f"{out}: a worker process failed: {type(e).__name__}: {e}; stopped the other workers; "
+                           f"{resume}") from e
+        raise
     finally:
         bar.close()
     made_seconds = time.perf_counter() - t_frames
@@ -306,7 +421,13 @@ def generate(req: GenerateRequest) -> GenerateSummary:
     complete = all(record_path(out, f"{g:06d}").is_file() for g in range(n_total))
     splits_count: dict[str, int] = {}
     if complete:
-        splits_count = _assemble(out, req, settings, hashes, houses, cats, n_total)
+        try:
+            # Shards finishing together take turns (assembly removes temp files a killed assembly left).
+            with wait_lock(out / ".generate-assemble.lock") if sn > 1 else contextlib.nullcontext():
+                splits_count = _assemble(out, req, settings, hashes, houses, cats, n_total)
+        except OSError as e:
+            raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
+                                "manifest") from None
     seconds = time.perf_counter() - t0
     made = len(pending)
     return GenerateSummary(
@@ -314,6 +435,11 @@ def generate(req: GenerateRequest) -> GenerateSummary:
         rejected=dict(rejected), points=float(np.mean(points)) if points else 0.0, rays=rays, seconds=seconds,
         frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
     )  # fmt: skip
+
+
+def _with_hint(e: OSError, hint: str) -> OSError:
+    """The same OS error (errno, file) with ``hint`` after its reason."""
+    return type(e)(e.errno, f"{e.strerror or e}; {hint}", e.filename)
 
 
 #: Placeholder of the manifest's frame list while the rest is encoded (see :func:`_assemble`).

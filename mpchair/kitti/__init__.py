@@ -9,7 +9,7 @@ from mpchair.kitti.calib import CALIB_KEYS, Calib, format_calib, read_calib, to_
 from mpchair.kitti.imagesets import read_imageset, write_imageset
 from mpchair.kitti.labels import DONTCARE, Labels, format_labels, read_labels, write_labels
 from mpchair.kitti.layout import FramePaths, frame_paths, imageset_path, read_image_size
-from mpchair.kitti.velodyne import read_velodyne, write_velodyne
+from mpchair.kitti.velodyne import read_velodyne, velodyne_rows, write_velodyne
 
 __all__ = [
     "CALIB_KEYS",
@@ -27,6 +27,7 @@ __all__ = [
     "read_labels",
     "read_velodyne",
     "to_4x4",
+    "velodyne_rows",
     "write_calib",
     "write_imageset",
     "write_labels",

@@ -24,9 +24,26 @@ def read_velodyne(path: str | Path) -> np.ndarray:
         raise InputError("velodyne file not found", path) from None
     except OSError as e:
         raise InputError(f"cannot read velodyne file: {e}", path) from None
-    if len(data) % _ROW_BYTES:
-        raise InputError(f"size {len(data)} bytes is not a multiple of {_ROW_BYTES} (float32 x, y, z, r rows)", path)
+    _check_size(path, len(data))
     return np.frombuffer(data, dtype="<f4").astype(np.float32).reshape(-1, 4)
+
+
+def velodyne_rows(path: str | Path) -> int:
+    """Number of points in a scan file, from its size alone (the errors of :func:`read_velodyne`, nothing read)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InputError("velodyne file not found", path) from None
+    except OSError as e:
+        raise InputError(f"cannot read velodyne file: {e}", path) from None
+    _check_size(path, size)
+    return size // _ROW_BYTES
+
+
+def _check_size(path: Path, size: int) -> None:
+    if size % _ROW_BYTES:
+        raise InputError(f"size {size} bytes is not a multiple of {_ROW_BYTES} (float32 x, y, z, r rows)", path)
 
 
 def write_velodyne(path: str | Path, points: np.ndarray) -> None:

@@ -1,0 +1,94 @@
+"""Fault injection for tests/test_faults.py: SIGKILL at a chosen file rename, a run in a forked child, folder trees.
+
+Every file the project writes is renamed into place by ``mpchair.atomic`` with ``os.replace``, so "SIGKILL just before
+rename N" (or before the rename onto a path ending in a given suffix) reaches every state a killed run can leave on
+disk: the renamed files before it, the temp file of this one. The hook replaces ``os.replace`` in the process that
+runs the command (a forked child, or ``python tests/helpers_faults.py SUFFIX -- detector ...``); production code is
+not changed.
+
+    python tests/helpers_faults.py eval/epoch_001/metrics.json -- detector train --config ...
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+
+def _under(dst, folder: Path | None) -> bool:
+    """Whether ``dst`` lies in ``folder`` (None: anywhere). Renames elsewhere (numba's on-disk cache writing its
+    index on a cold cache, say) are not the run's and are neither counted nor killed at."""
+    return folder is None or Path(os.path.abspath(dst)).is_relative_to(Path(os.path.abspath(folder)))
+
+
+def kill_at_replace(when: int | str, folder: Path | None = None) -> None:
+    """From now on, SIGKILL this process just before the ``when``-th ``os.replace`` into ``folder`` (1-based) or
+    before the first whose destination ends with ``when`` (a path suffix)."""
+    real = os.replace
+    count = 0
+
+    def replace(src, dst, *args, **kwargs):
+        nonlocal count
+        if _under(dst, folder):
+            count += 1
+            if count == when or (isinstance(when, str) and str(dst).replace(os.sep, "/").endswith(when)):
+                os.kill(os.getpid(), signal.SIGKILL)
+        return real(src, dst, *args, **kwargs)
+
+    os.replace = replace
+
+
+def count_replaces(fn: Callable[[], object], folder: Path | None = None) -> int:
+    """How many ``os.replace`` calls into ``folder`` ``fn()`` makes (in this process)."""
+    real = os.replace
+    count = 0
+
+    def replace(src, dst, *args, **kwargs):
+        nonlocal count
+        count += _under(dst, folder)
+        return real(src, dst, *args, **kwargs)
+
+    os.replace = replace
+    try:
+        fn()
+    finally:
+        os.replace = real
+    return count
+
+
+def run_forked(fn: Callable[[], object]) -> int:
+    """Run ``fn()`` in a forked child and wait; returns the raw wait status (the child exits 0 when ``fn`` returns,
+    1 when it raises)."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover (child)
+        code = 1
+        try:
+            fn()
+            code = 0
+        finally:
+            os._exit(code)
+    return os.waitpid(pid, 0)[1]
+
+
+def tree(path: Path) -> dict[str, bytes]:
+    """Every file under ``path`` (hidden ones, temp and lock files included) → its bytes."""
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def main(argv: list[str]) -> None:
+    """``SUFFIX -- mpchair|detector ARGS...``: run the CLI, SIGKILLed before the rename onto ``*SUFFIX``."""
+    sep = argv.index("--")
+    kill_at_replace(argv[0])
+    prog, args = argv[sep + 1], argv[sep + 2 :]
+    if prog == "detector":
+        from detector.cli import main as cli
+    else:
+        from mpchair.cli import main as cli
+    cli(args)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
