@@ -317,3 +317,12 @@ def test_periodic_validation_logs_the_eval_of_that_epochs_weights(data, smoke_ru
         assert files == _files(tmp_path / f"epoch_{epoch}" / "data") and len(files) == 8
         detections += sum(len(b.splitlines()) for b in files.values())
     assert detections > 0  # the files compared hold detections, not only empty frames
+
+    # Validating does not change the training (eval_every may change on resume): the same weights, optimiser state
+    # and step metrics with and without it.
+    for every in (0, 1):
+        cfg_every = write_test_config(tmp_path / f"every{every}.yaml", model=dict(score_thr=0.0),
+                                      train=dict(batch_size=2, epochs=2, eval_every=every))
+        train(cfg_every, data, tmp_path / f"every{every}", threads=1, progress=False)
+    assert sorted(p.name for p in (tmp_path / "every1" / "eval").iterdir()) == ["epoch_001", "epoch_002"]
+    _assert_identical_runs(tmp_path / "every0", tmp_path / "every1")
