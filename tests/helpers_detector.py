@@ -11,6 +11,7 @@ z = 0 in the sensor frame).
 from __future__ import annotations
 
 import io
+import math
 from pathlib import Path
 
 import numpy as np
@@ -158,3 +159,23 @@ def write_test_config(path: str | Path, *, model: dict | None = None, data: dict
     path = Path(path)
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path
+
+
+def onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10.0, final: float = 1e4,
+                    beta1: tuple[float, float] = (0.95, 0.85)) -> list[tuple[float, float]]:
+    """(lr, beta1) of steps 0..total-1 of OpenPCDet's adam_onecycle in closed form, with OneCycleLR's phase ends
+    (warm-up ends at step pct * total - 1, annealing at total - 1; cosine interpolation in both phases)."""
+
+    def cos(a: float, b: float, t: float) -> float:
+        return b + (a - b) / 2 * (math.cos(math.pi * t) + 1)
+
+    e1, e2 = pct * total - 1, total - 1
+    out = []
+    for i in range(total):
+        if i <= e1:
+            t = i / e1
+            out.append((cos(peak / div, peak, t), cos(beta1[0], beta1[1], t)))
+        else:
+            t = (i - e1) / (e2 - e1)
+            out.append((cos(peak, peak / (div * final), t), cos(beta1[1], beta1[0], t)))
+    return out

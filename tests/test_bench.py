@@ -6,11 +6,14 @@ import json
 
 import click.testing
 import pytest
+import torch
 from helpers_detector import make_tiny_dataset
 
 from detector.bench import COMPONENTS, format_table, frame_density, load_eval_frames, ratio_rows
 from detector.cli import cli
-from detector.models import load_experiment
+from detector.infer import load_model_from_checkpoint
+from detector.models import build_model, load_experiment
+from detector.train import save_checkpoint
 
 DENSE = "configs/models/mpchair_dense_smoke.yaml"
 SPARSE = "configs/models/mpchair_sparse_smoke.yaml"
@@ -64,3 +67,34 @@ def test_bench_checkpoint_count_must_match(data) -> None:
     res = click.testing.CliRunner().invoke(cli, [
         "bench", "--config", DENSE, "--config", SPARSE, "--checkpoint", "x.pt", "--data", str(data)])
     assert res.exit_code != 0 and "one --checkpoint per --config" in str(res.exception or res.output)
+
+
+def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
+    """``--checkpoint`` per ``--config`` ('-' = random weights) loads those weights into the timed model. The dense
+    checkpoint here has its class bias raised so that every anchor scores 0.88: its model detects on every frame, as
+    many boxes as the checkpoint's own model predicts, while random weights (prior 0.01, threshold 0.1) never do."""
+    cfg = load_experiment(DENSE)
+    torch.manual_seed(0)
+    model = build_model(cfg.model)
+    with torch.no_grad():
+        model.anchor_head.conv_cls.bias.fill_(2.0)
+    ckpt = tmp_path / "dense.pt"
+    save_checkpoint(ckpt, model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg, epoch=0,
+                    step_in_epoch=0, step=0, global_batch=1)
+    out = tmp_path / "bench.json"
+    res = click.testing.CliRunner().invoke(cli, [
+        "bench", "--config", DENSE, "--config", SPARSE, "--checkpoint", str(ckpt), "--checkpoint", "-", "--data",
+        str(data), "--frames", "2", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    trained, untrained = json.loads(out.read_text())["models"]
+    assert trained["weights"] == str(ckpt) and untrained["weights"].startswith("random")
+    loaded = load_model_from_checkpoint(ckpt, cfg).eval()
+    expected = sum(len(loaded.predict([torch.from_numpy(f.points)])[0].boxes)
+                   for f in load_eval_frames(cfg, data, "test", 2))
+    assert trained["detections_per_frame"] == expected / 2 > 0 and untrained["detections_per_frame"] == 0
+    # a checkpoint of another architecture is refused before anything is timed
+    res = click.testing.CliRunner().invoke(cli, [
+        "bench", "--config", SPARSE, "--checkpoint", str(ckpt), "--data", str(data), "--frames", "1", "--trials", "1",
+        "--json", str(tmp_path / "no.json")])
+    assert res.exit_code != 0 and "checkpoint does not fit the config's model" in str(res.exception)
+    assert not (tmp_path / "no.json").exists()

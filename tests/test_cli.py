@@ -3,11 +3,14 @@ errors → one line + exit 2."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 import click
 import click.testing
+import numpy as np
 import pytest
 
 from detector.cli import COMMANDS as DETECTOR_COMMANDS
@@ -16,7 +19,10 @@ from mpchair.cli import COMMANDS as MPCHAIR_COMMANDS
 from mpchair.cli import cli as mpchair_cli
 from mpchair.clitools import run_cli
 from mpchair.errors import InputError
+from mpchair.kitti import Labels, read_imageset, read_labels, write_labels
 
+#: What a command's help must tell beyond its options.
+HELP_MENTIONS = {("detector", "train"): ("torchrun",)}
 ALL = [("mpchair", name) for name in MPCHAIR_COMMANDS] + [("detector", name) for name in DETECTOR_COMMANDS]
 
 
@@ -27,9 +33,16 @@ def test_every_registered_command_has_help(prog: str, name: str) -> None:
     command = group.get_command(ctx, name)
     assert command is not None, f"{prog} {name} is registered but its module is missing"
     runner = click.testing.CliRunner()
-    result = runner.invoke(group, [name, "--help"])
+    result = runner.invoke(group, [name, "--help"], prog_name=prog)
     assert result.exit_code == 0, result.output
-    assert "Usage:" in result.output and "--help" in result.output
+    assert result.output.startswith(f"Usage: {prog} {name} [OPTIONS]") and "--help" in result.output
+    # every option is documented, and the command's description is shown
+    for param in command.params:
+        if isinstance(param, click.Option) and not param.hidden:
+            assert max(param.opts, key=len) in result.output, (name, param.opts)
+    assert command.help and command.help.split("\n")[0].strip()[:40] in " ".join(result.output.split())
+    for word in HELP_MENTIONS.get((prog, name), ()):
+        assert word in result.output, (name, word)
 
 
 def test_group_help_lists_every_command() -> None:
@@ -85,3 +98,50 @@ def test_an_os_error_is_one_line_with_its_path_and_exit_2(capsys: pytest.Capture
         run_cli(full, [])
     assert exc.value.code == 2
     assert capsys.readouterr().err == f"error: {tmp_path / 'x.bin'}: No space left on device\n"
+
+
+def _detector(capsys: pytest.CaptureFixture[str], *args) -> tuple[int, str, str]:
+    from detector.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return e.value.code, out, err
+
+
+def test_eval_min_overlap_sets_the_bbox_bev_3d_thresholds(tmp_path: Path, capsys) -> None:
+    """``detector eval --min-overlap``: ``CLASS=T`` sets all three IoU thresholds, ``CLASS=BBOX,BEV,3D`` each one.
+    The results are the real KITTI cars with their own 2D boxes (2D IoU 1) moved a quarter of their length along
+    their heading, so that BEV and 3D IoU are 0.6: they match at 0.5 and not at the default 0.7."""
+    kitti = Path(__file__).parent / "data" / "kitti"
+    results = tmp_path / "results"
+    ids = read_imageset(kitti / "ImageSets" / "val.txt")
+    cars = 0
+    for fid in ids:
+        gt = read_labels(kitti / "training" / "label_2" / f"{fid}.txt")
+        keep = gt.names == "Car"
+        cars += int(keep.sum())
+        loc, ry, length = gt.location[keep], gt.rotation_y[keep], gt.dims_hwl[keep, 2]
+        moved = loc + (length / 4)[:, None] * np.stack([np.cos(ry), np.zeros_like(ry), -np.sin(ry)], axis=1)
+        write_labels(results / f"{fid}.txt", Labels(gt.names[keep], gt.truncated[keep], gt.occluded[keep],
+                                                    gt.alpha[keep], gt.bbox[keep], gt.dims_hwl[keep], moved, ry,
+                                                    score=np.full(int(keep.sum()), 0.9)))
+    assert cars == 5
+    base = ["eval", "--labels", kitti / "training" / "label_2", "--results", results, "--split",
+            kitti / "ImageSets" / "val.txt", "--classes", "Car", "--json"]
+
+    def best(*extra: str) -> dict[str, float]:
+        code, out, err = _detector(capsys, *base, *extra)
+        assert code == 0, err
+        ap = json.loads(out)["Car"]
+        return {m: max(ap[m]["R40"]) for m in ("bbox", "bev", "3d")}
+
+    default, half, mixed = best(), best("--min-overlap", "Car=0.5"), best("--min-overlap", "Car=0.9,0.5,0.7")
+    # Every car matches in 2D at any threshold < 1 (the AP of a few GT stays far below 100: R40 needs 40 of them).
+    assert default["bbox"] > 0 and default["bev"] == default["3d"] == 0  # Car's default threshold is 0.7
+    assert half == {"bbox": default["bbox"], "bev": default["bbox"], "3d": default["bbox"]}
+    assert mixed == {"bbox": default["bbox"], "bev": default["bbox"], "3d": 0}
+    for bad in ("Car", "Car=", "=0.5", "Car=1.0", "Car=-0.1", "Car=a", "Car=0.5,0.5"):
+        code, out, err = _detector(capsys, *base, "--min-overlap", bad)
+        assert code == 2 and out == "" and err == (f"error: --min-overlap {bad!r}: expected CLASS=T or "
+                                                   "CLASS=BBOX,BEV,3D with values in [0, 1)\n"), err

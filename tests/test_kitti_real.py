@@ -11,7 +11,6 @@ from mpchair.geometry import (
     boxes_to_kitti_camera,
     fov_mask,
     labels_to_boxes,
-    points_in_boxes,
     project_boxes_to_image,
     wrap_angle,
 )
@@ -92,20 +91,6 @@ def test_projected_boxes_match_labelled_2d_boxes(fid):
     assert np.all(err[obj.names == "Pedestrian"] < 12.0), err
     # Every object in these frames is labelled as not truncated; so is the projection.
     assert np.all(obj.truncated == 0) and np.all(truncation < 0.01)
-
-
-@pytest.mark.parametrize("fid", FRAMES)
-def test_every_object_holds_points_of_the_cropped_scan(fid):
-    calib, labels, points, size = load(fid)
-    counts = points_in_boxes(points, labels_to_boxes(labels.objects(), calib)).sum(axis=1)
-    assert np.all(counts > 0), counts
-
-
-def test_point_counts_of_frame_000002():
-    # Fixed numbers pin the conversion and the membership rule: Misc and Car of frame 000002.
-    calib, labels, points, _ = load("000002")
-    counts = points_in_boxes(points, labels_to_boxes(labels.objects(), calib)).sum(axis=1)
-    assert counts.tolist() == [1349, 67]
 
 
 @pytest.mark.parametrize("fid", FRAMES)

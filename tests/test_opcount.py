@@ -3,6 +3,7 @@ from the active sets and never exceed Table I's bound (real-ish scenes and adver
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -10,8 +11,9 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset
 
+from detector.cli import main
 from detector.models import build_model, load_experiment
-from detector.opcount import count_dataset, dense_counts, frame_counts, sparse_counts, table1
+from detector.opcount import count_dataset, dense_counts, format_counts, frame_counts, sparse_counts, table1
 
 SMOKE = "configs/models/mpchair_sparse_smoke.yaml"
 PAPER = "configs/models/mpchair_sparse.yaml"
@@ -111,9 +113,33 @@ def test_sparse_exact_equals_brute_force_and_stays_under_the_bound(smoke, densit
     assert fc["total"]["sparse"] <= fc["total"]["bound"] <= fc["total"]["dense"] * (1 + 1e-12) + 1
 
 
-def test_count_dataset_on_scenes(tmp_path) -> None:
+def _cli(capsys, *args) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return e.value.code, out, err
+
+
+def test_count_dataset_on_scenes(tmp_path, capsys) -> None:
     data = make_tiny_dataset(tmp_path / "ds", n_frames=3)
     result = count_dataset(SMOKE, data, "test", frames=3)
+    # `detector ops`: the same counts as JSON on stdout and in --out; tables (plain or Markdown) otherwise; --start
+    # picks the first frame counted.
+    code, out, _ = _cli(capsys, "ops", "--config", SMOKE, "--data", data, "--frames", "3", "--json", "--out",
+                        tmp_path / "ops.json")
+    assert code == 0 and json.loads(out) == json.loads((tmp_path / "ops.json").read_text())
+    assert json.loads(out) == json.loads(json.dumps(result))
+    one = count_dataset(SMOKE, data, "test", frames=1, start=2)
+    assert one["frames"] == result["frames"][2:]
+    code, out, _ = _cli(capsys, "ops", "--config", SMOKE, "--data", data, "--frames", "1", "--start", "2",
+                        "--markdown")
+    assert code == 0 and out == format_counts(one, markdown=True) + "\n"
+    assert "| 000002 |" in out and "000001" not in out
+    code, out, _ = _cli(capsys, "ops", "--config", SMOKE, "--data", data, "--frames", "1", "--start", "2")
+    assert code == 0 and out == format_counts(one) + "\n" and not out.startswith("|")
+    code, _, err = _cli(capsys, "ops", "--config", SMOKE, "--data", data, "--frames", "0", "--out",
+                        tmp_path / "none.json")
+    assert code == 2 and err.startswith("error: need --frames >= 1") and not (tmp_path / "none.json").exists()
     assert [f["frame_id"] for f in result["frames"]] == ["000000", "000001", "000002"]
     for f in result["frames"]:
         assert f["pillars"] > 100

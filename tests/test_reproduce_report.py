@@ -1,12 +1,18 @@
-"""tools/reproduce.py: its time accounting (a training resumed after an interruption counts all of its epochs), its
-recipes, and its AP report (Overall and the reference's Open3D-ML metric first, then Easy / Moderate / Hard)."""
+"""tools/reproduce.py: the recipe's commands, its time accounting (a training resumed after an interruption counts all
+of its epochs), its AP report (Overall and the reference's Open3D-ML metric first, then Easy / Moderate / Hard), and
+the report written from the outputs of real (tiny) runs of those commands."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import shlex
 import sys
+import time
 from pathlib import Path
+
+import pytest
+from helpers_detector import make_tiny_dataset, write_test_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -178,3 +184,111 @@ def test_eval_step_also_runs_the_reference_metric_on_the_same_result_files(tmp_p
         assert f"--checkpoint {out.resolve()}/runs/{m}/last.pt" in kitti and "--protocol" not in kitti
         assert f"--results {out.resolve()}/results/eval_{m}/data " in o3d and "--protocol open3d-ml --json" in o3d
         assert o3d.endswith(f"> {out.resolve()}/results/eval_{m}/open3d_ml.json")
+@pytest.mark.slow
+def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> None:
+    """``write_report`` on what the recipe's commands really write, here for a tiny run (4 frames; dense and sparse
+    slim test models, 2 and 3 epochs with validation after every epoch; bench, ops and viz on 1-2 frames): every
+    table and figure carries the numbers and pictures of those outputs, and the commands are listed. The second
+    allocator's bench is left out, so its section must say so."""
+    from detector.cli import main as detector_main
+    from mpchair.cli import main as mpchair_main
+
+    reproduce = _reproduce()
+    out = tmp_path / "reproduce-small"
+    data = make_tiny_dataset(out / "dataset", n_frames=4, seed=1)
+    res, runs = out / "results", out / "runs"
+    epochs = reproduce.model_epochs(2)  # dense 2, sparse 3 (the recipe's 1.25 ratio)
+    # score threshold 0: the scores of so short a run stay under the default 0.1 (no AP, empty result files)
+    cfg = {m: write_test_config(tmp_path / f"{m}.yaml", model=dict(backbone=m, score_thr=0.0),
+                                train=dict(batch_size=2, epochs=epochs[m], eval_every=1)) for m in ("dense", "sparse")}
+
+    def run(prog: str, *args, stdout: Path | None = None) -> None:
+        """Run a console script in this process and log it as tools/reproduce.py's Runner does."""
+        t = time.perf_counter()
+        with pytest.raises(SystemExit) as e:
+            (mpchair_main if prog == "mpchair" else detector_main)([str(a) for a in args])
+        captured = capsys.readouterr()
+        assert e.value.code == 0, captured.err
+        if stdout is not None:
+            stdout.parent.mkdir(parents=True, exist_ok=True)
+            stdout.write_text(captured.out)
+        line = shlex.join([prog, *map(str, args)]) + (f" > {stdout}" if stdout else "")
+        with open(out / "commands.log", "a") as f:
+            f.write(f"{time.perf_counter() - t:9.1f} s  {line}\n")
+
+    run("mpchair", "stats", "--density", data, "--config", cfg["dense"], "--split", "test", "--plot",
+        res / "density.png")
+    run("mpchair", "stats", "--density", data, "--config", cfg["dense"], "--split", "test", "--json",
+        stdout=res / "density.json")
+    for m in ("dense", "sparse"):
+        run("detector", "train", "--config", cfg[m], "--data", data, "--out", runs / m, "--threads", "1",
+            "--no-progress")
+    for m in ("dense", "sparse"):
+        run("detector", "eval", "--config", cfg[m], "--data", data, "--checkpoint", runs / m / "last.pt", "--split",
+            "val", "--out", res / f"eval_{m}", "--threads", "1")
+    run("detector", "bench", "--config", cfg["dense"], "--config", cfg["sparse"], "--data", data, "--split", "test",
+        "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", res / "bench_default.json",
+        "--markdown", "--checkpoint", runs / "dense" / "last.pt", "--checkpoint", runs / "sparse" / "last.pt",
+        stdout=res / "bench_default.md")
+    run("detector", "ops", "--config", cfg["sparse"], "--data", data, "--split", "test", "--frames", "2", "--out",
+        res / "ops.json", "--markdown", stdout=res / "ops.md")
+    run("detector", "viz-sparsity", "--config", cfg["sparse"], "--data", data, "--frame", "0", "--split", "test",
+        "--out", res / "viz", "--json", stdout=res / "viz.json")
+
+    sc = reproduce.Scale(houses=1, frames_per_house=4, epochs=2, bench_frames=1, bench_trials=1, ops_frames=2)
+    report_path = tmp_path / "docs" / "results.md"
+    reproduce.write_report(report_path, out, res, "small", sc)
+    report = report_path.read_text()
+    lines = report.splitlines()
+
+    def row(start: str) -> str:
+        (found,) = [ln for ln in lines if ln.startswith(start)]
+        return found
+
+    def section(title: str) -> str:
+        """The text under the ``## title...`` heading, up to the next heading."""
+        return report.split(f"\n## {title}", 1)[1].split("\n", 1)[1].split("\n## ", 1)[0]
+
+    assert report.startswith("# Results") and "1 synthetic houses x 4 frames" in report
+    assert "epochs dense 2 / sparse 3" in report and "training precision fp32" in report
+    # AP: the eval outputs (Moderate = index 1) in the targets and the detection table, rows per model
+    ev = {m: json.loads((res / f"eval_{m}" / "metrics.json").read_text())["Chair"] for m in ("dense", "sparse")}
+    d3, s3 = ev["dense"]["3d"]["R40"][1], ev["sparse"]["3d"]["R40"][1]
+    assert row("| dense 3D AP, Moderate, R40 |").endswith(f"| {d3:.2f} |")
+    assert row("| sparse - dense, 3D AP Moderate R40 |").endswith(f"| {s3 - d3:+.2f} |")
+    for m in ("dense", "sparse"):
+        (r,) = [ln for ln in section("Detection").splitlines() if ln.startswith(f"| {m} |")]
+        for kind in ("bev", "3d"):
+            for recall in ("R40", "R11"):
+                assert " / ".join(f"{v:.2f}" for v in ev[m][kind][recall][:3]) in r, (m, kind, recall)
+    # the validation records of both training logs (every epoch), Moderate BEV and 3D AP
+    for m in ("dense", "sparse"):
+        evals = [json.loads(x) for x in (runs / m / "metrics.jsonl").read_text().splitlines()]
+        evals = [e for e in evals if e["kind"] == "eval"]
+        assert [e["epoch"] for e in evals] == list(range(1, epochs[m] + 1))
+        for e in evals:
+            ap = e["Chair"]
+            assert f"| {m} | {e['epoch']} | {ap['bev']['R40'][1]:.2f} | {ap['3d']['R40'][1]:.2f} |" in lines
+    # density: the stats summary, and the plot copied next to the report
+    summary = json.loads((res / "density.json").read_text())  # D per test frame: median, min, max, ...
+    assert json.dumps({k: summary[k] for k in ("median", "min", "max")}) in section("Density")
+    assert "![density](img/results-small/density.png)" in lines
+    assert (tmp_path / "docs" / "img" / "results-small" / "density.png").read_bytes() == (
+        res / "density.png").read_bytes()
+    # runtime: the bench table as printed, the dense / sparse ratios of its JSON; the other allocator was not run
+    assert (res / "bench_default.md").read_text().strip() in section("Runtime at 768 x 512, allocator default")
+    assert section("Runtime at 768 x 512, allocator reuse").strip().startswith("not run")
+    comps = {m["name"]: m["components"] for m in json.loads((res / "bench_default.json").read_text())["models"]}
+    for comp in ("backbone", "total"):
+        ratio = comps["dense"][comp]["mean_ms"] / comps["sparse"][comp]["mean_ms"]
+        assert row(f"| dense / sparse, {comp} time, allocator default |").endswith(f"| {ratio:.1f}x |")
+    # op counts and the sparsity figure
+    ops = (res / "ops.md").read_text().strip()
+    assert ops.startswith("MACs per frame") and ops in section("Operation counts (Table I)")
+    assert "![sparsity](img/results-small/sparsity.png)" in section("Sparsity figures (Figs. 3-4)")
+    assert (tmp_path / "docs" / "img" / "results-small" / "sparsity.png").read_bytes() == (
+        res / "viz" / "panel.png").read_bytes()
+    # every command, as logged
+    commands = section("Commands")
+    for line in (out / "commands.log").read_text().splitlines():
+        assert line in commands

@@ -142,11 +142,26 @@ def test_transposed_conv_with_no_active_parent_or_no_target_gives_bias() -> None
 
 
 def test_weights_copy_from_dense_layers() -> None:
-    assert SubMConv2d(3, 4, 5).weight.shape == nn.Conv2d(3, 4, 5).weight.shape
-    assert SparseConv2d(3, 4).weight.shape == nn.Conv2d(3, 4, 2, 2).weight.shape
-    assert SparseConvTranspose2d(3, 4, 4, 4).weight.shape == nn.ConvTranspose2d(3, 4, 4, 4).weight.shape
-    sub = SubMConv2d(3, 4, 3, bias=True)
-    sub.load_state_dict(nn.Conv2d(3, 4, 3).state_dict())
+    """A dense layer's state_dict loads into its sparse twin (same keys and shapes, strict), and the twin then computes
+    the dense layer's output at its active sites."""
+    x = make_tensor("clustered", seed=4)
+    target = make_tensor("uniform", channels=1, shape=(4 * SHAPE[0], 4 * SHAPE[1]), seed=6)
+    torch.manual_seed(0)
+    pairs = [
+        (SubMConv2d(3, 4, 5, bias=True), nn.Conv2d(3, 4, 5, padding=2), lambda m: m(x), x.coords),
+        (SparseConv2d(3, 4, bias=True), nn.Conv2d(3, 4, 2, 2), lambda m: m(x), None),
+        (SparseConvTranspose2d(3, 4, 4, 4, bias=True), nn.ConvTranspose2d(3, 4, 4, 4), lambda m: m(x, target),
+         target.coords),
+    ]
+    for sparse, dense, call, sites in pairs:
+        sparse, dense = sparse.double(), dense.double()
+        sparse.load_state_dict(dense.state_dict())  # strict: the same parameter names and shapes
+        y = call(sparse)
+        if sites is not None:
+            assert torch.equal(y.coords, sites)
+        torch.testing.assert_close(y.features, at_sites(dense(x.dense()), y.coords), atol=TOL, rtol=0)
+    assert SubMConv2d(3, 4, 3).weight.shape == nn.Conv2d(3, 4, 3).weight.shape  # the reference's bias-free layers
+    SubMConv2d(3, 4, 3).load_state_dict(nn.Conv2d(3, 4, 3, bias=False).state_dict())
 
 
 def _tiny(pattern: str, channels: int, shape: tuple[int, int], seed: int) -> SparseTensor:

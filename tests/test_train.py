@@ -6,15 +6,12 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_config
 
 from detector.cli import main
 from detector.eval import evaluate_folders
@@ -29,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: model must reach on its own 8 training frames (29 chairs: at most 70.0 with so few GT). Measured with this seed
 #: (1 thread, BN recalibrated on the training split): epoch 10 → 4.7, 12 → 43.5, 15 → 65.0, 20 and 30 → 70.0.
 SMOKE_EPOCHS = 16
+SMOKE_EVAL_EVERY = 8  # periodic validation on the val split (= the 8 training frames) at epochs 8 and 16
 SMOKE_MIN_BEV_AP = 40.0
 
 
@@ -46,26 +44,6 @@ def _cli(args: list[str], capsys) -> tuple[int, str, str]:
 
 def _steps(run: Path) -> list[dict]:
     return [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "step"]
-
-
-def _onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10.0, final: float = 1e4,
-                    beta1: tuple[float, float] = (0.95, 0.85)) -> list[tuple[float, float]]:
-    """(lr, beta1) of steps 0..total-1 of OpenPCDet's adam_onecycle in closed form, with OneCycleLR's phase ends
-    (warm-up ends at step pct * total - 1, annealing at total - 1; cosine interpolation in both phases)."""
-
-    def cos(a: float, b: float, t: float) -> float:
-        return b + (a - b) / 2 * (math.cos(math.pi * t) + 1)
-
-    e1, e2 = pct * total - 1, total - 1
-    out = []
-    for i in range(total):
-        if i <= e1:
-            t = i / e1
-            out.append((cos(peak / div, peak, t), cos(beta1[0], beta1[1], t)))
-        else:
-            t = (i - e1) / (e2 - e1)
-            out.append((cos(peak, peak / (div * final), t), cos(beta1[1], beta1[0], t)))
-    return out
 
 
 def _assert_identical_runs(a_dir: Path, b_dir: Path) -> None:
@@ -133,7 +111,7 @@ def test_onecycle_schedule_follows_the_global_steps_and_resumes_exactly(data, tm
     # The logged lr / beta1 follow the one-cycle curve over 9 steps: 3e-4 → peak 3e-3 around step 0.4 x 9 → 3e-8.
     steps = _steps(tmp_path / "straight")
     lrs, betas = [r["lr"] for r in steps], [r["beta1"] for r in steps]
-    np.testing.assert_allclose(np.array([lrs, betas]).T, _onecycle_curve(9, 0.003), rtol=1e-9)
+    np.testing.assert_allclose(np.array([lrs, betas]).T, onecycle_curve(9, 0.003), rtol=1e-9)
     peak = int(np.argmax(lrs))
     assert abs(peak - 0.4 * 9) <= 1 and lrs[peak] > 0.98 * 0.003 and betas[peak] < 0.86
     assert all(x < y for x, y in zip(lrs[:peak], lrs[1:peak + 1]))  # rises to the peak ...
@@ -207,25 +185,6 @@ def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():
         assert (tc.schedule, tc.lr) == ("constant", 1e-3), name
 
 
-@pytest.mark.slow
-def test_onecycle_length_counts_global_steps_under_torchrun(data, tmp_path):
-    # 2 processes x batch 1 over 4 samples per epoch = 2 global steps per epoch, 2 epochs: a 4-step schedule (per-rank
-    # counting would give 8 and another curve).
-    cfg = write_test_config(tmp_path / "cfg.yaml",
-                            train=dict(batch_size=1, epochs=2, samples_per_epoch=4, schedule="onecycle", lr=0.003))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-           "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2", "-m", "detector",
-           "train", "--config", str(cfg), "--data", str(data), "--out", str(tmp_path / "ddp"), "--max-steps", "3",
-           "--threads", "1", "--no-progress"]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    state = torch.load(tmp_path / "ddp" / "last.pt", weights_only=True)
-    assert state["step"] == 3 and state["global_batch"] == 2 and state["scheduler"]["total_steps"] == 4
-    steps = _steps(tmp_path / "ddp")
-    np.testing.assert_allclose([(r["lr"], r["beta1"]) for r in steps], _onecycle_curve(4, 0.003)[:3], rtol=1e-9)
-
-
 def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, tmp_path, capsys):
     import shutil
 
@@ -252,8 +211,6 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, t
 
 
 def test_cli_rejects_bad_input_without_traceback(data, tmp_path, capsys):
-    code, out, _ = _cli(["train", "--help"], capsys)
-    assert code == 0 and "--resume" in out and "--max-steps" in out and "torchrun" in out
     code, _, err = _cli(["train", "--config", tmp_path / "nope.yaml", "--data", data, "--out", tmp_path / "r"], capsys)
     assert code == 2 and err.startswith("error: ") and "config file not found" in err
     cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=1))
@@ -272,19 +229,31 @@ def test_cli_rejects_bad_input_without_traceback(data, tmp_path, capsys):
     assert code == 2 and "fewer than one global batch" in err
 
 
-@pytest.mark.slow
-def test_smoke_training_learns_to_detect_its_training_chairs(data, tmp_path, capsys):
-    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=SMOKE_EPOCHS))
-    result = train(cfg, data, tmp_path / "run", threads=1, progress=False)
+@pytest.fixture(scope="module")
+def smoke_run(data, tmp_path_factory) -> tuple[Path, Path]:
+    """(config, run folder) of the smoke training, validating on the val split every SMOKE_EVAL_EVERY epochs.
+
+    Score threshold 0 (training does not use it): without re-estimated BatchNorm statistics, which periodic
+    validation does not do (as the reference), every score of the short run stays under the default 0.1, and the
+    validation would compare empty result files."""
+    base = tmp_path_factory.mktemp("smoke")
+    cfg = write_test_config(base / "cfg.yaml", model=dict(score_thr=0.0),
+                            train=dict(batch_size=2, epochs=SMOKE_EPOCHS, eval_every=SMOKE_EVAL_EVERY))
+    result = train(cfg, data, base / "run", threads=1, progress=False)
     assert (result.epoch, result.step) == (SMOKE_EPOCHS, SMOKE_EPOCHS * 4)
-    epochs = [r for r in map(json.loads, (tmp_path / "run" / "metrics.jsonl").read_text().splitlines())
-              if r["kind"] == "epoch"]
+    return cfg, base / "run"
+
+
+@pytest.mark.slow
+def test_smoke_training_learns_to_detect_its_training_chairs(data, smoke_run, tmp_path, capsys):
+    cfg, run = smoke_run
+    epochs = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
     assert epochs[-1]["loss_total"] < 0.5 * epochs[0]["loss_total"]
-    assert len(list((tmp_path / "run" / "checkpoints").glob("epoch_*.pt"))) == SMOKE_EPOCHS
+    assert len(list((run / "checkpoints").glob("epoch_*.pt"))) == SMOKE_EPOCHS
 
     out = tmp_path / "eval"
     # 64 steps leave the BN running statistics (momentum 0.01) far from converged: re-estimate them first.
-    metrics = evaluate_checkpoint(cfg, data, tmp_path / "run" / "last.pt", split="train", out_dir=out, threads=1,
+    metrics = evaluate_checkpoint(cfg, data, run / "last.pt", split="train", out_dir=out, threads=1,
                                   recalibrate_bn_split="train", progress=False)
     assert metrics.num_gt["Chair"] == (29, 29, 29)  # every chair is "Easy" (untruncated, > 40 px tall)
     bev_easy = metrics.ap["Chair"]["bev"]["R40"][0]
@@ -310,7 +279,7 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, tmp_path, cap
     assert total > 0
 
     # The same checkpoint through the CLI (`detector eval` checkpoint mode dispatches to evaluate_checkpoint).
-    code, out_text, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint", tmp_path / "run" / "last.pt",
+    code, out_text, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint", run / "last.pt",
                               "--split", "train", "--out", tmp_path / "cli_eval", "--threads", "1", "--json"], capsys)
     assert code == 0 and json.loads(out_text)["num_gt"]["Chair"] == [29, 29, 29]
     assert len(list((tmp_path / "cli_eval" / "data").glob("*.txt"))) == 8
@@ -318,7 +287,7 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, tmp_path, cap
     # The reference's metric (Open3D-ML's mAP) on the same checkpoint goes to its own metrics file.
     if importlib.util.find_spec("open3d") is not None:
         code, out_text, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint",
-                                  tmp_path / "run" / "last.pt", "--split", "train", "--out", tmp_path / "cli_o3d",
+                                  run / "last.pt", "--split", "train", "--out", tmp_path / "cli_o3d",
                                   "--threads", "1", "--protocol", "open3d-ml", "--json"], capsys)
         o3d = json.loads(out_text)
         assert code == 0 and o3d["protocol"] == "open3d-ml" and o3d["num_gt"] == {"Chair": 29}
@@ -328,3 +297,47 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, tmp_path, cap
         ref = evaluate_folders(data / "training" / "label_2", out / "data", [f.stem for f in files], ["Chair"],
                                protocol="open3d-ml")
         assert ref.ap["Chair"]["bev"] > 0, (ref.ap, metrics.overall["Chair"]["bev"])
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+@pytest.mark.slow
+def test_periodic_validation_logs_the_eval_of_that_epochs_weights(data, smoke_run, tmp_path, capsys):
+    """``train.eval_every`` (every shipped config uses it): after every N-th epoch the metrics log gets an ``eval``
+    record and RUN/eval/epoch_NNN/ the result files and metrics.json, both equal to a separate ``detector eval`` of
+    that epoch's checkpoint on the same split."""
+    cfg, run = smoke_run
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    evals = [r for r in records if r["kind"] == "eval"]
+    expected_epochs = list(range(SMOKE_EVAL_EVERY, SMOKE_EPOCHS + 1, SMOKE_EVAL_EVERY))
+    assert [r["epoch"] for r in evals] == expected_epochs == [8, 16]
+    assert sorted(p.name for p in (run / "eval").iterdir()) == [f"epoch_{e:03d}" for e in expected_epochs]
+    detections = 0
+    for rec in evals:
+        epoch = rec["epoch"]
+        # logged right after its epoch's record, at that epoch's last step
+        at = records.index(rec)
+        assert records[at - 1]["kind"] == "epoch" and records[at - 1]["epoch"] == epoch
+        assert rec["split"] == "val" and rec["step"] == 4 * epoch
+        logged = {k: v for k, v in rec.items() if k not in ("kind", "epoch", "step", "split")}
+        code, out, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint",
+                             run / "checkpoints" / f"epoch_{epoch:03d}.pt", "--split", "val", "--out",
+                             tmp_path / f"epoch_{epoch}", "--threads", "1", "--json"], capsys)
+        assert code == 0
+        assert logged == json.loads(out) and logged["num_gt"]["Chair"] == [29, 29, 29]
+        folder = run / "eval" / f"epoch_{epoch:03d}"
+        assert json.loads((folder / "metrics.json").read_text()) == logged
+        files = _files(folder / "data")
+        assert files == _files(tmp_path / f"epoch_{epoch}" / "data") and len(files) == 8
+        detections += sum(len(b.splitlines()) for b in files.values())
+    assert detections > 0  # the files compared hold detections, not only empty frames
+
+    # Validating does not change the training (eval_every may change on resume): the same weights, optimiser state
+    # and step metrics with and without it.
+    for every in (0, 1):
+        cfg_every = write_test_config(tmp_path / f"every{every}.yaml", model=dict(score_thr=0.0),
+                                      train=dict(batch_size=2, epochs=2, eval_every=every))
+        train(cfg_every, data, tmp_path / f"every{every}", threads=1, progress=False)
+    assert sorted(p.name for p in (tmp_path / "every1" / "eval").iterdir()) == ["epoch_001", "epoch_002"]
+    _assert_identical_runs(tmp_path / "every0", tmp_path / "every1")

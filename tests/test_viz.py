@@ -3,16 +3,21 @@ whiter than dense block 1."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
+import pytest
 from helpers_detector import make_tiny_dataset
 from PIL import Image
 
+from detector.cli import main
 from detector.viz import STAGES, viz_sparsity
 
 SPARSE = "configs/models/mpchair_sparse_smoke.yaml"  # 96 x 64 pseudo-image
 
 
-def test_viz_sparsity_pictures(tmp_path) -> None:
+def test_viz_sparsity_pictures(tmp_path, capsys) -> None:
     data = make_tiny_dataset(tmp_path / "ds", n_frames=2)
     out = tmp_path / "viz"
     result = viz_sparsity(SPARSE, data, 1, out, split="test")
@@ -35,3 +40,25 @@ def test_viz_sparsity_pictures(tmp_path) -> None:
     panel = Image.open(out / "panel.png")
     assert panel.format == "PNG" and panel.size[0] > 300
     assert not list(out.glob("*.tmp*"))
+
+    # `detector viz-sparsity`: the same pictures and numbers through the CLI (JSON, or a per-stage summary)
+    with pytest.raises(SystemExit) as e:
+        main(["viz-sparsity", "--config", SPARSE, "--data", str(data), "--frame", "1", "--split", "test", "--out",
+              str(tmp_path / "cli"), "--json"])
+    assert e.value.code == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert {k: v for k, v in printed.items() if k != "files"} == {k: v for k, v in result.items() if k != "files"}
+    assert [Path(f).name for f in printed["files"]] == [Path(f).name for f in result["files"]]
+    for f in result["files"]:
+        assert (tmp_path / "cli" / Path(f).name).read_bytes() == Path(f).read_bytes()
+    with pytest.raises(SystemExit) as e:
+        main(["viz-sparsity", "--config", SPARSE, "--data", str(data), "--frame", "1", "--split", "test", "--out",
+              str(tmp_path / "cli")])
+    lines = capsys.readouterr().out.splitlines()
+    assert e.value.code == 0 and lines[0] == "frame 000001: non-zero fraction of the pseudo-image per stage"
+    frac = result["nonzero_fraction"]["sparse"]
+    assert lines[2] == "  sparse " + "  ".join(f"{s} {100 * f:.3f}%" for s, f in zip(STAGES, frac))
+    assert lines[3:] == [str(f) for f in printed["files"]]
+    with pytest.raises(SystemExit) as e:
+        main(["viz-sparsity", "--config", SPARSE, "--data", str(data), "--frame", "-1", "--out", str(tmp_path / "x")])
+    assert e.value.code == 2 and "--frame must be >= 0" in capsys.readouterr().err and not (tmp_path / "x").exists()
