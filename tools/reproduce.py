@@ -8,7 +8,8 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     train     detector train             dense and sparse, the CPU-sized configs (mpchair_*_cpu.yaml)
     eval      detector eval              BEV / 3D AP at IoU 0.5, R40 and R11 (val split)
     bench     detector bench             per-component runtime at 768x512 (trained weights load at any grid size),
-                                         under the default allocator and the reuse setting
+                                         under the default allocator and the reuse setting, with Open3D-ML's own
+                                         PointPillars as a peer row when Open3D-ML is installed
     ops       detector ops               exact MACs vs Table I's bound at 768x512
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
