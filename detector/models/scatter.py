@@ -6,7 +6,7 @@ with :func:`detector.sparse.tensor.scatter_to_dense`, the same code that densifi
 
 **Layout.** :func:`canvas_channels_last` picks the memory format of every dense pseudo-image (this canvas, the sparse
 ablations' dense tail): channels-last for inference and bf16 training, NCHW for fp32 training, whichever is faster
-there (measured on a 2-core AVX2 CPU, 2 threads: fp32 inference of the 768 x 512 dense backbone + neck 1.4x faster
+there (measured on a 2-core AVX2 CPU, 2 threads: fp32 inference of the 768 x 512 dense backbone + neck 1.1-1.4x faster
 channels-last, the head 3-6x; an fp32 training step of the 288 x 144 CPU config 1.25x *slower* channels-last; bf16
 training 1.25x faster channels-last on AVX512-BF16, docs/training.md). The convolutions keep the layout they are
 given, so the backbone, neck and head run in it too, and the dense model hands the head the same channels-last map as
