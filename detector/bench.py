@@ -42,6 +42,10 @@ from detector.models import ExperimentConfig, PointPillars, build_model, load_ex
 from mpchair.errors import InputError
 from mpchair.geometry import pillar_coords
 
+#: Peers ``run_bench(peer=...)`` knows, and the peer row's name (detector.peer imports Open3D-ML only when used).
+PEERS: tuple[str, ...] = ("open3d-ml",)
+PEER_NAME = "open3d-ml"
+
 #: Component keys in table order (``total`` last).
 COMPONENTS: tuple[str, ...] = ("to_device", "feature_extract", "feature_net", "backbone", "head", "bbox_extract",
                                "total")
@@ -223,13 +227,18 @@ def run_bench(
     device: str = "cpu",
     threads: int | None = None,
     seed: int = 0,
+    peer: str | None = None,
     progress: bool = False,
 ) -> dict:
     """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result.
 
-    ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "per_frame_ms",
-    "detections_per_frame", "page_faults_per_frame", "density_median"}], "density": {...}, "machine": {...},
-    "protocol": {...}}``.
+    ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "median_frame_ms",
+    "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer"}], "density": {...},
+    "machine": {...}, "protocol": {...}}``.
+
+    ``peer="open3d-ml"`` adds Open3D-ML's own PointPillars as the last row (``"peer": "open3d-ml"``; ours have
+    ``"peer": None``): built with the first model's architecture and grid and its weights (:mod:`detector.peer`; the
+    first model must be dense), fed the first model's frames, interleaved per frame with the others. CPU only.
     """
     if not models:
         raise InputError("bench needs at least one --config")
@@ -249,16 +258,29 @@ def run_bench(
     if len(set(names)) != len(names):
         # two configs with the same backbone (e.g. a shape sweep): fall back to file stems
         names = [n if names.count(n) == 1 else f"{n}:{Path(m.config).stem}" for n, m in zip(names, models)]
+    if peer is not None and peer not in PEERS:
+        raise InputError(f"unknown peer {peer!r} (choose from {', '.join(PEERS)})")
+    if peer is not None and device != "cpu":
+        raise InputError(f"--peer {peer} times the CPU only (open3d-cpu); drop --device {device}")
     nets = [build_bench_model(c, m.checkpoint, dev, seed) for c, m in zip(cfgs, models)]
     data = [load_eval_frames(c, data_dir, split, frames) for c in cfgs]
     n = len(data[0])
     densities = [[frame_density(f.points, c)[1] for f in d] for c, d in zip(cfgs, data)]
+    # one timing function per row: ours, then the peer on the first model's frames
+    runs = [lambda pts, net=net: time_frame(net, pts, dev) for net in nets]
+    if peer is not None:
+        from detector.peer import build_peer, time_peer_frame
+
+        peer_net = build_peer(cfgs[0].model, nets[0])
+        runs.append(lambda pts: time_peer_frame(peer_net, pts))
+        data.append(data[0])
+        densities.append(densities[0])
 
     for i in range(min(warmup, n)):
-        for net, d in zip(nets, data):
-            time_frame(net, d[i].points, dev)
+        for run, d in zip(runs, data):
+            run(d[i].points)
 
-    k = len(nets)
+    k = len(runs)
     # per model, trial, component: the mean over frames
     trial_means = np.zeros((k, trials, len(COMPONENTS)))
     per_frame = np.zeros((k, trials, n, len(COMPONENTS)))
@@ -269,7 +291,7 @@ def run_bench(
             order = range(k) if (t * n + i) % 2 == 0 else reversed(range(k))  # alternate who goes first
             for j in order:
                 f0 = _faults()
-                ms, nd = time_frame(nets[j], data[j][i].points, dev)
+                ms, nd = runs[j](data[j][i].points)
                 faults[j] += _faults() - f0
                 dets[j] += nd
                 per_frame[j, t, i] = [ms[c] for c in COMPONENTS]
@@ -279,16 +301,21 @@ def run_bench(
     if progress:
         print()
 
+    weights = [str(m.checkpoint) if m.checkpoint else f"random (seed {seed}; untrained, timing only)" for m in models]
+    rows = [(names[j], m, c, weights[j], None) for j, (m, c) in enumerate(zip(models, cfgs))]
+    if peer is not None:
+        rows.append((PEER_NAME, models[0], cfgs[0], f"{names[0]}'s weights, copied: {weights[0]}", peer))
     out_models = []
-    for j, (m, c) in enumerate(zip(models, cfgs)):
+    for j, (name, m, c, w, p) in enumerate(rows):
         comps = {
             key: {"mean_ms": float(trial_means[j, :, ci].mean()), "std_ms": float(trial_means[j, :, ci].std())}
             for ci, key in enumerate(COMPONENTS)
         }
         out_models.append({
-            "name": names[j],
+            "name": name,
+            "peer": p,
             "config": str(m.config),
-            "weights": str(m.checkpoint) if m.checkpoint else f"random (seed {seed}; untrained, timing only)",
+            "weights": w,
             "backbone": c.model.backbone,
             "head": c.model.head,
             "output_shape": list(c.model.output_shape),
@@ -303,12 +330,17 @@ def run_bench(
     density["geometry"] = {"point_cloud_range": list(cfgs[0].model.point_cloud_range),
                            "voxel_size": list(cfgs[0].model.voxel_size),
                            "output_shape": list(cfgs[0].model.output_shape)}
+    mach = machine_info(dev)
+    if peer is not None:
+        import open3d
+
+        mach["open3d"] = open3d.__version__
     return {
         "models": out_models,
         "density": density,
-        "machine": machine_info(dev),
+        "machine": mach,
         "protocol": {"data": str(data_dir), "split": split, "frames": n, "frame_ids": [f.frame_id for f in data[0]],
-                     "trials": trials, "warmup": min(warmup, n), "batch_size": 1, "interleaved": True,
+                     "peer": peer, "trials": trials, "warmup": min(warmup, n), "batch_size": 1, "interleaved": True,
                      "std": "population std over trials of the per-trial mean over frames"},
     }
 
@@ -319,16 +351,18 @@ def _fmt(x: float) -> str:
 
 
 def ratio_rows(result: dict) -> list[tuple[str, dict[str, float]]]:
-    """``first / other`` per component for every model after the first (dense / sparse: > 1 means sparse faster)."""
-    models = result["models"]
+    """Per-component speed-ups: ``first / other`` for every one of our models after the first (dense / sparse: > 1
+    means sparse faster), then ``peer / ours`` for every one of our models (> 1 means ours is faster than the peer)."""
+    ours = [m for m in result["models"] if not m.get("peer")]
+    peers = [m for m in result["models"] if m.get("peer")]
+    pairs = [(ours[0], m) for m in ours[1:]] + [(p, m) for p in peers for m in ours]
     rows = []
-    base = models[0]
-    for m in models[1:]:
+    for a, b in pairs:
         r = {}
         for key in COMPONENTS:
-            a, b = base["components"][key]["mean_ms"], m["components"][key]["mean_ms"]
-            r[key] = a / b if b > 0 else math.inf
-        rows.append((f"{base['name']} / {m['name']}", r))
+            ta, tb = a["components"][key]["mean_ms"], b["components"][key]["mean_ms"]
+            r[key] = ta / tb if tb > 0 else math.inf
+        rows.append((f"{a['name']} / {b['name']}", r))
     return rows
 
 
@@ -367,7 +401,9 @@ def format_table(result: dict, markdown: bool = False) -> str:
         f"{dens['median']:.5f}, min {dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames",
     ]
     for m in result["models"]:
-        notes.append(f"{m['name']}: weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame; "
+        what = (f"Open3D-ML {mach.get('open3d', '')}'s own PointPillars, the architecture and grid of "
+                f"{result['models'][0]['name']} (detector/peer.py); " if m.get("peer") else "")
+        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame; "
                      f"{m['detections_per_frame']:.1f} detections/frame")
     prefix = "- " if markdown else ""
     return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in notes)

@@ -28,6 +28,7 @@ Conv types are ``"3x3 conv"`` (dense 3x3 of stride 1 and 2 together, and SubM 3x
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -40,7 +41,7 @@ from torch import nn
 from detector.models import ExperimentConfig, ModelConfig, build_model, load_experiment
 from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d
 from detector.sparse.conv import GEMM_MIN_FILL
-from detector.sparse.indices import down_table, up_table
+from detector.sparse.indices import down_table, up_table, wide_down_table
 
 #: Table I's rows, in its order.
 TABLE1_TYPES: tuple[str, ...] = ("3x3 conv", "2x2 conv", "1x1 convT", "2x2 convT", "4x4 convT")
@@ -85,19 +86,24 @@ def _block_of(name: str) -> str:
     return f"block{int(m.group(1)) + 1}" if m else name
 
 
-def layer_bound(kind: str, kernel: int, c_in: int, c_out: int, grid: tuple[int, int], n0: int) -> int:
+def layer_bound(
+    kind: str, kernel: int, c_in: int, c_out: int, grid: tuple[int, int], n0: int, stride: int | None = None
+) -> int:
     """Table I's bound for one sparse layer, in MACs; ``n0`` = active input pillars (``D * H * W``).
 
     Active sites on any grid are at most ``min(n0, cells)`` (every layer maps each active site to one site of the next
-    grid). SubM: ``k^2 C_in C_out`` per active site; sparse down: ``C_in C_out`` per active *input*; transposed:
-    ``s^2 C_in C_out`` per active coarse input.
+    grid). SubM: ``k^2 C_in C_out`` per active site; sparse down (kernel = stride): ``C_in C_out`` per active *input*;
+    transposed: ``s^2 C_in C_out`` per active coarse input. A wide down-conv (odd kernel k > stride s, an ablation
+    outside Table I, whose outputs grow the active set) meets up to ``ceil(k / s)^2`` outputs per input, so its
+    bound is that many times ``C_in C_out`` per active input (the active-site cap above does not hold after it).
     """
     cells = grid[0] * grid[1]
     n = min(n0, cells)
     if kind == "subm":
         return kernel * kernel * c_in * c_out * n
     if kind == "sparse_down":
-        return c_in * c_out * n
+        s = kernel if stride is None else stride
+        return math.ceil(kernel / s) ** 2 * c_in * c_out * n
     if kind == "sparse_convT":
         return kernel * kernel * c_in * c_out * n
     raise ValueError(f"no bound for layer kind {kind!r}")
@@ -134,16 +140,19 @@ class _Recorder:
                                           self.n0))
         if isinstance(module, SparseConv2d):
             x = args[0]
-            s = module.stride
-            t = down_table(x.coords, x.spatial_shape, s, module.downsample)
-            pairs = int(t.in_rows.numel())  # each contributing input meets one tap of one output
+            s, k = module.stride, module.kernel_size
+            if k == s:
+                t = down_table(x.coords, x.spatial_shape, s, module.downsample)
+            else:
+                t = wide_down_table(x.coords, x.spatial_shape, k, s)
+            pairs = int(t.in_rows.numel())  # (input, output, tap) triples; k = s: each input meets one tap
             m = int(t.out_coords.shape[0])
             cc = module.in_channels * module.out_channels
-            return LayerCount(name, f"{s}x{s} conv", block, "sparse_down", s, module.in_channels,
-                              module.out_channels, x.spatial_shape, x.num_active, m, pairs, pairs * cc,
-                              m * s * s * cc,
-                              layer_bound("sparse_down", s, module.in_channels, module.out_channels, x.spatial_shape,
-                                          self.n0))
+            computed = m * s * s * cc if k == s else pairs * cc  # one dense (M, s*s*C) matmul, or per-tap products
+            return LayerCount(name, f"{k}x{k} conv", block, "sparse_down", k, module.in_channels,
+                              module.out_channels, x.spatial_shape, x.num_active, m, pairs, pairs * cc, computed,
+                              layer_bound("sparse_down", k, module.in_channels, module.out_channels, x.spatial_shape,
+                                          self.n0, stride=s))
         if isinstance(module, SparseConvTranspose2d):
             x, target = args[0], args[1]
             s = module.stride

@@ -10,9 +10,10 @@ One run lives in one folder ``RUN``::
     RUN/last.pt                  the newest state (also written at --max-steps and every SAVE_INTERVAL_S seconds)
 
 **Data order.** Epoch ``e`` draws ``samples_per_epoch`` samples (default: the split size) in a fixed order (frame
-``(e * S + k) mod N`` for slot ``k``, the reference's unshuffled loop) or, with ``train.shuffle``, a permutation seeded
-by ``(seed, e)``. Slot ``k`` is augmented with the generator ``(seed, e, k)``. Step ``s`` of the epoch takes the global
-batch of slots ``[s*G, (s+1)*G)`` with ``G = batch_size * world_size``; rank ``r`` takes the ``r``-th per-rank slice.
+``k mod N`` for slot ``k``, every epoch the same: the reference's unshuffled loop over ``steps_per_epoch_train``
+indices, each taken modulo the split) or, with ``train.shuffle``, a permutation seeded by ``(seed, e)``. Slot ``k``
+is augmented with the generator ``(seed, e, k)``. Step ``s`` of the epoch takes the global batch of slots
+``[s*G, (s+1)*G)`` with ``G = batch_size * world_size``; rank ``r`` takes the ``r``-th per-rank slice.
 
 **Distributed semantics (exactly a single process with batch G).** Every BatchNorm computes its statistics over the
 whole global batch (:func:`convert_to_global_batchnorm`: torch's ``SyncBatchNorm`` refuses CPU tensors, so the
@@ -200,7 +201,7 @@ def epoch_frames(*, num_frames: int, samples_per_epoch: int, epoch: int, seed: i
         reps = -(-samples_per_epoch // num_frames)
         order = np.concatenate([rng.permutation(num_frames) for _ in range(reps)])
         return order[:samples_per_epoch].astype(np.int64)
-    return ((epoch * samples_per_epoch + np.arange(samples_per_epoch)) % num_frames).astype(np.int64)
+    return (np.arange(samples_per_epoch) % num_frames).astype(np.int64)
 
 
 def rank_batches(

@@ -29,6 +29,7 @@ def test_config_folder_has_every_experiment() -> None:
         "kitti_car_sparse1_dense23",
         "kitti_car_sparse12_dense3",
         "kitti_car_sparse_wide",
+        "kitti_car_sparse_wide_down",
         "mpchair_dense_smoke",
         "mpchair_sparse_smoke",
         "mpchair_dense_cpu",
@@ -52,6 +53,11 @@ def test_paper_values() -> None:
     k = load_experiment(CONFIGS[0].parent / "kitti_car_dense.yaml")
     assert k.model.output_shape == (504, 440) and k.model.anchor_sizes == ((3.9, 1.6, 1.56),)
     assert (k.model.neg_iou_thr, k.model.pos_iou_thr) == (0.45, 0.6) and k.eval.iou_thresholds == (0.7,)
+    # the reference's steps_per_epoch_train: 5000 samples per epoch, on both datasets, for every paper model
+    for path in CONFIGS:
+        if path.stem.startswith("kitti_car") or path.stem in ("mpchair_dense", "mpchair_sparse",
+                                                              "mpchair_sparse_exact"):
+            assert load_experiment(path).train.samples_per_epoch == 5000, path.stem
 
 
 def test_config_errors_are_input_errors(tmp_path: Path) -> None:
@@ -166,26 +172,61 @@ def test_stage_methods_chain_like_forward() -> None:
     assert torch.equal(whole.cls[0], whole.cls[1])  # samples are independent in eval mode
 
 
-def test_canvas_is_channels_last_only_under_bf16_autocast() -> None:
+def test_canvas_layout_channels_last_except_fp32_training() -> None:
     torch.manual_seed(0)
     model = build_model(_tiny_config()).eval()
     pts, _ = _scene(1)
     with torch.no_grad():
         feats, coords = model.pillar_net(model.voxelize([pts, pts]))
-        nchw = model.feature_net(feats, coords, 2)
-        with torch.autocast("cpu", dtype=torch.bfloat16):
-            nhwc = model.feature_net(feats, coords, 2)
-            head_bf16 = model([pts])
-        # same values, only the strides differ; fp32 keeps the reference's NCHW
-        assert nchw.is_contiguous() and not nhwc.is_contiguous()
-        assert nhwc.is_contiguous(memory_format=torch.channels_last) and torch.equal(nchw, nhwc)
+        infer = model.feature_net(feats, coords, 2)  # inference: channels-last, like the sparse model's head input
+        x, _ = model.backbone_neck(infer)
         head_fp32 = model([pts])
+    train_fp32 = model.feature_net(feats, coords, 2)  # autograd on, fp32: the reference's NCHW
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        train_bf16 = model.feature_net(feats, coords, 2)
+        head_bf16 = model([pts])
+    assert infer.is_contiguous(memory_format=torch.channels_last) and not infer.is_contiguous()
+    assert x.is_contiguous(memory_format=torch.channels_last)  # the layout runs through backbone + neck
+    assert train_fp32.is_contiguous() and train_bf16.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(infer, train_fp32) and torch.equal(infer, train_bf16)  # same values, only strides differ
     # The bf16 forward on the channels-last canvas is the fp32 forward up to bf16 rounding. Tolerances per map, about
     # 4x the measured max |difference| (cls 4.5e-3 on logits near -4.6, reg 5e-5 and dir 5.5e-4 on values up to 7e-3
     # and 0.09 at init): an all-zero regression or direction map, or a dropped bias, is far outside them.
     for a, b, tol in zip(head_fp32, head_bf16, (2e-2, 2e-4, 2e-3)):
         assert a.shape == b.shape and b.dtype == torch.bfloat16
         torch.testing.assert_close(b.float(), a, atol=tol, rtol=0)
+
+
+def test_dense_and_sparse_share_the_head_and_postprocess_path() -> None:
+    """At inference both models give the one head a channels-last map, so the head's fused conv and the one
+    post-processing run on identically laid-out tensors; fed the same map, the two heads give identical output."""
+    torch.manual_seed(0)
+    dense = build_model(_tiny_config()).eval()
+    sparse = build_model(_tiny_config(backbone="sparse")).eval()
+    sparse.anchor_head.load_state_dict(dense.anchor_head.state_dict())
+    assert type(dense.anchor_head) is type(sparse.anchor_head)
+    pts, _ = _scene(2)
+    maps, outs = [], []
+    with torch.no_grad():
+        for model in (dense, sparse):
+            v = model.voxelize([pts])
+            x, active = model.backbone_neck(model.feature_net(*model.pillar_net(v), v.batch_size))
+            out = model.head(x, active)
+            maps.append(x)
+            outs.append(out)
+            model.postprocess(*out)
+        same_input = [m.head(maps[0]) for m in (dense, sparse)]
+    for x in maps:
+        assert x.shape == (1, 96, 16, 16) and x.is_contiguous(memory_format=torch.channels_last)
+    for a, b in zip(*outs):
+        assert a.shape == b.shape and a.stride() == b.stride()  # the same views of one (B, H, W, O) output
+        assert a.storage_offset() == b.storage_offset()
+    for a, b in zip(*same_input):
+        assert torch.equal(a, b)
+    # the fused inference conv equals the three training convs
+    three = dense.anchor_head(maps[0].detach().requires_grad_(True))
+    for a, b in zip(three, outs[0]):
+        torch.testing.assert_close(a.detach(), b, atol=1e-5, rtol=1e-5)
 
 
 def test_sparse_variants_build_and_run() -> None:
@@ -212,3 +253,14 @@ def test_sparse_variants_build_and_run() -> None:
         assert torch.isfinite(loss["total"])
         for block in model.backbone.blocks:  # gradients reach the first and the last conv of every block
             assert block[0].weight.grad.abs().sum() > 0 and block[-3].weight.grad.abs().sum() > 0, backbone
+    # the released code's Sparse+WideConv: 9x9 stride-2 down-convs (grown active sets), 3x3 SubMs
+    torch.manual_seed(0)
+    wide = build_model(_tiny_config(backbone="sparse_wide_down"))
+    downs = [m for m in wide.modules() if type(m).__name__ == "SparseConv2d"]
+    subms = [m for m in wide.modules() if type(m).__name__ == "SubMConv2d"]
+    assert [m.kernel_size for m in downs] == [9, 9, 9] and {m.kernel_size for m in subms} == {3}
+    preds = wide([pts])
+    assert preds.cls.shape == (1, 16, 16, 2)
+    wide.loss(preds, [box], [torch.zeros(1, dtype=torch.int64)])["total"].backward()
+    with pytest.raises(InputError, match="downsample"):
+        check_model_config(_tiny_config(backbone="sparse_wide_down", downsample="reference_quirk"))

@@ -292,3 +292,33 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
     commands = section("Commands")
     for line in (out / "commands.log").read_text().splitlines():
         assert line in commands
+
+
+def _bench_row(name: str, total: float, head: float, peer: str | None = None) -> dict:
+    comps = {k: {"mean_ms": 1.0, "std_ms": 0.0} for k in ("to_device", "feature_extract", "feature_net", "backbone",
+                                                          "bbox_extract")}
+    comps["head"] = {"mean_ms": head, "std_ms": 0.0}
+    comps["total"] = {"mean_ms": total, "std_ms": 0.0}
+    return {"name": name, "peer": peer, "components": comps}
+
+
+def test_bench_step_runs_the_peer_and_the_report_shows_it(tmp_path: Path, capsys) -> None:
+    """The bench step asks for the Open3D-ML peer row; the targets table shows peer / ours total-time ratios and the
+    shared components' sparse / dense ratios."""
+    reproduce = _reproduce()
+    assert reproduce.main(["--dry-run", "--scale", "small", "--steps", "bench", "--out", str(tmp_path / "s")]) == 0
+    bench = [ln for ln in capsys.readouterr().out.splitlines() if " bench " in ln]
+    assert len(bench) == 2 and all(ln.endswith("--peer open3d-ml > " + ln.split(" > ")[-1]) for ln in bench)
+    assert bench[1].startswith("$ MALLOC_MMAP_MAX_=0")
+    res = tmp_path / "res"
+    res.mkdir()
+    models = [_bench_row("dense", 1000.0, 50.0), _bench_row("sparse", 250.0, 55.0),
+              _bench_row("sparse+sparse_head", 100.0, 2.0), _bench_row("open3d-ml", 1200.0, 150.0, "open3d-ml")]
+    (res / "bench_default.json").write_text(json.dumps({"models": models}))
+    rows = "\n".join(reproduce._summary(res))
+    peer = "| open3d-ml (Open3D-ML's dense) / "
+    assert peer + "dense, total time, allocator default | >= 1 (ours no slower) | 1.20x |" in rows
+    assert "| open3d-ml (Open3D-ML's dense) / sparse, total time, allocator default | - | 4.80x |" in rows
+    assert "open3d-ml (Open3D-ML's dense) / sparse+sparse_head, total time" in rows
+    assert "| sparse / dense, head time (same code), allocator default | 0.9 - 1.1 | 1.10x |" in rows
+    assert "dense / open3d-ml" not in rows and "sparse+sparse_head / dense, head" not in rows

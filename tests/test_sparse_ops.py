@@ -105,6 +105,42 @@ def test_down_conv_equals_strided_dense_conv(pattern: str, stride: int) -> None:
     )
 
 
+@pytest.mark.parametrize("pattern", ["clustered", "uniform"])
+@pytest.mark.parametrize("kernel_size", [3, 9])
+def test_wide_down_conv_equals_padded_strided_dense_conv(pattern: str, kernel_size: int) -> None:
+    """The released code's Sparse+WideConv down-conv: k x k, stride 2, padding k // 2, generative output set."""
+    x = make_tensor(pattern, shape=(14, 12), seed=3)
+    conv = SparseConv2d(3, 5, kernel_size, 2, bias=True).double()
+    y = conv(x)
+    p = kernel_size // 2
+    ref = F.conv2d(x.dense(), conv.weight, conv.bias, stride=2, padding=p)
+    assert y.spatial_shape == (7, 6) == tuple(ref.shape[2:])
+    # output set: every site whose window holds an input = where an all-ones conv of the occupancy is positive
+    occupancy = x.active_mask()[:, None].double()
+    reach = F.conv2d(occupancy, torch.ones(1, 1, kernel_size, kernel_size, dtype=torch.float64), stride=2, padding=p)
+    assert torch.equal(y.active_mask(), reach[:, 0] > 0) and y.num_active > x.num_active // 4
+    keys = flat_keys(y.coords, y.spatial_shape)
+    assert torch.equal(keys, keys.sort().values)  # rows sorted by site
+    torch.testing.assert_close(y.features, at_sites(ref, y.coords), atol=TOL, rtol=0)
+    torch.testing.assert_close(
+        y.dense() + conv.bias[None, :, None, None] * (~y.active_mask())[:, None], ref, atol=TOL, rtol=0
+    )
+    with pytest.raises(ValueError, match="kernel_size == stride only"):
+        SparseConv2d(3, 5, kernel_size, 2, downsample="reference_quirk")
+    with pytest.raises(ValueError, match="odd kernel_size > stride"):
+        SparseConv2d(3, 5, 4, 2)
+
+
+def test_gradcheck_wide_down_conv() -> None:
+    x = _tiny("clustered", 2, (6, 4), 1)
+    down = SparseConv2d(2, 2, 5, 2, bias=True).double()
+
+    def fn(f: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        return torch.func.functional_call(down, {"weight": w, "bias": down.bias}, (x.replace_feature(f),)).features
+
+    assert torch.autograd.gradcheck(fn, (x.features, down.weight.detach().clone().requires_grad_(True)))
+
+
 @pytest.mark.parametrize("stride", [1, 2, 4])
 def test_transposed_conv_on_target_set_equals_dense(stride: int) -> None:
     coarse = make_tensor("clustered", channels=4, shape=(5, 4), seed=2)

@@ -64,9 +64,10 @@ def _assert_identical_runs(a_dir: Path, b_dir: Path) -> None:
 
 def test_data_plan_slices_global_batches_per_rank():
     order = epoch_frames(num_frames=5, samples_per_epoch=7, epoch=1, seed=0, shuffle=False)
-    assert order.tolist() == [2, 3, 4, 0, 1, 2, 3]  # fixed order, continuing where epoch 0 stopped
+    assert order.tolist() == [0, 1, 2, 3, 4, 0, 1]  # the reference: slot k is frame k mod N, in every epoch
+    assert epoch_frames(num_frames=5, samples_per_epoch=7, epoch=4, seed=3, shuffle=False).tolist() == order.tolist()
     ranks = [rank_batches(order, epoch=1, global_batch=4, rank=r, per_rank=2, start_step=0) for r in (0, 1)]
-    assert ranks[0] == [[(1, 0, 2), (1, 1, 3)]] and ranks[1] == [[(1, 2, 4), (1, 3, 0)]]  # last partial batch dropped
+    assert ranks[0] == [[(1, 0, 0), (1, 1, 1)]] and ranks[1] == [[(1, 2, 2), (1, 3, 3)]]  # last partial batch dropped
     shuffled = epoch_frames(num_frames=5, samples_per_epoch=5, epoch=3, seed=9, shuffle=True)
     assert sorted(shuffled.tolist()) == [0, 1, 2, 3, 4]
     assert shuffled.tolist() == epoch_frames(num_frames=5, samples_per_epoch=5, epoch=3, seed=9, shuffle=True).tolist()

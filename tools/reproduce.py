@@ -10,7 +10,8 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
                                          chair counts as in the paper, then Easy / Moderate / Hard; R40 and R11) and
                                          the reference's own metric on the same result files (--protocol open3d-ml)
     bench     detector bench             per-component runtime at 768x512 (trained weights load at any grid size),
-                                         under the default allocator and the reuse setting
+                                         under the default allocator and the reuse setting, with Open3D-ML's own
+                                         PointPillars as a peer row when Open3D-ML is installed
     ops       detector ops               exact MACs vs Table I's bound at 768x512
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
@@ -247,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
                    "--split", str(data / "ImageSets" / "val.txt"), "--classes", "Chair", "--protocol", "open3d-ml",
                    "--json"], stdout=ev / OPEN3D_ML_JSON)
     ckpts = [str(runs / "dense" / "last.pt"), str(runs / "sparse" / "last.pt")]
+    peer = None
     for alloc, env in (("default", {}), ("reuse", REUSE_ENV)):
         if todo("bench", res / f"bench_{alloc}.json"):
             # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
@@ -254,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
                    str(CONFIGS / "mpchair_sparse_exact.yaml"), "--data", str(data),
                    "--split", "test", "--frames", str(sc.bench_frames), "--trials", str(sc.bench_trials), *threads,
                    "--json", str(res / f"bench_{alloc}.json"), "--markdown"]
+            # the peer row: Open3D-ML's own PointPillars with the dense model's architecture, grid and weights
+            peer = _peer_available(args.dry_run) if peer is None else peer
+            if peer:
+                cmd += ["--peer", "open3d-ml"]
             if all(Path(c).exists() for c in ckpts):
                 for c in (*ckpts, ckpts[1]):
                     cmd += ["--checkpoint", c]
@@ -275,6 +281,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {results}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0
+
+
+def _peer_available(dry_run: bool) -> bool:
+    """Whether ``detector bench --peer open3d-ml`` can run here (Open3D-ML importable); says so when it cannot.
+
+    A dry run only looks for the ``open3d`` package (importing Open3D-ML takes seconds)."""
+    import importlib.util
+
+    if dry_run:
+        return importlib.util.find_spec("open3d") is not None
+    from detector.peer import open3d_ml_pointpillars
+    from mpchair.errors import InputError
+
+    try:
+        open3d_ml_pointpillars()
+    except InputError as e:
+        print(f"[bench] no Open3D-ML peer row: {e}", flush=True)
+        return False
+    return True
 
 
 def _read(path: Path) -> str | None:
@@ -340,7 +365,9 @@ def _summary(res: Path) -> list[str]:
         text = _read(res / f"bench_{alloc}.json")
         if not text:
             continue
-        models = {m["name"]: m["components"] for m in json.loads(text)["models"]}
+        bench = json.loads(text)["models"]
+        models = {m["name"]: m["components"] for m in bench if not m.get("peer")}
+        peers = {m["name"]: m["components"] for m in bench if m.get("peer")}
         dense = models.get("dense")
         for name, comps in models.items():
             if name == "dense" or dense is None:
@@ -351,6 +378,18 @@ def _summary(res: Path) -> list[str]:
             for comp, target in targets:
                 ratio = dense[comp]["mean_ms"] / max(comps[comp]["mean_ms"], 1e-9)
                 rows.append(f"| dense / {name}, {comp} time, allocator {alloc} | {target} | {ratio:.1f}x |")
+            if not exact_head:
+                # the components the paper calls identical in both models (Table II)
+                for comp in ("feature_extract", "head", "bbox_extract"):
+                    ratio = comps[comp]["mean_ms"] / max(dense[comp]["mean_ms"], 1e-9)
+                    rows.append(f"| {name} / dense, {comp} time (same code), allocator {alloc} | 0.9 - 1.1 | "
+                                f"{ratio:.2f}x |")
+        for peer, pc in peers.items():
+            for name, comps in models.items():
+                target = ">= 1 (ours no slower)" if name == "dense" else "-"
+                ratio = pc["total"]["mean_ms"] / max(comps["total"]["mean_ms"], 1e-9)
+                rows.append(f"| {peer} (Open3D-ML's dense) / {name}, total time, allocator {alloc} | {target} | "
+                            f"{ratio:.2f}x |")
     if not rows:
         return []
     return ["## Targets (issue) and this run", "",

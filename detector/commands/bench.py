@@ -22,24 +22,29 @@ import click
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--peer", type=click.Choice(["open3d-ml"]), default=None,
+              help="Also time Open3D-ML's own PointPillars, built like the first --config (a dense model) with its "
+                   "weights, on the same frames, interleaved per frame (CPU; needs the open3d extra).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Also write the full result as JSON to this file.")
 @click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
 @click.option("--progress", is_flag=True, help="Show the frame counter.")
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
-          warmup: int, device: str, threads: int | None, seed: int, json_out: str | None, markdown: bool,
-          progress: bool) -> None:
+          warmup: int, device: str, threads: int | None, seed: int, peer: str | None, json_out: str | None,
+          markdown: bool, progress: bool) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
     Columns: To Device, Feature Extract (voxelize + pillar net), Feature Net (scatter / sparse tensor), Backbone
     (backbone + neck, incl. todense), Head, BBox Extract (decode + NMS), Total; mean ± std over trials; a ratio row
     (first model / each other). Also records density D, machine, allocator env and page faults per frame.
+    --peer open3d-ml adds Open3D-ML's PointPillars (same architecture, grid and weights as the first --config) as a
+    last row, and ratio rows open3d-ml / each of ours (> 1: ours is faster).
     Allocator: CPU timings depend on glibc's; compare with
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
       detector bench --config configs/models/mpchair_dense.yaml --config configs/models/mpchair_sparse.yaml \\
-        --data dataset/ --frames 20 --trials 3 --threads 2 --json bench.json
+        --data dataset/ --frames 20 --trials 3 --threads 2 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
     from mpchair.atomic import write_text
@@ -51,7 +56,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
     models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
     result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
-                       threads=threads, seed=seed, progress=progress)
+                       threads=threads, seed=seed, peer=peer, progress=progress)
     if json_out:
         write_text(json_out, json.dumps(result, indent=2) + "\n")
     click.echo(format_table(result, markdown=markdown))

@@ -1,9 +1,16 @@
 """Dense SECOND backbone (the paper's Fig. 5a): three blocks of 3x3 convs, each starting with a stride-2 conv.
 
 Block i: Conv2d(3x3, stride s_i, pad 1) → BN → ReLU, then ``L_i`` x (Conv2d 3x3 pad 1 → BN → ReLU). Channels
-64/128/256, L = 3/5/5, strides 2/2/2. No conv biases (BN follows); BN eps 1e-3, momentum 0.01; convs get Kaiming
-normal init (fan_out, ReLU gain) as mmcv's ``Kaiming`` init used by the reference. :func:`dense_block` is public so the
-sparse ablations (Sparse1+Dense23, Sparse12+Dense3) can build their dense tail from the same parts.
+64/128/256, L = 3/5/5, strides 2/2/2. No conv biases (BN follows); BN eps 1e-3, momentum 0.01.
+
+Init: Kaiming normal (fan_out, ReLU gain), the init mmdet3d's ``SECOND`` declares (``init_cfg`` Kaiming on Conv2d),
+which our checkpoints were trained with. The reference does *not* do this: Open3D-ML's (and SPP's) ``SECOND`` has no
+init of its own, so its convs keep PyTorch's default (``kaiming_uniform_(a=sqrt(5))``: 1/sqrt(6) of this std where
+C_in = C_out), and its ``SECONDFPN.init_weights`` applies Kaiming normal to ``nn.Conv2d`` layers only, of which the
+neck has none (its levels are ``ConvTranspose2d``).
+
+:func:`dense_block` is public so the sparse ablations (Sparse1+Dense23, Sparse12+Dense3) can build their dense tail
+from the same parts.
 """
 
 from __future__ import annotations

@@ -28,7 +28,8 @@ def build_model(cfg: ModelConfig) -> PointPillars:
 
     The sparse variants use ``detector.models.sparse_backbone.SparseBackboneNeck`` (backbone and neck in one module):
     ``sparse`` (3 sparse blocks), ``sparse1_dense23`` / ``sparse12_dense3`` (1 / 2 sparse blocks, then the dense
-    SECOND blocks and ConvTranspose2d levels), ``sparse_wide`` (first SubM of every block 9x9, the paper's text).
+    SECOND blocks and ConvTranspose2d levels), ``sparse_wide`` (first SubM of every block 9x9, the paper's text) and
+    ``sparse_wide_down`` (9x9 stride-2 down-conv of every block, the released code's Sparse+WideConv).
     """
     check_model_config(cfg)
     pfn = PillarFeatureNet(
@@ -57,6 +58,8 @@ def build_model(cfg: ModelConfig) -> PointPillars:
             backbone = _sparse_backbone(cfg, sparse_blocks=2, first_subm_kernel=3)
         case "sparse_wide":
             backbone = _sparse_backbone(cfg, sparse_blocks=3, first_subm_kernel=9)
+        case "sparse_wide_down":
+            backbone = _sparse_backbone(cfg, sparse_blocks=3, first_subm_kernel=3, down_kernel=9)
     num_anchors = len(cfg.anchor_sizes) * len(cfg.anchor_rotations)
     head_kwargs = dict(in_channels=sum(cfg.neck_channels), num_anchors=num_anchors, num_classes=cfg.num_classes)
     match cfg.head:
@@ -102,7 +105,9 @@ def build_model(cfg: ModelConfig) -> PointPillars:
     )
 
 
-def _sparse_backbone(cfg: ModelConfig, *, sparse_blocks: int, first_subm_kernel: int) -> SparseBackboneNeck:
+def _sparse_backbone(
+    cfg: ModelConfig, *, sparse_blocks: int, first_subm_kernel: int, down_kernel: int = 2
+) -> SparseBackboneNeck:
     """The sparse backbone + neck module (one module: its neck reads the sparse blocks' active sites)."""
     return SparseBackboneNeck(
         in_channels=cfg.pfn_channels,
@@ -112,5 +117,6 @@ def _sparse_backbone(cfg: ModelConfig, *, sparse_blocks: int, first_subm_kernel:
         upsample_strides=cfg.upsample_strides,
         sparse_blocks=sparse_blocks,
         first_subm_kernel=first_subm_kernel,
+        down_kernel=down_kernel,
         downsample=cfg.downsample,
     )

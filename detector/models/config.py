@@ -21,8 +21,10 @@ from mpchair.config import from_dict, load_yaml
 from mpchair.errors import InputError
 from mpchair.geometry import grid_size
 
-Backbone = Literal["dense", "sparse", "sparse1_dense23", "sparse12_dense3", "sparse_wide"]
-"""Middle of the network: the dense SECOND backbone + FPN, or one of the sparse variants of the paper."""
+Backbone = Literal["dense", "sparse", "sparse1_dense23", "sparse12_dense3", "sparse_wide", "sparse_wide_down"]
+"""Middle of the network: the dense SECOND backbone + FPN, or one of the sparse variants of the paper. Sparse+WideConv
+comes twice: ``sparse_wide`` as the paper's text describes it (the first SubM of every block 9x9) and
+``sparse_wide_down`` as the released code builds it (a 9x9 stride-2 down-conv opening every block)."""
 
 Downsample = Literal["floor", "reference_quirk"]
 """Sparse 2x2 stride-2 semantics: ``floor`` (paper, default) or the reference's MinkowskiEngine expand quirk."""
@@ -244,6 +246,9 @@ def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
             fail(f"upsample_strides[{i}]: {u} does not bring level {i} (stride {cum}) to stride {cfg.layer_strides[0]}")
     if cfg.backbone != "dense" and cfg.layer_strides != (2, 2, 2):
         fail(f"layer_strides: sparse backbones use 2x2 stride-2 down-convs, got {list(cfg.layer_strides)}")
+    if cfg.backbone == "sparse_wide_down" and cfg.downsample != "floor":
+        fail(f"downsample: {cfg.downsample!r} applies to 2x2 down-convs; sparse_wide_down's 9x9 down-conv has one "
+             "output set (MinkowskiEngine's for odd kernels), use floor")
     if cfg.max_points_per_pillar < 1 or cfg.max_pillars_train < 1 or cfg.max_pillars_test < 1:
         fail("max_points_per_pillar / max_pillars_*: must be >= 1")
     if cfg.num_classes < 1:

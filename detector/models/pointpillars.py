@@ -25,7 +25,7 @@ from detector.models.head import AnchorHead, HeadOutput
 from detector.models.losses import compute_loss
 from detector.models.pillar_net import PillarFeatureNet
 from detector.models.postprocess import Detections, postprocess
-from detector.models.scatter import scatter_to_canvas
+from detector.models.scatter import canvas_channels_last, scatter_to_canvas
 from detector.models.voxelizer import Voxels, voxelize
 
 
@@ -100,17 +100,15 @@ class PointPillars(nn.Module):
 
     # --- Feature Net --------------------------------------------------------------------------------------------
     def feature_net(self, features: torch.Tensor, coords: torch.Tensor, batch_size: int):
-        """Dense: scatter into a (B, 64, ny, nx) canvas. Sparse: wrap as ``SparseTensor`` (no canvas is built)."""
+        """Dense: scatter into one (B, 64, ny, nx) canvas. Sparse: wrap as ``SparseTensor`` (no canvas is built)."""
         if self.sparse_input:
             from detector.sparse import SparseTensor
 
             return SparseTensor(features, coords, self.output_shape, batch_size)
-        # Under bf16 autocast (train.precision: bf16) the canvas goes channels-last: oneDNN's bf16 convolutions run
-        # the dense backbone + neck + head about 1.25x faster on NHWC than on NCHW (forward + backward, 288 x 144
-        # map; docs/training.md "Precision"). fp32 keeps the reference's NCHW, so the timed paths are unchanged.
-        dev = features.device.type
-        bf16 = torch.is_autocast_enabled(dev) and torch.get_autocast_dtype(dev) == torch.bfloat16
-        return scatter_to_canvas(features, coords, batch_size, self.output_shape, channels_last=bf16)
+        # channels-last for inference and bf16 training, NCHW for fp32 training (the faster layout of each; see
+        # detector.models.scatter): at inference the dense and the sparse model hand the head the same layout
+        cl = canvas_channels_last(features.device.type)
+        return scatter_to_canvas(features, coords, batch_size, self.output_shape, channels_last=cl)
 
     # --- Backbone -------------------------------------------------------------------------------------------------
     def backbone_neck(self, x) -> tuple[torch.Tensor, torch.Tensor | None]:

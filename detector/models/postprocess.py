@@ -27,6 +27,17 @@ class Detections(NamedTuple):
     labels: torch.Tensor
 
 
+def anchor_rows(m: torch.Tensor, idx: torch.Tensor, size: int) -> torch.Tensor:
+    """One sample's (H, W, A*size) head map and anchor indices (k,) (anchor ``(iy * W + ix) * A + a``) → (k, size).
+
+    Gathers the k rows from a view of the map: the head's maps are channel slices of one (H, W, O) output, which
+    ``reshape(-1, size)`` would first copy whole (5.5 MB for the Matterport reg map).
+    """
+    cells = m.flatten(0, 1).unflatten(1, (-1, size))  # (H*W, A, size), a view for channel slices
+    a = cells.shape[1]
+    return cells[torch.div(idx, a, rounding_mode="floor"), idx % a]
+
+
 @torch.no_grad()
 def postprocess(
     cls: torch.Tensor,
@@ -47,9 +58,7 @@ def postprocess(
     score vector, so the dense head and the exact sparse head select the same anchors. Runs without autograd.
     """
     b = cls.shape[0]
-    scores_all = torch.sigmoid(cls.reshape(b, -1, num_classes))
-    reg_all = reg.reshape(b, -1, 7)
-    dir_all = dir.reshape(b, -1, 2)
+    scores_all = torch.sigmoid(cls).reshape(b, -1, num_classes)
     if scores_all.shape[1] != anchors.shape[0]:
         raise ValueError(f"postprocess: {scores_all.shape[1]} predicted anchors but {anchors.shape[0]} anchors")
     out = []
@@ -57,8 +66,8 @@ def postprocess(
         scores = scores_all[i]
         k = min(nms_pre, scores.shape[0])
         top = torch.topk(scores.max(dim=1).values, k).indices
-        scores, boxes = scores[top], decode_boxes(reg_all[i, top], anchors[top])
-        dir_bin = dir_all[i, top].argmax(dim=1)
+        scores, boxes = scores[top], decode_boxes(anchor_rows(reg[i], top, 7), anchors[top])
+        dir_bin = anchor_rows(dir[i], top, 2).argmax(dim=1)
         keep_boxes, keep_scores, keep_labels = [], [], []
         for c in range(num_classes):
             mask = scores[:, c] > score_thr

@@ -6,9 +6,11 @@ Input: a ``detector.sparse.SparseTensor`` of pillar features on the (ny, nx) pse
     SparseConv2d 2x2 stride 2 → BN → ReLU → L_i x (SubMConv2d 3x3 → BN → ReLU)
 
 with BatchNorm over the active sites only (pooled over the batch) and no conv biases. The first SubM of each block
-has ``first_subm_kernel`` (9 for Sparse+WideConv, the paper's text). Neck level i: a transposed conv with kernel =
-stride = u_i (1/2/4) evaluated on the **block-1 active set**, BN, ReLU; the levels are concatenated and scattered into
-one zero canvas (B, 384, ny/2, nx/2), so every inactive site is exactly zero and the active mask is the block-1 set.
+has ``first_subm_kernel`` (9 for Sparse+WideConv as the paper's text describes it); ``down_kernel=9`` makes the
+down-conv 9x9 stride 2 instead (Sparse+WideConv as the released code builds it). Neck level i: a transposed conv
+with kernel = stride = u_i (1/2/4) evaluated on the **block-1 active set**, BN, ReLU; the levels are concatenated and
+scattered into one zero canvas (B, 384, ny/2, nx/2), so every inactive site is exactly zero and the active mask is the
+block-1 set.
 
 Ablations (``sparse_blocks``): 1 = Sparse1+Dense23, 2 = Sparse12+Dense3. The sparse blocks/levels run as above; the
 last sparse block is densified and the remaining blocks are the dense SECOND blocks (3x3 stride-2 conv first, from
@@ -26,6 +28,7 @@ from torch import Tensor, nn
 
 from detector.models.backbone import dense_block
 from detector.models.neck import upsample_block
+from detector.models.scatter import canvas_channels_last
 from detector.sparse import (
     SparseBatchNorm,
     SparseConv2d,
@@ -45,6 +48,7 @@ def sparse_block(
     num_layers: int,
     *,
     first_subm_kernel: int = 3,
+    down_kernel: int = 2,
     downsample: Downsample = "floor",
     indice_key: str = "subm",
     bn_eps: float = 1e-3,
@@ -52,11 +56,12 @@ def sparse_block(
 ) -> SparseSequential:
     """One sparse block: SparseConv2d(2x2, stride 2) → BN → ReLU, then ``num_layers`` x (SubMConv2d → BN → ReLU).
 
-    SparseTensor on (H, W) → SparseTensor on (H/2, W/2) with sites ``unique(floor(c / 2))``. All SubM convs of the
-    block share one neighbour table per kernel size through ``indice_key``.
+    SparseTensor on (H, W) → SparseTensor on (H/2, W/2) with sites ``unique(floor(c / 2))``; ``down_kernel=9``: a 9x9
+    stride-2 down-conv (padding 4) instead, whose sites are every site with an input in its window. All SubM convs of
+    the block share one neighbour table per kernel size through ``indice_key``.
     """
     layers: list[nn.Module] = [
-        SparseConv2d(in_channels, out_channels, 2, 2, downsample=downsample),
+        SparseConv2d(in_channels, out_channels, down_kernel, 2, downsample=downsample),
         SparseBatchNorm(out_channels, eps=bn_eps, momentum=bn_momentum),
         SparseReLU(),
     ]
@@ -109,7 +114,10 @@ class SparseBackboneNeck(nn.Module):
             ``2**i`` (each level lands on the block-1 resolution).
         sparse_blocks: how many leading blocks (and neck levels) are sparse: 3 = Sparse PointPillars, 2 =
             Sparse12+Dense3, 1 = Sparse1+Dense23.
-        first_subm_kernel: kernel of the first SubM conv of every sparse block (3; 9 = Sparse+WideConv).
+        first_subm_kernel: kernel of the first SubM conv of every sparse block (3; 9 = Sparse+WideConv as the paper's
+            text describes it).
+        down_kernel: kernel of every sparse block's stride-2 down-conv (2; 9 = Sparse+WideConv as the released code
+            builds it: a 9x9 stride-2 down-conv, padding 4, with 3x3 SubMs after it).
         downsample: ``"floor"`` (paper) or ``"reference_quirk"`` (the released code's MinkowskiEngine output sites).
         bn_eps, bn_momentum: every BatchNorm (reference: 1e-3, 0.01).
 
@@ -127,6 +135,7 @@ class SparseBackboneNeck(nn.Module):
         upsample_strides: Sequence[int] = (1, 2, 4),
         sparse_blocks: int = 3,
         first_subm_kernel: int = 3,
+        down_kernel: int = 2,
         downsample: Downsample = "floor",
         bn_eps: float = 1e-3,
         bn_momentum: float = 0.01,
@@ -153,6 +162,7 @@ class SparseBackboneNeck(nn.Module):
                 layer_channels[i],
                 layer_nums[i],
                 first_subm_kernel=first_subm_kernel,
+                down_kernel=down_kernel,
                 downsample=downsample,
                 indice_key=f"subm{i + 1}",
                 bn_eps=bn_eps,
@@ -181,7 +191,7 @@ class SparseBackboneNeck(nn.Module):
         """SparseTensor on (ny, nx) → ((B, 384, ny/2, nx/2) map, (B, ny/2, nx/2) bool active set or None).
 
         The map of the all-sparse model is in ``torch.channels_last`` memory format (``.contiguous()`` gives NCHW
-        strides); the ablations return a contiguous map."""
+        strides); the ablations' map has the layout of :func:`detector.models.scatter.canvas_channels_last`."""
         sparse_outs: list[SparseTensor] = []
         for block in self.blocks[: self.sparse_blocks]:
             x = block(x)
@@ -197,8 +207,13 @@ class SparseBackboneNeck(nn.Module):
             # 1x1 head 48 → 20 ms, exact sparse head gather 3.6 → 0.9 ms at 1 thread; docs/sparse.md).
             hwc = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=False)
             return hwc.permute(0, 3, 1, 2), target.active_mask()
-        canvas = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size)
-        d = x.dense()
+        # the dense tail runs in the layout of the dense model's canvas (channels-last at inference, see
+        # detector.models.scatter), so the head gets the same layout from every model
+        cl = canvas_channels_last(feats.device.type)
+        canvas = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=not cl)
+        d = x.dense(channels_first=not cl)
+        if cl:
+            canvas, d = canvas.permute(0, 3, 1, 2), d.permute(0, 3, 1, 2)
         maps = [canvas]
         for block, deblock in zip(self.blocks[self.sparse_blocks :], self.deblocks[self.sparse_blocks :]):
             d = block(d)

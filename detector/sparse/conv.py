@@ -10,6 +10,8 @@ Semantics (``x`` zero-filled outside its active sites, ``dense`` = ``x.dense()``
 - ``SubMConv2d``: output sites = input sites; value = ``F.conv2d(dense, w, padding=k // 2)`` at those sites.
 - ``SparseConv2d`` (kernel = stride = s): output sites = ``unique(floor(c / s))``; value = ``F.conv2d(dense, w,
   stride=s)`` there (``downsample="reference_quirk"`` changes the output set only, see ``indices.down_table``).
+  With an odd kernel k > s: output sites = every site whose window holds an input; value = ``F.conv2d(dense, w,
+  stride=s, padding=k // 2)`` there (``indices.wide_down_table``).
 - ``SparseConvTranspose2d`` (kernel = stride = s): evaluated on a given target set; value =
   ``F.conv_transpose2d(dense, w, stride=s)`` at the target sites.
 """
@@ -22,7 +24,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table
+from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
 
@@ -150,14 +152,21 @@ class SubMConv2d(SparseModule):
 
 
 class SparseConv2d(SparseModule):
-    """Non-overlapping down-conv (kernel = stride = s): output sites ``unique(floor(c / s))``, shape ``(H//s, W//s)``.
+    """Strided down-conv to the ``(H//s, W//s)`` grid.
 
-    Every input lands in exactly one output, at kernel slot ``(iy % s, ix % s)``; the layer scatters the inputs into an
-    ``(M, s*s*C)`` matrix and does one matmul with the ``(s*s*C, O)`` weight.
+    Kernel = stride = s (the paper's 2x2): output sites ``unique(floor(c / s))``; every input lands in exactly one
+    output, at kernel slot ``(iy % s, ix % s)``; the layer scatters the inputs into an ``(M, s*s*C)`` matrix and does
+    one matmul with the ``(s*s*C, O)`` weight.
+
+    Odd kernel k > s (the released code's 9x9 stride-2 Sparse+WideConv down-conv): ``padding = k // 2``; output sites
+    are every site whose k x k window holds an input (``indices.wide_down_table``), value ``F.conv2d(dense, w,
+    stride=s, padding=k // 2)`` there; computed per weight tap (gather, matmul, one ``index_add``).
 
     Args:
-        downsample: ``"floor"`` (standard, the paper) or ``"reference_quirk"`` (MinkowskiEngine's
-            ``expand_coordinates`` output set, as the released code ran it; see ``indices.down_table``).
+        downsample: for kernel = stride, ``"floor"`` (standard, the paper) or ``"reference_quirk"``
+            (MinkowskiEngine's ``expand_coordinates`` output set, as the released code ran it; see
+            ``indices.down_table``). An odd kernel has one semantics (it is ME's for odd kernels) and takes
+            ``"floor"`` only.
     """
 
     def __init__(
@@ -170,10 +179,13 @@ class SparseConv2d(SparseModule):
         downsample: Downsample = "floor",
     ) -> None:
         super().__init__()
-        if kernel_size != stride:
-            raise ValueError(f"SparseConv2d supports kernel_size == stride only, got {kernel_size} and {stride}")
+        if kernel_size != stride and (kernel_size % 2 != 1 or kernel_size < stride):
+            raise ValueError(f"SparseConv2d needs kernel_size == stride or an odd kernel_size > stride, got "
+                             f"{kernel_size} and {stride}")
         if downsample not in ("floor", "reference_quirk"):
             raise ValueError(f"unknown downsample mode {downsample!r}")
+        if kernel_size != stride and downsample != "floor":
+            raise ValueError(f"downsample {downsample!r} applies to kernel_size == stride only")
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.kernel_size = kernel_size
@@ -187,12 +199,30 @@ class SparseConv2d(SparseModule):
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"expected {self.in_channels} input channels, got {x.features.shape[1]}")
         s, c, o = self.stride, self.in_channels, self.out_channels
+        if self.kernel_size != s:
+            return self._wide(x)
         t = down_table(x.coords, x.spatial_shape, s, self.downsample)
         m = t.out_coords.shape[0]
         f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
         # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and deterministic
         buf = f.new_zeros(m * s * s, c).index_put((t.out_rows * (s * s) + t.slots,), f)
         out = buf.view(m, s * s * c) @ _taps_last(self.weight).reshape(o, s * s * c).t()
+        if self.bias is not None:
+            out = out + self.bias
+        return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size)
+
+    def _wide(self, x: SparseTensor) -> SparseTensor:
+        """The odd-kernel path: per tap, the products of its (input, output) pairs, added into the output rows."""
+        k = self.kernel_size
+        t = wide_down_table(x.coords, x.spatial_shape, k, self.stride)
+        order = torch.argsort(t.slots, stable=True)
+        counts = torch.bincount(t.slots, minlength=k * k).tolist()
+        w = _taps_last(self.weight)  # (O, k*k, C)
+        gathered = x.features.index_select(0, t.in_rows[order])
+        parts = [g @ w[:, j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        out = x.features.new_zeros(t.out_coords.shape[0], self.out_channels)
+        if parts:
+            out = out.index_add(0, t.out_rows[order], torch.cat(parts, dim=0))
         if self.bias is not None:
             out = out + self.bias
         return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size)

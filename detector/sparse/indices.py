@@ -156,10 +156,12 @@ def subm_table(coords: Tensor, spatial_shape: tuple[int, int], lookup: SiteLooku
 
 @dataclass
 class DownTable:
-    """Rulebook of a non-overlapping down-conv (kernel = stride = s).
+    """Rulebook of a strided down-conv: input row ``in_rows[j]`` feeds output row ``out_rows[j]`` through kernel slot
+    ``slots[j]``.
 
-    Input row ``in_rows[j]`` lands in output row ``out_rows[j]`` at kernel slot ``slots[j] = (iy % s) * s + ix % s``.
-    Each (output, slot) pair occurs at most once, so the scatter needs no accumulation.
+    Non-overlapping (kernel = stride = s, :func:`down_table`): one pair per input, slot ``(iy % s) * s + ix % s``; each
+    (output, slot) pair occurs at most once, so the scatter needs no accumulation. Wide (odd kernel k > s,
+    :func:`wide_down_table`): slot ``ky * k + kx``, several pairs per input.
     """
 
     out_coords: Tensor  # (M, 3) int64, sorted by key
@@ -212,6 +214,34 @@ def down_table(
         hit = out_rows >= 0
         return DownTable(keys_to_coords(out_keys, (ho, wo)), (ho, wo), rows[hit], out_rows[hit], slots[hit])
     raise ValueError(f"unknown downsample mode {downsample!r} (expected 'floor' or 'reference_quirk')")
+
+
+def wide_down_table(coords: Tensor, spatial_shape: tuple[int, int], kernel_size: int, stride: int) -> DownTable:
+    """Output sites and rulebook of a ``k`` x ``k`` stride-``s`` sparse conv with ``padding = k // 2`` (odd ``k > s``).
+
+    The output set is every site of the ``(H // s, W // s)`` grid whose ``k`` x ``k`` window (rows ``s q - k//2 ..
+    s q + k//2``) holds an active input: exactly the sites where ``F.conv2d(dense, w, stride=s, padding=k // 2)`` can
+    be non-zero. That is MinkowskiEngine's ``expand_coordinates=True`` set for an odd kernel (its output sites are the
+    stride-aligned ``p + offset``, and an output gathers the same symmetric window), restricted to the grid. An input
+    meets up to ``ceil(k / s)^2`` outputs: pair ``j`` says input row ``in_rows[j]`` feeds output row ``out_rows[j]``
+    through weight tap ``slots[j] = ky * k + kx``.
+    """
+    if kernel_size % 2 != 1 or kernel_size <= stride:
+        raise ValueError(f"wide down-conv needs an odd kernel_size > stride, got {kernel_size} and stride {stride}")
+    h, w = spatial_shape
+    s, k, p = stride, kernel_size, kernel_size // 2
+    ho, wo = h // s, w // s
+    d = torch.arange(k, device=coords.device, dtype=torch.int64)
+    # input c reaches output q through tap d when s * q - p + d == c, i.e. s * q = c + p - d
+    sy = coords[:, 1:2] + p - d[None, :]  # (N, k) candidates s * q_y per tap row
+    sx = coords[:, 2:3] + p - d[None, :]
+    vy = (sy % s == 0) & (sy >= 0) & (sy < s * ho)
+    vx = (sx % s == 0) & (sx >= 0) & (sx < s * wo)
+    rows, ty, tx = torch.nonzero(vy[:, :, None] & vx[:, None, :], as_tuple=True)
+    oy = torch.div(sy[rows, ty], s, rounding_mode="floor")
+    ox = torch.div(sx[rows, tx], s, rounding_mode="floor")
+    out_keys, out_rows = torch.unique((coords[rows, 0] * ho + oy) * wo + ox, sorted=True, return_inverse=True)
+    return DownTable(keys_to_coords(out_keys, (ho, wo)), (ho, wo), rows, out_rows, ty * k + tx)
 
 
 @dataclass
