@@ -251,16 +251,18 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
 
     assert report.startswith("# Results") and "1 synthetic houses x 4 frames" in report
     assert "epochs dense 2 / sparse 3" in report and "training precision fp32" in report
-    # AP: the eval outputs (Moderate = index 1) in the targets and the detection table, rows per model
+    # AP: the eval outputs' Overall level in the targets; Overall and then Easy / Moderate / Hard in the detection
+    # section, one row per model in each table
     ev = {m: json.loads((res / f"eval_{m}" / "metrics.json").read_text())["Chair"] for m in ("dense", "sparse")}
-    d3, s3 = ev["dense"]["3d"]["R40"][1], ev["sparse"]["3d"]["R40"][1]
-    assert row("| dense 3D AP, Moderate, R40 |").endswith(f"| {d3:.2f} |")
-    assert row("| sparse - dense, 3D AP Moderate R40 |").endswith(f"| {s3 - d3:+.2f} |")
+    d3, s3 = ev["dense"]["3d"]["overall"]["R40"], ev["sparse"]["3d"]["overall"]["R40"]
+    assert row("| dense 3D AP, Overall R40 |").endswith(f"| {d3:.2f} |")
+    assert row("| sparse - dense, 3D AP Overall R40 |").endswith(f"| {s3 - d3:+.2f} |")
     for m in ("dense", "sparse"):
-        (r,) = [ln for ln in section("Detection").splitlines() if ln.startswith(f"| {m} |")]
+        first, levels = [ln for ln in section("Detection").splitlines() if ln.startswith(f"| {m} |")][:2]
         for kind in ("bev", "3d"):
             for recall in ("R40", "R11"):
-                assert " / ".join(f"{v:.2f}" for v in ev[m][kind][recall][:3]) in r, (m, kind, recall)
+                assert f"{ev[m][kind]['overall'][recall]:.2f}" in first, (m, kind, recall)
+                assert " / ".join(f"{v:.2f}" for v in ev[m][kind][recall][:3]) in levels, (m, kind, recall)
     # the validation records of both training logs (every epoch), Moderate BEV and 3D AP
     for m in ("dense", "sparse"):
         evals = [json.loads(x) for x in (runs / m / "metrics.jsonl").read_text().splitlines()]
@@ -268,7 +270,8 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         assert [e["epoch"] for e in evals] == list(range(1, epochs[m] + 1))
         for e in evals:
             ap = e["Chair"]
-            assert f"| {m} | {e['epoch']} | {ap['bev']['R40'][1]:.2f} | {ap['3d']['R40'][1]:.2f} |" in lines
+            assert (f"| {m} | {e['epoch']} | {ap['bev']['overall']['R40']:.2f} | {ap['3d']['overall']['R40']:.2f} | "
+                    f"{ap['bev']['R40'][1]:.2f} | {ap['3d']['R40'][1]:.2f} |") in lines
     # density: the stats summary, and the plot copied next to the report
     summary = json.loads((res / "density.json").read_text())  # D per test frame: median, min, max, ...
     assert json.dumps({k: summary[k] for k in ("median", "min", "max")}) in section("Density")
