@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 from helpers_detector import make_tiny_dataset, write_test_config
 
+from mpchair.kitti import read_imageset
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -272,6 +274,13 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
             ap = e["Chair"]
             assert (f"| {m} | {e['epoch']} | {ap['bev']['overall']['R40']:.2f} | {ap['3d']['overall']['R40']:.2f} | "
                     f"{ap['bev']['R40'][1]:.2f} | {ap['3d']['R40'][1]:.2f} |") in lines
+    # the differences from the paper's experiment, read from this run's manifest and run configs
+    diff = section("Differences from the paper's experiment")
+    n = {k: len(read_imageset(data / "ImageSets" / f"{k}.txt")) for k in ("train", "val", "test")}
+    assert f"train {n['train']:,} / val {n['val']:,} / test {n['test']:,}" in diff
+    assert "dense 2 / sparse 3 epochs" in diff and "| precision | fp32 (GPU) | fp32 (dense) / fp32 (sparse) |" in diff
+    table = diff.strip().split("\n\n")[0].splitlines()
+    assert len(table) == 2 + 7 and all(len(ln.split(" | ")) == 4 for ln in table[2:])  # 4 cells, no stray "|"
     # density: the stats summary, and the plot copied next to the report
     summary = json.loads((res / "density.json").read_text())  # D per test frame: median, min, max, ...
     assert json.dumps({k: summary[k] for k in ("median", "min", "max")}) in section("Density")
