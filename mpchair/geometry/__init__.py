@@ -2,7 +2,8 @@
 ``[x, y, z, l, w, h, yaw]`` (geometric centre, ``l`` along the heading, yaw CCW about +z from +x) in the sensor frame
 (x forward, y left, z up, metres) unless a docstring says world frame (Matterport, z up, metres). ``frames`` holds
 angle wrapping and rigid 4×4 transforms, ``boxes`` corners / BEV polygons / point membership, ``camera`` the
-conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule. See
+conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule,
+``region`` the labelled region (box centre height, distance, field of view). See
 ``docs/conventions.md``.
 """
 
@@ -30,10 +31,12 @@ from mpchair.geometry.frames import (
     yaw_of,
 )
 from mpchair.geometry.pillars import grid_size, pillar_coords
+from mpchair.geometry.region import REGION_TESTS, in_region, region_failures
 
 __all__ = [
     "BOX_EDGES",
     "NEAR_PLANE",
+    "REGION_TESTS",
     "SENSOR_TO_CAMERA",
     "bev_polygons",
     "box_corners",
@@ -41,6 +44,7 @@ __all__ = [
     "boxes_to_kitti_camera",
     "fov_mask",
     "grid_size",
+    "in_region",
     "invert_rigid",
     "kitti_camera_to_boxes",
     "labels_to_boxes",
@@ -48,6 +52,7 @@ __all__ = [
     "pillar_coords",
     "points_in_boxes",
     "project_boxes_to_image",
+    "region_failures",
     "rigid_from",
     "transform_boxes",
     "rotate_vectors",
