@@ -17,8 +17,15 @@ from mpchair.errors import InputError
 @click.option("--results", type=click.Path(path_type=Path),
               help="Offline outputs of any detector: RESULTS/NN/NNNNNN.txt, 16-column KITTI result files.")
 @click.option("--oracle", is_flag=True, help="A perfect detector: each frame's own labels with score 1.")
-@click.option("--latency", "latency_kind", type=click.Choice(["measured"]), default=None,
-              help="Measure the model's runtime per processed frame on this machine (the default for a model).")
+@click.option("--latency", "latency_kind", default=None, metavar="measured|LOG.json",
+              help="measured: time the model per processed frame on this machine (the default for a model); or a "
+                   "latency log written by --latency-log, replayed exactly.")
+@click.option("--latency-log", type=click.Path(path_type=Path), default=None,
+              help="With measured latency: write the per-frame latencies (and the machine) to this JSON file.")
+@click.option("--save-results", type=click.Path(path_type=Path), default=None,
+              help="Write the offline outputs as result files (the --results layout), to rescore without the model.")
+@click.option("--offline/--no-offline", default=True, show_default=True,
+              help="Run the model on every frame for the offline AP; --no-offline runs it only on processed frames.")
 @click.option("--latency-ms", type=float, default=None, help="A constant latency for every frame, milliseconds.")
 @click.option("--mode", type=click.Choice(["ego", "raw"]), default="ego", show_default=True,
               help="ego: move stale boxes by the robot's relative pose (perfect odometry); raw: use them as they are.")
@@ -36,8 +43,8 @@ from mpchair.errors import InputError
               help="Also write a Rerun recording (.rrd): points, labels, pose and the boxes the detector had at each "
                    "moment, stale and ego-compensated (needs the rerun extra).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency_ms, mode, schedule, repeats, warmup,
-                threads, device, json_out, rerun_out, quiet) -> None:
+def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency_log, save_results, offline,
+                latency_ms, mode, schedule, repeats, warmup, threads, device, json_out, rerun_out, quiet) -> None:
     """Streaming AP: score each frame of a robot's stream with the latest output the detector had emitted by its
     capture time, pooled over all frames with the KITTI evaluator (Chair, 3D and BEV, IoU 0.5, R40 and R11, every
     box counted).
@@ -50,10 +57,16 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
       detector stream-eval --data stream/ --results offline/ --latency-ms 120 --rerun stream.rrd
     """
     from detector.stream import prepare, read_stream, score
-    from detector.stream.run import source_from_options
+    from detector.stream.run import read_latency_log, source_from_options
+    from detector.stream.run import save_results as write_results
 
     if latency_kind is not None and latency_ms is not None:
-        raise InputError("give either --latency measured or --latency-ms, not both")
+        raise InputError("give either --latency or --latency-ms, not both")
+    replay = None
+    if latency_kind is not None and latency_kind != "measured":
+        replay = read_latency_log(latency_kind)
+    if latency_log is not None and (replay is not None or latency_ms is not None):
+        raise InputError("--latency-log records measured latencies; it cannot go with --latency-ms or a replayed log")
     if rerun_out is not None:
         from mpchair.rerun_log import check_rerun_path
 
@@ -62,9 +75,15 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         raise InputError("--json must name a .json file (or '-')", json_out)
     source = source_from_options(config, checkpoint, results, oracle, device, threads)
     stream = read_stream(data)
-    prep = prepare(stream, source, latency_ms=latency_ms, schedule=schedule, repeats=repeats, warmup=warmup,
-                   progress=not quiet)
+    prep = prepare(stream, source, latency_ms=latency_ms, latency_log=replay, schedule=schedule, repeats=repeats,
+                   warmup=warmup, offline=offline, progress=not quiet)
     summary = score(prep, mode)
+    if save_results is not None:
+        write_results(prep, save_results)
+    if latency_log is not None:
+        from mpchair.atomic import write_text
+
+        write_text(latency_log, json.dumps(prep.latency_log, sort_keys=True, indent=1) + "\n")
     text = json.dumps(summary, sort_keys=True, indent=1) + "\n"
     if rerun_out is not None:
         from detector.stream.rerun import log_stream_eval
@@ -85,10 +104,11 @@ def format_summary(s: dict) -> str:
     lines = [f"streaming evaluation: {s['frames']} frames in {s['sequences']} sequences at {s['rate_hz']:g} Hz, "
              f"mode {s['mode']}, schedule {s['schedule']}"]
     for cls, m in s["sAP"].items():
-        off = s["offline_AP"][cls]
         lines.append(f"{cls} ({s['num_gt'][cls]} boxes)        R40 3D    R40 BEV    R11 3D    R11 BEV")
-        lines.append(f"  offline AP          {off['3d']['R40']:8.2f} {off['bev']['R40']:10.2f} "
-                     f"{off['3d']['R11']:9.2f} {off['bev']['R11']:10.2f}")
+        if s["offline_AP"] is not None:
+            off = s["offline_AP"][cls]
+            lines.append(f"  offline AP          {off['3d']['R40']:8.2f} {off['bev']['R40']:10.2f} "
+                         f"{off['3d']['R11']:9.2f} {off['bev']['R11']:10.2f}")
         lines.append(f"  sAP                 {m['3d']['R40']:8.2f} {m['bev']['R40']:10.2f} "
                      f"{m['3d']['R11']:9.2f} {m['bev']['R11']:10.2f}")
     lat, st, sf = s["latency_ms"], s["staleness_ms"], s["staleness_frames"]

@@ -118,11 +118,14 @@ class ModelRunner:
         keep = np.isin(names, self.classes)
         return Output(boxes[keep], scores[keep], names[keep])
 
-    def latency_us(self, frame, repeats: int = 3) -> int:
-        """Median wall time (integer microseconds) of :meth:`run` on ``frame`` over ``repeats`` runs."""
-        times = []
+    def measure(self, frame, repeats: int = 3) -> tuple[Output, int]:
+        """``(output, latency)``: :meth:`run` ``repeats`` times on ``frame``; the latency is the median wall time in
+        integer microseconds, the output the first run's (inference is deterministic)."""
+        times, out = [], None
         for _ in range(repeats):
             t0 = time.perf_counter()
-            self.run(frame)
+            result = self.run(frame)
             times.append(time.perf_counter() - t0)
-        return int(round(float(np.median(times)) * 1e6))
+            if out is None:
+                out = result
+        return out, int(round(float(np.median(times)) * 1e6))

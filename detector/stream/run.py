@@ -9,7 +9,8 @@ both modes. With a constant latency everything is a pure function of the inputs 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -44,10 +45,15 @@ class Source:
         return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
 
 
+LATENCY_LOG_FORMAT = "mpchair-stream-latency/1"
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Prepared:
     """Mode-independent state: per sequence the frames' ground truth (``gts`` label_2 rows, ``valid`` / ``dontcare``
-    sensor-frame boxes, ``calibs``), ``outputs`` per frame and the ``schedules``; plus how latency was obtained."""
+    sensor-frame boxes, ``calibs``), ``outputs`` per frame (``None`` for frames a model never ran on when the offline
+    pass was skipped) and the ``schedules``; how latency was obtained (``latency``: ``measured``, ``constant`` or
+    ``log``) and the per-frame ``latency_log`` measured or replayed (JSON data; ``None`` for a constant)."""
 
     stream: Stream
     source: Source
@@ -57,13 +63,13 @@ class Prepared:
     valid: list[list[np.ndarray]]
     dontcare: list[list[np.ndarray]]
     calibs: list[list[Calib]]
-    outputs: list[list[Output]]
+    outputs: list[list[Output | None]]
     schedules: list[Schedule]
     schedule: str
     latency: str
     latency_ms: float | None
-    repeats: int | None
-    machine: dict | None
+    latency_log: dict | None
+    offline: bool
 
 
 def _ground_truth(stream: Stream, classes: Sequence[str]):
@@ -87,13 +93,33 @@ def _ground_truth(stream: Stream, classes: Sequence[str]):
     return gts, valid, dcs, calibs
 
 
-def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, schedule: str = "single",
-            repeats: int = 3, warmup: int = 10, progress: bool = False) -> Prepared:
+def read_latency_log(path: str | Path) -> dict:
+    """A latency log written by ``--latency-log`` (``{"format", "machine", "repeats", "sequences": {seq: {frame id:
+    microseconds}}}``); a foreign or malformed file is an :class:`InputError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("latency log not found (give 'measured' or a file written by --latency-log)", path)
+    try:
+        log = json.loads(path.read_text(encoding="utf-8"))
+        ok = log.get("format") == LATENCY_LOG_FORMAT and all(
+            isinstance(us, int) and us >= 0 for seq in log["sequences"].values() for us in seq.values())
+    except (json.JSONDecodeError, AttributeError, KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise InputError(f"not a latency log ({LATENCY_LOG_FORMAT} with integer microseconds per frame)", path)
+    return log
+
+
+def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, latency_log: dict | None = None,
+            schedule: str = "single", repeats: int = 3, warmup: int = 10, offline: bool = True,
+            progress: bool = False) -> Prepared:
     """Offline outputs, latencies and schedules of ``stream`` (see the module docstring).
 
-    ``latency_ms`` ``None`` measures a model's latency per processed frame (median of ``repeats`` runs, after
-    ``warmup`` runs on the first frames); a number is a constant latency for every frame. Bad combinations (measuring
-    result files or the oracle, a negative latency, an unknown schedule) are :class:`InputError`.
+    Latency: ``latency_ms`` a constant for every frame; else ``latency_log`` (:func:`read_latency_log`) replays
+    logged per-frame latencies; else a model's runtime is measured per processed frame (median of ``repeats`` runs,
+    after ``warmup`` runs on the first frames). ``offline`` False skips a model's pass over every frame (no offline
+    AP; the model then runs only on the frames the schedule processes). Bad combinations (measuring result files or
+    the oracle, a negative latency, a log without a processed frame, an unknown schedule) are :class:`InputError`.
     """
     from tqdm import tqdm
 
@@ -101,9 +127,10 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
         raise InputError(f"unknown schedule {schedule!r} ({' or '.join(SCHEDULES)})")
     if latency_ms is not None and not latency_ms >= 0:
         raise InputError(f"--latency-ms must be >= 0, got {latency_ms}")
-    if latency_ms is None and source.kind != "model":
+    measured = latency_ms is None and latency_log is None
+    if measured and source.kind != "model":
         raise InputError(f"--latency measured needs a model (--config and --checkpoint); for {source.kind} outputs "
-                         "give --latency-ms")
+                         "give --latency-ms or a latency log")
     if repeats < 1 or warmup < 0:
         raise InputError(f"need repeats >= 1 and warmup >= 0, got {repeats} and {warmup}")
     runner = None
@@ -119,47 +146,75 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
     min_overlaps = {c: min_overlaps.get(c, DEFAULT_MIN_OVERLAPS[c.lower()]) for c in classes}
     gts, valid, dcs, calibs = _ground_truth(stream, classes)
 
+    outputs: list[list[Output | None]]
     if source.kind == "oracle":
         outputs = oracle_outputs(stream, classes)
     elif source.kind == "results":
         outputs = result_outputs(stream, source.results, classes)
     else:
-        outputs = []
-        with tqdm(total=stream.frames, desc="offline outputs", unit="frame", disable=not progress) as bar:
-            for seq in stream.sequences:
-                row = []
-                for i in range(len(seq)):
-                    row.append(runner.run(runner.frame(stream, seq, i)))
-                    bar.update(1)
-                outputs.append(row)
+        outputs = [[None] * len(seq) for seq in stream.sequences]
+        if offline:
+            with tqdm(total=stream.frames, desc="offline outputs", unit="frame", disable=not progress) as bar:
+                for s, seq in enumerate(stream.sequences):
+                    for i in range(len(seq)):
+                        outputs[s][i] = runner.run(runner.frame(stream, seq, i))
+                        bar.update(1)
 
-    machine = None
-    if latency_ms is None:
+    log = None
+    if measured:
         from detector.bench import machine_info
 
         first = stream.sequences[0]
         for w in range(warmup):  # the kernels, caches and allocator settle before anything is timed
             runner.run(runner.frame(stream, first, w % len(first)))
-        machine = machine_info(runner.device)
+        log = {"format": LATENCY_LOG_FORMAT, "machine": machine_info(runner.device), "repeats": repeats,
+               "source": source.describe(), "sequences": {seq.name: {} for seq in stream.sequences}}
     plan = single_worker if schedule == "single" else unbounded_workers
     schedules = []
-    quiet = not progress or latency_ms is not None
-    with tqdm(desc="timed frames", unit="frame", disable=quiet) as bar:  # how many get processed is found out here
-        for seq in stream.sequences:
-            if latency_ms is None:
-                def latency_of(k: int, seq=seq) -> int:
-                    bar.update(1)
-                    return runner.latency_us(runner.frame(stream, seq, k), repeats)
-            else:
-                constant = int(round(latency_ms * 1000))
-
-                def latency_of(k: int, constant=constant) -> int:
-                    return constant
-            schedules.append(plan(seq.times_us, latency_of))
+    with tqdm(desc="timed frames", unit="frame", disable=not (progress and measured)) as bar:
+        for s, seq in enumerate(stream.sequences):
+            schedules.append(plan(seq.times_us, _latency_function(stream, s, runner, outputs, latency_ms, latency_log,
+                                                                  log, repeats, bar)))
+    if runner is not None:  # outputs of processed frames the offline pass skipped
+        for s, (seq, sched) in enumerate(zip(stream.sequences, schedules)):
+            for k in sched.inputs:
+                if outputs[s][k] is None:
+                    outputs[s][k] = runner.run(runner.frame(stream, seq, int(k)))
+    kind = "constant" if latency_ms is not None else "log" if latency_log is not None else "measured"
     return Prepared(stream=stream, source=source, classes=tuple(classes), min_overlaps=min_overlaps, gts=gts,
                     valid=valid, dontcare=dcs, calibs=calibs, outputs=outputs, schedules=schedules, schedule=schedule,
-                    latency="measured" if latency_ms is None else "constant", latency_ms=latency_ms,
-                    repeats=repeats if latency_ms is None else None, machine=machine)
+                    latency=kind, latency_ms=latency_ms, latency_log=log if measured else latency_log,
+                    offline=source.kind != "model" or offline)
+
+
+def _latency_function(stream: Stream, s: int, runner: ModelRunner | None, outputs: list, latency_ms: float | None,
+                      replay: dict | None, log: dict | None, repeats: int, bar) -> Callable[[int], int]:
+    """Frame k's latency (integer microseconds) in sequence ``s``: constant, replayed from a log, or measured (and
+    logged, keeping the timed run's output when the offline pass did not run)."""
+    seq = stream.sequences[s]
+    if latency_ms is not None:
+        constant = int(round(latency_ms * 1000))
+        return lambda k: constant
+    if replay is not None:
+        logged = replay["sequences"].get(seq.name, {})
+
+        def from_log(k: int) -> int:
+            if seq.frame_id(k) not in logged:
+                raise InputError(f"the latency log has no latency for frame {seq.frame_id(k)} of sequence {seq.name} "
+                                 "(it was made on another stream, or with another schedule)")
+            return int(logged[seq.frame_id(k)])
+
+        return from_log
+
+    def measure(k: int) -> int:
+        out, us = runner.measure(runner.frame(stream, seq, k), repeats)
+        if outputs[s][k] is None:
+            outputs[s][k] = out
+        log["sequences"][seq.name][seq.frame_id(k)] = us
+        bar.update(1)
+        return us
+
+    return measure
 
 
 def _stats(values: np.ndarray, scale: float) -> dict[str, float | None]:
@@ -202,8 +257,10 @@ def score(prep: Prepared, mode: str) -> dict:
     sources = query_sources(prep)
     gts = [g for row in prep.gts for g in row]
     stream_result, sap = evaluate_overall(gts, query_labels(prep, mode, sources), prep.classes, prep.min_overlaps)
-    offline = [np.arange(len(seq), dtype=np.int64) for seq in prep.stream.sequences]
-    _, offline_ap = evaluate_overall(gts, query_labels(prep, mode, offline), prep.classes, prep.min_overlaps)
+    offline_ap = None
+    if prep.offline:
+        own = [np.arange(len(seq), dtype=np.int64) for seq in prep.stream.sequences]
+        _, offline_ap = evaluate_overall(gts, query_labels(prep, mode, own), prep.classes, prep.min_overlaps)
     stale_us, stale_frames = [], []
     for seq, src in zip(prep.stream.sequences, sources):
         has = src >= 0
@@ -226,13 +283,14 @@ def score(prep: Prepared, mode: str) -> dict:
         "in_time": round(float(np.count_nonzero(stale_fr_all == 0)) / n, 6),
         "mode": mode,
         "schedule": prep.schedule,
-        "latency": prep.latency if prep.latency_ms is None else {"constant_ms": prep.latency_ms},
+        "latency": {"constant_ms": prep.latency_ms} if prep.latency == "constant" else prep.latency,
         "frames": n,
         "sequences": len(prep.stream.sequences),
         "rate_hz": prep.stream.rate_hz,
         "num_gt": {c: int(stream_result.num_gt[c][0]) for c in prep.classes},
         "source": prep.source.describe(),
-        **({"machine": prep.machine, "repeats": prep.repeats} if prep.machine is not None else {}),
+        **({"machine": prep.latency_log["machine"], "repeats": prep.latency_log["repeats"]}
+           if prep.latency_log is not None else {}),
     }
 
 
@@ -249,3 +307,20 @@ def source_from_options(config: Path | None, checkpoint: Path | None, results: P
     if results is not None:
         return Source("results", results=str(results))
     return Source("oracle")
+
+
+def save_results(prep: Prepared, out: str | Path) -> Path:
+    """Write every frame's offline output as a 16-column KITTI result file ``OUT/NN/NNNNNN.txt`` (rectified camera
+    frame of that frame; the ``--results`` layout), atomically per file. Needs the offline pass."""
+    from detector.infer import boxes_to_results
+    from mpchair.kitti import write_labels
+
+    if not prep.offline:
+        raise InputError("--save-results needs the offline outputs of every frame (leave out --no-offline)")
+    out = Path(out)
+    for s, seq in enumerate(prep.stream.sequences):
+        for i in range(len(seq)):
+            o = prep.outputs[s][i]
+            write_labels(out / seq.name / f"{seq.frame_id(i)}.txt",
+                         boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i], prep.stream.image_size))
+    return out

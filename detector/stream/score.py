@@ -8,10 +8,10 @@ For query frame i answered by the output of frame k (:mod:`detector.stream.sched
   yaw made canonical again (:func:`mpchair.geometry.canonical_yaw`, as the labels are). For ``k == i`` the boxes are
   used as they are (the relative pose is the identity), so a zero latency scores exactly the offline outputs.
 
-Then, in frame i, predictions whose centre lies outside the labelled region are dropped (KITTI labels exist only
-there; a remembered chair behind the robot is no false positive), and so are predictions on a DontCare chair: BEV
-intersection / own area above the class's BEV threshold with a ``label_dontcare`` box, while matching no valid chair
-(BEV IoU above the threshold). KITTI's evaluator applies DontCare to 2D boxes only, so the 3D and BEV metrics would
+Then, in frame i, predictions that match no valid chair (BEV IoU above the class's BEV threshold) are dropped when
+their centre lies outside the labelled region (KITTI labels exist only there; a remembered chair behind the robot is
+no false positive) or when they lie on a DontCare chair (BEV intersection / own area above the threshold with a
+``label_dontcare`` box): KITTI's evaluator applies DontCare to 2D boxes only, so the 3D and BEV metrics would
 otherwise count every detection of a DontCare chair as a false positive. The same rules apply to the offline outputs.
 
 The kept boxes become 16-column KITTI result rows (:func:`detector.infer.boxes_to_results`) and all query frames of
@@ -44,20 +44,27 @@ def moved_boxes(boxes: np.ndarray, pose_from: np.ndarray, pose_to: np.ndarray) -
     return out
 
 
-def dontcare_ignored(pred: np.ndarray, valid: np.ndarray, dontcare: np.ndarray, min_overlap: float) -> np.ndarray:
-    """(P,) bool: predictions (P,7) lying on a DontCare box (D,7) — BEV intersection / own area ``> min_overlap`` —
-    that match no valid box (G,7) with BEV IoU ``> min_overlap``. All boxes in one sensor frame."""
-    out = np.zeros(len(pred), dtype=bool)
-    if len(pred) == 0 or len(dontcare) == 0:
-        return out
-    iou = rotated_iou_bev(pred, dontcare)
-    area_p = pred[:, 3] * pred[:, 4]
-    area_d = dontcare[:, 3] * dontcare[:, 4]
-    inter = iou * (area_p[:, None] + area_d[None, :]) / (1.0 + iou)  # IoU = I / (A + B - I)
-    out = (inter / area_p[:, None] > min_overlap).any(axis=1)
+def unscored(pred: np.ndarray, region: Region, valid: np.ndarray, dontcare: np.ndarray,
+             min_overlap: float) -> np.ndarray:
+    """(P,) bool: predictions (P,7) that are left out of the evaluation of a frame (module docstring): those matching
+    no valid box (G,7) with BEV IoU ``> min_overlap`` whose centre lies outside ``region`` or that lie on a DontCare
+    box (D,7) (BEV intersection / own area ``> min_overlap``). All boxes in the frame's sensor frame.
+
+    A prediction that matches a valid box is always scored: label files round positions to a centimetre, so a chair
+    labelled just inside the region may sit just outside it.
+    """
+    if len(pred) == 0:
+        return np.zeros(0, dtype=bool)
+    drop = ~in_region(pred, region.max_abs_dz, region.max_distance, region.half_fov)
+    if len(dontcare):
+        iou = rotated_iou_bev(pred, dontcare)
+        area_p = pred[:, 3] * pred[:, 4]
+        area_d = dontcare[:, 3] * dontcare[:, 4]
+        inter = iou * (area_p[:, None] + area_d[None, :]) / (1.0 + iou)  # IoU = I / (A + B - I)
+        drop |= (inter / area_p[:, None] > min_overlap).any(axis=1)
     if len(valid):
-        out &= ~(rotated_iou_bev(pred, valid) > min_overlap).any(axis=1)
-    return out
+        drop &= ~(rotated_iou_bev(pred, valid) > min_overlap).any(axis=1)
+    return drop
 
 
 def query_results(out: Output, pose_k: np.ndarray, pose_i: np.ndarray, same_frame: bool, mode: str, region: Region,
@@ -67,8 +74,7 @@ def query_results(out: Output, pose_k: np.ndarray, pose_i: np.ndarray, same_fram
     if len(out.boxes) == 0:
         return Labels.empty(with_score=True)
     boxes = out.boxes if (mode == "raw" or same_frame) else moved_boxes(out.boxes, pose_k, pose_i)
-    keep = in_region(boxes, region.max_abs_dz, region.max_distance, region.half_fov)
-    keep &= ~dontcare_ignored(boxes, valid, dontcare, min_overlap)
+    keep = ~unscored(boxes, region, valid, dontcare, min_overlap)
     return boxes_to_results(boxes[keep], out.scores[keep], out.names[keep], calib, image_size)
 
 

@@ -189,7 +189,7 @@ def _work(task: tuple[str, int]) -> dict:
     points = cast_scan(sensor, _STATE["dirs"], pose, ctx.raycaster)
     dec = apply_scan_points(dec, points, sensor.filters)
     return write_stream_frame(_STATE["out"], seq, f"{i:06d}", ctx.house, dec, points, sensor, int(ep.times_us[i]),
-                              dec.dense_rays + len(points))
+                              dec.dense_rays + len(_STATE["dirs"]))
 
 
 def _init_worker(state: dict) -> None:
