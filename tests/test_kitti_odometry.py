@@ -17,6 +17,8 @@ def test_times_round_trip_exactly(tmp_path):
     assert format_times(np.array([0, 1, 33_333, 12_000_000])) == "0.000000\n0.000001\n0.033333\n12.000000\n"
     (tmp_path / "short.txt").write_text("0\n0.5\n1.25\n")
     assert np.array_equal(read_times(tmp_path / "short.txt"), [0, 500_000, 1_250_000])
+    (tmp_path / "kitti.txt").write_text("0.000000e+00\n1.036160e-01\n2.072319e-01\n1.234567e+02\n")  # KITTI's
+    assert np.array_equal(read_times(tmp_path / "kitti.txt"), [0, 103_616, 207_232, 123_456_700])
 
 
 def test_poses_round_trip(tmp_path):
@@ -29,9 +31,10 @@ def test_poses_round_trip(tmp_path):
 
 @pytest.mark.parametrize("text, line, message", [
     ("0.0\n0.5\n0.5\n", 3, "must increase"),
-    ("0.0\n-0.5\n", 2, "up to 6 decimals"),
-    ("0.0\n0.1234567\n", 2, "up to 6 decimals"),
-    ("0.0\nabc\n", 2, "up to 6 decimals"),
+    ("0.0\n0.0000001\n", 2, "must increase"),
+    ("0.0\n-0.5\n", 2, "expected a time in seconds"),
+    ("0.0\nnan\n", 2, "expected a time in seconds"),
+    ("0.0\nabc\n", 2, "expected a time in seconds"),
 ])
 def test_bad_times_name_the_line(tmp_path, text, line, message):
     (tmp_path / "t.txt").write_text(text)

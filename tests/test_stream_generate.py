@@ -115,6 +115,7 @@ def test_frames_are_generates_labels_at_the_planned_poses(made, house_root):
 
 
 def test_sigkill_then_resume_is_byte_identical(house_root, tmp_path):
+    """Killed and resumed with two workers, the stream equals one made in one go by one process."""
     root, house = house_root
     args = ["--root", str(root), "--house", house.id, "--episodes", "1", "--rate", "1", "--duration", "6",
             "--no-look-around", "--seed", "4"]
@@ -122,7 +123,7 @@ def test_sigkill_then_resume_is_byte_identical(house_root, tmp_path):
     stream(StreamRequest(root=root, houses=(house.id,), episodes=1, out=ref, rate=1.0, duration=6.0,
                          look_around=False, seed=4, progress=False))
     dest = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "mpchair.cli", "stream", *args, "--out", str(dest), "--quiet"]
+    cmd = [sys.executable, "-m", "mpchair.cli", "stream", *args, "--out", str(dest), "--quiet", "--workers", "2"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300

@@ -122,7 +122,8 @@ def results_section(runs: dict, speeds: list[float], rates: list[float], figures
                   "--device cuda` on one)."]
     for axis, xs, key in (("speed", speeds, lambda x: (x, f0)), ("rate", rates, lambda x: (v0, x))):
         unit = "m/s" if axis == "speed" else "Hz"
-        lines += ["", f"sAP 3D R40 against robot {axis} ({'at 10 Hz' if axis == 'speed' else 'at 0.5 m/s'}):", "",
+        what = "robot speed (at 10 Hz)" if axis == "speed" else "sensor rate (at 0.5 m/s)"
+        lines += ["", f"sAP 3D R40 against {what}:", "",
                   f"| {axis} ({unit}) | " + " | ".join(f"{m} {mode}" for m in MODELS for mode in MODES) + " |",
                   "|---|" + "---|" * (len(MODELS) * len(MODES))]
         for x in xs:
@@ -139,7 +140,9 @@ def results_section(runs: dict, speeds: list[float], rates: list[float], figures
                 c = crossover(xs, d, s)
                 if c is None:
                     said = f"sparse does not overtake dense between {xs[0]:g} and {xs[-1]:g} m/s"
-                elif s[0] >= d[0]:
+                elif s[0] == d[0]:
+                    said = f"sparse and dense are level already at {xs[0]:g} m/s"
+                elif s[0] > d[0]:
                     said = f"sparse is ahead of dense already at {xs[0]:g} m/s"
                 else:
                     said = f"sparse overtakes dense at about {c:.2f} m/s"
@@ -166,7 +169,7 @@ def plot_curves(runs: dict, speeds: list[float], rates: list[float], out_dir: Pa
                 pts = [(x, _ap(runs[(m, *key(x), mode)])) for x in xs if (m, *key(x), mode) in runs]
                 if pts:
                     ax.plot(*zip(*pts), style, marker="o", color=color, label=f"{m} {mode}")
-        ax.set_xlabel(f"robot {axis} ({unit})")
+        ax.set_xlabel(f"{'robot speed' if axis == 'speed' else 'sensor rate'} ({unit})")
         ax.set_ylabel("sAP 3D, R40 (%)")
         ax.set_xticks(xs)
         ax.grid(alpha=0.3)
@@ -299,8 +302,8 @@ def main(argv: list[str] | None = None) -> int:
         rel = {k: os.path.relpath(v, doc.parent) for k, v in figures.items()}
         metas = {stream_name(v, f): out / "streams" / stream_name(v, f) / "stream.json" for v, f in points}
         frames = {k: json.loads(p.read_text())["totals"]["frames"] for k, p in metas.items() if p.exists()}
-        note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(houses)} houses x {sc.episodes} "
-                f"episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
+        note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(houses)} house(s) x "
+                f"{sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
                 + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {len(r.commands)} commands this run, "
                 f"{(time.perf_counter() - t0) / 60:.1f} min).")
         write_report(doc, results_section(runs, speeds, rates, rel, note))

@@ -2,12 +2,14 @@
 frame, row-major: 12 numbers per line).
 
 Times are held as int64 **microseconds** and written with exactly 6 decimals, so they survive the text round trip
-unchanged (``emitted <= captured`` comparisons on them are exact). Poses are (4,4) float64 transforms; mpchair writes
-sensor → world (``T_world_from_sensor``).
+unchanged (KITTI's own ``%e`` times are read too, rounded to the microsecond) and ``emitted <= captured``
+comparisons on them are exact. Poses are (4,4) float64 transforms; mpchair writes sensor → world
+(``T_world_from_sensor``).
 """
 
 from __future__ import annotations
 
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -22,24 +24,27 @@ def format_times(times_us: np.ndarray) -> str:
 
 
 def read_times(path: str | Path) -> np.ndarray:
-    """(N,) int64 microseconds of a ``times.txt`` (``seconds[.fraction]`` per line, up to 6 decimals), strictly
+    """(N,) int64 microseconds of a ``times.txt`` (one non-negative time in seconds per line: ``12.345678`` as mpchair
+    writes it, or KITTI's ``1.234568e+01``; read exactly as decimals and rounded to the microsecond), strictly
     increasing; anything else is an :class:`InputError` naming the line."""
     path = Path(path)
     if not path.is_file():
         raise InputError("times file not found", path)
     out = []
     for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        s = line.strip()
-        whole, dot, frac = s.partition(".")
-        if not (whole.isdigit() and (not dot or (frac.isdigit() and len(frac) <= 6))):
-            raise InputError(f"expected a time in seconds with up to 6 decimals, got {s!r}", path, n)
-        out.append(int(whole) * 1_000_000 + (int(frac.ljust(6, "0")) if dot else 0))
+        try:
+            seconds = Decimal(line.strip())
+        except InvalidOperation:
+            seconds = Decimal("NaN")
+        if not seconds.is_finite() or seconds < 0:
+            raise InputError(f"expected a time in seconds (>= 0), got {line.strip()!r}", path, n)
+        out.append(int((seconds * 1_000_000).to_integral_value(ROUND_HALF_EVEN)))
     t = np.array(out, dtype=np.int64)
     if len(t) == 0:
         raise InputError("no capture times", path)
     bad = np.flatnonzero(np.diff(t) <= 0)
     if len(bad):
-        raise InputError("capture times must increase", path, int(bad[0]) + 2)
+        raise InputError("capture times must increase (after rounding to the microsecond)", path, int(bad[0]) + 2)
     return t
 
 
