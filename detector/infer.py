@@ -127,17 +127,25 @@ def recalibrate_batchnorm(
     return n
 
 
+#: Metrics file of each evaluation protocol in the output folder.
+METRICS_FILES = {"kitti": "metrics.json", "open3d-ml": "metrics_open3d_ml.json"}
+
+
 def evaluate_model(
     model: nn.Module, cfg: ExperimentConfig, data_dir: str | Path, split: str, out_dir: str | Path | None, *,
-    device: torch.device | str = "cpu", progress: bool = True,
+    device: torch.device | str = "cpu", progress: bool = True, protocol: str = "kitti",
 ):
-    """Predict ``split`` of ``data_dir`` with ``model``, write result files under ``out_dir/data`` (if given) and
-    return the :class:`detector.eval.EvalResult` against the split's labels (DontCare included).
+    """Predict ``split`` of ``data_dir`` with ``model``, write result files under ``out_dir/data`` and the metrics
+    (``metrics.json``; ``metrics_open3d_ml.json`` for ``protocol="open3d-ml"``) if ``out_dir`` is given, and return
+    the result against the split's labels (DontCare included): a :class:`detector.eval.EvalResult` (``kitti``) or
+    :class:`detector.eval.Open3DMLResult` (``open3d-ml``, the reference's metric).
 
     Result files are written to a temporary folder and renamed into place only when every frame succeeded, so a
     failure leaves no partial result folder.
     """
-    from detector.eval import evaluate
+    from detector.eval.protocols import check_protocol, evaluate_protocol
+
+    check_protocol(protocol)  # before the inference: an unknown protocol or a missing Open3D-ML fails at once
 
     frames = KittiDataset(data_dir, split, classes=cfg.data.classes, name_map=dict(cfg.data.rename),
                           fov_crop=cfg.data.fov_crop)
@@ -148,10 +156,10 @@ def evaluate_model(
         dts.append(detections_to_labels(det, frame, cfg.data.classes, size))
         gts.append(frame.gt)
     min_overlaps = {c: (t, t, t) for c, t in zip(cfg.eval.classes, cfg.eval.iou_thresholds)}
-    result = evaluate(gts, dts, cfg.eval.classes, min_overlaps=min_overlaps)
+    result = evaluate_protocol(gts, dts, cfg.eval.classes, min_overlaps, protocol)
     if out_dir is not None:
         write_results(out_dir, frames.ids, dts)
-        write_text(Path(out_dir) / "metrics.json", _json(result))
+        write_text(Path(out_dir) / METRICS_FILES[protocol], _json(result))
     return result
 
 
@@ -212,16 +220,22 @@ def evaluate_checkpoint(
     threads: int | None = None,
     recalibrate_bn_split: str | None = None,
     progress: bool = True,
+    protocol: str = "kitti",
 ):
-    """``detector eval --config --data --checkpoint``: inference on ``split`` + result files + KITTI evaluation.
+    """``detector eval --config --data --checkpoint``: inference on ``split`` + result files + evaluation with
+    ``protocol`` (``kitti``, or ``open3d-ml``: the reference's metric; see :func:`evaluate_model`).
 
     ``recalibrate_bn_split`` (e.g. ``"train"``): first re-estimate the BatchNorm statistics on that split
     (:func:`recalibrate_batchnorm`; useful after short runs, off by default as in the reference).
 
-    Writes ``OUT/data/<id>.txt`` (16-column KITTI results, one per frame id of the split) and ``OUT/metrics.json``;
-    ``out_dir`` defaults to ``<checkpoint folder>/<checkpoint name>_<split>``. Returns the
-    :class:`detector.eval.EvalResult`. Everything is validated (config, checkpoint, split) before anything is written.
+    Writes ``OUT/data/<id>.txt`` (16-column KITTI results, one per frame id of the split) and ``OUT/metrics.json``
+    (``OUT/metrics_open3d_ml.json`` for ``open3d-ml``); ``out_dir`` defaults to ``<checkpoint folder>/<checkpoint
+    name>_<split>``. Returns the :class:`detector.eval.EvalResult` (or ``Open3DMLResult``). Everything is validated
+    (config, checkpoint, split, protocol) before anything is written.
     """
+    from detector.eval.protocols import check_protocol
+
+    check_protocol(protocol)
     if threads is not None:
         if threads < 1:
             raise InputError(f"--threads must be >= 1, got {threads}")
@@ -240,4 +254,4 @@ def evaluate_checkpoint(
     if out_dir is None:
         ckpt = Path(checkpoint)
         out_dir = ckpt.parent / f"{ckpt.stem}_{split}"
-    return evaluate_model(model, cfg, data_dir, split, out_dir, device=device, progress=progress)
+    return evaluate_model(model, cfg, data_dir, split, out_dir, device=device, progress=progress, protocol=protocol)

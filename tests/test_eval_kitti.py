@@ -227,6 +227,26 @@ def test_detections_on_ignored_gt_and_small_detections_are_not_false_positives()
     assert bev[2] == pytest.approx(100 * 46 / 47, abs=1e-9)
 
 
+def test_overall_level_counts_every_box_and_ignores_no_detection():
+    """``overall``: the occluded, truncated and tiny GT of the class are valid, and a small detection is an FP."""
+    easy = [obj("Car", i) for i in range(41)]
+    others = [obj("Car", 41, occ=2), obj("Car", 42, occ=3), obj("Car", 43, trunc=0.9), obj("Car", 44, height=10.0),
+              obj("Car", 45, height=25.0)]
+    van = obj("Van", 46)  # a neighbour stays ignored: a Car detection on it is neither TP nor FP
+    gt = labels(easy + others + [van])
+    tps = [{**r, "score": 1.0 - 0.001 * k} for k, r in enumerate(easy + others)]
+    result = evaluate([gt], [labels(tps + [{**van, "name": "Car", "score": 0.5}], scored=True)], ["Car"])
+    assert result.num_gt["Car"] == (41, 41, 42) and result.num_gt_overall["Car"] == 46
+    for metric, variant in ALL:
+        assert result.overall["Car"][metric][variant] == 100.0, (metric, variant)
+    small_fp = {**obj("Car", 80, height=24.0), "score": 3.0}  # unmatched, 24 px: ignored at every KITTI difficulty
+    result = evaluate([gt], [labels([small_fp] + tps, scored=True)], ["Car"])
+    assert ap(result, "Car", "3d", "R40") == (100.0,) * 3  # the other Cars only absorb their detections there
+    for metric, variant in ALL:  # one FP above 46 TPs: precision 46/47 in every slot
+        assert result.overall["Car"][metric][variant] == pytest.approx(100 * 46 / 47, abs=1e-9), (metric, variant)
+    assert result.precision["Car"]["bev"].shape == (4, 41)
+
+
 def test_iou_must_be_strictly_greater_than_threshold():
     # Chair BEV/3D threshold 0.5: a detection shifted by l/3 along its length has BEV IoU exactly 0.5 -> no match.
     # ry = -pi/2 puts l along camera z and makes the sensor-style yaw exactly 0, so every corner is exact.
@@ -284,17 +304,22 @@ def test_cli_json_and_errors(tmp_path, capsys):
         main(args)
     assert e.value.code == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"Chair", "Car", "num_gt"}
+    assert set(out) == {"Chair", "Car", "num_gt", "num_gt_overall"}
     assert out["num_gt"] == {"Chair": [45, 45, 45], "Car": [0, 0, 0]}
+    assert out["num_gt_overall"] == {"Chair": 45, "Car": 0}
     for metric in ("bbox", "bev", "3d", "aos"):
-        assert out["Chair"][metric] == {"R11": [100.0] * 3, "R40": [100.0] * 3}
-        assert out["Car"][metric] == {"R11": [0.0] * 3, "R40": [0.0] * 3}
+        assert out["Chair"][metric] == {"R11": [100.0] * 3, "R40": [100.0] * 3,
+                                        "overall": {"R11": 100.0, "R40": 100.0}}
+        assert out["Car"][metric] == {"R11": [0.0] * 3, "R40": [0.0] * 3, "overall": {"R11": 0.0, "R40": 0.0}}
 
     with pytest.raises(SystemExit) as e:
         main(args[:-1])  # the table
     assert e.value.code == 0
     table = capsys.readouterr().out
     assert "Chair" in table and "AP_R40" in table and "100.00" in table
+    header = next(line for line in table.splitlines() if line.startswith("Chair"))
+    assert header.split()[-4:] == ["Easy", "Moderate", "Hard", "Overall"]
+    assert next(line for line in table.splitlines() if "num_gt" in line).split()[-4:] == ["45"] * 4
 
     (result_dir / "000002.txt").unlink()
     with pytest.raises(SystemExit) as e:
@@ -414,3 +439,70 @@ def test_flattened_matching_equals_literal_loops():
             assert 0 < prec.max()
             np.testing.assert_allclose(result.precision[cls]["bbox"][d], prec, rtol=0, atol=1e-12)
             np.testing.assert_allclose(result.precision[cls]["aos"][d], aos, rtol=0, atol=1e-12)
+
+
+def _mixed_frames(seed: int, n_frames: int = 30):
+    """Frames whose levels differ: Car / Van / Pedestrian / Person_sitting / Cyclist / DontCare of every height
+    (8-90 px), occlusion 0-3 and truncation 0-0.9, scattered in 3D; noisy detections of most objects (some pushed
+    below 25 px), plus clutter of every class."""
+    rng = np.random.default_rng(seed)
+    names = ["Car", "Van", "Pedestrian", "Person_sitting", "Cyclist", "DontCare"]
+    gt, dt = [], []
+    for _ in range(n_frames):
+        rows = []
+        for _ in range(int(rng.integers(0, 10))):
+            x, y, h = rng.uniform(0, 300), rng.uniform(0, 100), rng.uniform(8, 90)
+            name = str(rng.choice(names))
+            rows.append({**obj(name, 0, occ=int(rng.integers(0, 4)), trunc=float(rng.choice([0, 0.1, 0.3, 0.5, 0.9])),
+                               alpha=float(rng.uniform(-3, 3)), ry=float(rng.uniform(-3, 3)),
+                               hwl=(1.5, 1.6, 3.9) if name in ("Car", "Van") else (1.7, 0.6, 0.8),
+                               loc=(rng.uniform(-15, 15), 1.6, rng.uniform(5, 40))),
+                         "bbox": (x, y, x + rng.uniform(20, 80), y + h)})
+        rows.sort(key=lambda r: r["name"] == "DontCare")
+        dets = []
+        for r in rows:
+            if r["name"] != "DontCare" and rng.uniform() < 0.8:
+                b = np.add(r["bbox"], rng.normal(0, 4, 4))
+                if rng.uniform() < 0.15:
+                    b[3] = b[1] + rng.uniform(5, 24)  # a small detection: ignored at the KITTI levels
+                dets.append({**r, "bbox": tuple(b), "loc": tuple(np.add(r["loc"], rng.normal(0, 0.3, 3))),
+                             "ry": r["ry"] + rng.normal(0, 0.2), "alpha": r["alpha"] + rng.normal(0, 0.3),
+                             "score": float(rng.uniform())})
+        for _ in range(int(rng.integers(0, 4))):
+            x, y = rng.uniform(0, 300), rng.uniform(0, 100)
+            dets.append({**obj(str(rng.choice(names[:5])), 0, loc=(rng.uniform(-15, 15), 1.6, rng.uniform(5, 40))),
+                         "bbox": (x, y, x + 40, y + rng.uniform(6, 80)), "score": float(np.round(rng.uniform(), 1))})
+        gt.append(labels(rows))
+        dt.append(labels(dets, scored=True))
+    return gt, dt
+
+
+def _all_easy(frame: Labels, scale: float) -> Labels:
+    """The frame with every object Easy: occlusion 0, truncation 0 and 2D boxes stretched vertically by a power of two
+    (IoUs and DontCare ratios unchanged bit for bit, every height above 40 px)."""
+    bbox = frame.bbox * np.array([1.0, scale, 1.0, scale])
+    return dataclasses.replace(frame, bbox=bbox, occluded=np.zeros(len(frame), dtype=np.int64),
+                               truncated=np.zeros(len(frame)))
+
+
+def test_overall_equals_easy_of_the_same_files_with_every_object_easy():
+    gt, dt = _mixed_frames(7)
+    classes = ["Car", "Pedestrian", "Cyclist"]
+    result = evaluate(gt, dt, classes)
+    scale = 16.0
+    easy_gt, easy_dt = [_all_easy(f, scale) for f in gt], [_all_easy(f, scale) for f in dt]
+    heights = np.concatenate([f.bbox[:, 3] - f.bbox[:, 1] for f in easy_gt + easy_dt])
+    assert heights.min() > 40  # every GT and every detection passes Easy's 2D-height rule
+    rewritten = evaluate(easy_gt, easy_dt, classes)
+    assert result.aos_computed and rewritten.aos_computed
+    for cls in classes:
+        n_class = sum(int(np.count_nonzero(np.char.lower(f.names) == cls.lower())) for f in gt)
+        assert result.num_gt_overall[cls] == rewritten.num_gt[cls][0] == n_class
+        assert result.num_gt[cls][2] < n_class  # the levels really differ on this data
+        for metric in ("bbox", "bev", "3d", "aos"):
+            np.testing.assert_array_equal(result.precision[cls][metric][3], rewritten.precision[cls][metric][0])
+            for variant in ("R11", "R40"):
+                assert result.overall[cls][metric][variant] == rewritten.ap[cls][metric][variant][0]
+    assert any(result.overall[c]["3d"]["R40"] != ap(result, c, "3d", "R40")[2] for c in classes)
+    assert any(result.overall[c]["bbox"]["R40"] != ap(result, c, "bbox", "R40")[2] for c in classes)
+    assert all(result.overall[c]["bev"]["R40"] > 0 for c in classes)

@@ -51,7 +51,7 @@ def test_synth_then_houses_json_matches_construction(synth_root: Path, capsys) -
         assert r["label_mismatch_rate"] == pytest.approx(syn.mismatched_faces / len(syn.faces))
 
     code, out, _ = _run(["houses", "--root", str(synth_root)], capsys)
-    assert code == 0 and all(f"{p[0]}: ASCII 1.1, {p[2]} levels" in out for p in plan)
+    assert code == 0 and all(f"{p[0]} (release): ASCII 1.1, {p[2]} levels" in out for p in plan)
 
 
 def test_houses_objects_lists_chair_boxes(synth_root: Path, capsys) -> None:

@@ -47,7 +47,8 @@ PORTALS = SCANS / "PORTALS0011" / "PORTALS0011" / "house_segmentations"
 
 def test_find_houses_accepts_download_root_scans_folder_and_house_folders() -> None:
     ids = ["MINI0000011", "OLDASCII010", "PORTALS0011"]
-    assert list(find_houses(DATA)) == ids  # download root (v1/scans/<id>/...)
+    assert list(find_houses(DATA)) == ["GAPSPORTALS", *ids]  # the folder holding v1 (and gaps/, any depth)
+    assert list(find_houses(DATA / "v1")) == ids  # v1 itself
     assert list(find_houses(SCANS)) == ids  # scans/ folder
     assert list(find_houses(SCANS / "MINI0000011")) == ["MINI0000011"]  # scan folder, extracted from v1/scans
     assert list(find_houses(SCANS / "PORTALS0011")) == ["PORTALS0011"]  # extracted inside the scan folder

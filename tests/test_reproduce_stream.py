@@ -70,5 +70,7 @@ def test_dry_run_lists_the_commands(tool, tmp_path, capsys):
     assert len(streams) == 5 and all("--house H1" in ln and "--duration 8" in ln for ln in streams)
     measure = [ln for ln in lines if "--latency-log" in ln]
     assert len(measure) == 10 and all("MALLOC_MMAP_MAX_=0" in ln and "--threads 2" in ln for ln in measure)
-    assert sum("--save-results" in ln for ln in measure) == 2  # the offline pass only on the headline stream
+    assert all("--save-results" in ln for ln in measure)
+    assert sum("--no-offline" not in ln for ln in measure) == 2  # the offline pass only on the headline stream
+    assert all("--results" in ln and "--latency " in ln for ln in lines if "--mode" in ln)
     assert sum("--mode raw" in ln for ln in lines) == sum("--mode ego" in ln for ln in lines) == 10

@@ -19,6 +19,7 @@ from detector.infer import boxes_to_results
 from detector.stream import Source, prepare, read_stream, score
 from detector.stream.run import query_labels, query_sources
 from detector.stream.score import evaluate_overall
+from mpchair.errors import InputError
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Labels, write_labels
 from mpchair.stream import StreamRequest, stream
@@ -222,10 +223,22 @@ def test_model_with_measured_latency(streams, tmp_path):
     assert np.array_equal(again.schedules[0].emit_us, sched.emit_us)
     assert sum(o is not None for o in again.outputs[0]) == len(set(sched.inputs.tolist()))
     replay = score(again, "ego")
-    assert replay["sAP"] == s["sAP"] and replay["offline_AP"] is None and replay["latency"] == "log"
+    assert replay["sAP"] == s["sAP"] and replay["latency"] == "log"
+    # (the offline AP exists only if the schedule happened to process every frame)
+    assert replay["offline_AP"] == (s["offline_AP"] if len(set(sched.inputs.tolist())) == 9 else None)
     from detector.stream.run import save_results
 
     save_results(prep, tmp_path / "res")
     from_files = prepare(still, Source("results", results=str(tmp_path / "res")), latency_log=log)
     assert np.array_equal(from_files.schedules[0].inputs, sched.inputs)
-    assert len(list((tmp_path / "res" / "00").glob("*.txt"))) == 9
+    assert len(list((tmp_path / "res" / "00").glob("*.txt"))) == 9 and from_files.offline
+    # without the offline pass only the processed frames are saved (1.3 s latency: frames 0, 2, 5, 7): enough to
+    # replay the schedule, no offline AP
+    slow = prepare(still, src, latency_ms=1300.0, offline=False)
+    assert slow.schedules[0].inputs.tolist() == [0, 2, 5, 7]
+    save_results(slow, tmp_path / "part")
+    assert sorted(p.stem for p in (tmp_path / "part" / "00").glob("*.txt")) == ["000000", "000002", "000005", "000007"]
+    part = prepare(still, Source("results", results=str(tmp_path / "part")), latency_ms=1300.0)
+    assert score(part, "raw")["offline_AP"] is None and score(part, "raw")["sAP"] == score(slow, "raw")["sAP"]
+    with pytest.raises(InputError, match="no result file for frame 000001 of sequence 00, which the schedule"):
+        prepare(still, Source("results", results=str(tmp_path / "part")), latency_ms=0.0)

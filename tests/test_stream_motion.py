@@ -116,3 +116,29 @@ def test_a_still_robot_holds_its_pose(house):
     with pytest.raises(ValueError, match="needs a duration"):
         plan_episode(spaces, "TESTHOUSE01", 0, EpisodeSettings(5.0, Limits(speed=0.0), RouteRules(), 1.0, True,
                                                                None, 3))
+
+
+def test_free_space_from_a_habitat_navmesh(tmp_path):
+    import shapely
+
+    from mpchair.matterport.house import read_house
+    from mpchair.matterport.source import find_houses
+    from mpchair.scan.navmesh import island_labels
+    from mpchair.stream.freespace import navmesh_areas
+    from mpchair.synth import synthesize_house, write_house
+
+    synth = synthesize_house(7, levels=1)
+    write_house(tmp_path, synth, layout="habitat")
+    h = read_house(find_houses(tmp_path)[synth.id])
+    areas = navmesh_areas(h.navmesh)
+    assert len(areas) == int((island_labels(h.navmesh)[h.navmesh.triangle_poly] >= 0).sum())
+    ctx = build_context(h, frozenset({3}))
+    spaces = free_space(areas, ctx.raycaster, ctx.floor_ok, ctx.normal_z, ViewpointParams())
+    big = max(spaces, key=lambda s: s.free.sum())
+    assert big.free.sum() > 5000  # 5 cm cells: more than 12.5 m^2 to drive in
+    # every free cell lies on the walkable surface of its island, and is a valid viewpoint (validated like generate's)
+    walk = shapely.union_all([shapely.Polygon(a.polygon) for a in areas if a.level == big.level])
+    xy = big.centres_of(np.argwhere(big.free))
+    assert shapely.contains_xy(walk.buffer(1e-6), xy[:, 0], xy[:, 1]).all()
+    r = sample_route(np.random.default_rng(0), spaces, RouteRules(min_geodesic=3.0))
+    assert all(segment_free(big, a, b) for a, b in zip(r.waypoints[:-1], r.waypoints[1:])) and r.level == big.level

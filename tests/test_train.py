@@ -3,6 +3,7 @@ training that learns to detect the synthetic chairs of its own training frames."
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -16,6 +17,7 @@ import torch
 from helpers_detector import make_tiny_dataset, write_test_config
 
 from detector.cli import main
+from detector.eval import evaluate_folders
 from detector.infer import evaluate_checkpoint
 from detector.train import epoch_frames, rank_batches, train
 from mpchair.geometry import kitti_camera_to_boxes, project_boxes_to_image, wrap_angle
@@ -312,3 +314,17 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, tmp_path, cap
                               "--split", "train", "--out", tmp_path / "cli_eval", "--threads", "1", "--json"], capsys)
     assert code == 0 and json.loads(out_text)["num_gt"]["Chair"] == [29, 29, 29]
     assert len(list((tmp_path / "cli_eval" / "data").glob("*.txt"))) == 8
+
+    # The reference's metric (Open3D-ML's mAP) on the same checkpoint goes to its own metrics file.
+    if importlib.util.find_spec("open3d") is not None:
+        code, out_text, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint",
+                                  tmp_path / "run" / "last.pt", "--split", "train", "--out", tmp_path / "cli_o3d",
+                                  "--threads", "1", "--protocol", "open3d-ml", "--json"], capsys)
+        o3d = json.loads(out_text)
+        assert code == 0 and o3d["protocol"] == "open3d-ml" and o3d["num_gt"] == {"Chair": 29}
+        assert json.loads((tmp_path / "cli_o3d" / "metrics_open3d_ml.json").read_text()) == o3d
+        assert not (tmp_path / "cli_o3d" / "metrics.json").exists()
+        # on the result files of the BN-recalibrated evaluation above it finds chairs too
+        ref = evaluate_folders(data / "training" / "label_2", out / "data", [f.stem for f in files], ["Chair"],
+                               protocol="open3d-ml")
+        assert ref.ap["Chair"]["bev"] > 0, (ref.ap, metrics.overall["Chair"]["bev"])

@@ -6,9 +6,10 @@ Steps (each a list of exact ``mpchair`` / ``detector`` command lines, run as sub
     streams   mpchair stream          one stream per (speed, rate): the speeds at 10 Hz, the rates at 0.5 m/s (the
                                       headline stream, 0.5 m/s at 10 Hz, is shared)
     measure   detector stream-eval    per model and stream: latency measured per processed frame (--latency-log),
-                                      2 torch threads; on the headline stream also the offline outputs of every frame
-                                      (--save-results), for the offline AP
-    score     detector stream-eval    ego and raw, replaying the measured latencies exactly (--latency LOG)
+                                      2 torch threads, and the outputs (--save-results): of every frame on the
+                                      headline stream (for the offline AP), of the processed frames elsewhere
+    score     detector stream-eval    ego and raw from the saved outputs, replaying the measured latencies exactly
+                                      (--results, --latency LOG)
     report    docs/streaming.md       the results section between its markers: the table, the curves (PNG), the
                                       speed at which sparse overtakes dense
 
@@ -275,15 +276,14 @@ def main(argv: list[str] | None = None) -> int:
                 cmd = [det, "stream-eval", "--data", str(s), *model, "--threads", str(args.threads), "--repeats",
                        str(sc.repeats), "--warmup", str(sc.warmup), "--latency-log", str(ev / "latency.json"),
                        "--json", str(ev / "measure.json"), "--quiet"]
-                # the offline AP (every frame through the model) only where the table needs it
-                cmd += ["--save-results", str(ev / "offline")] if (v, f) == HEADLINE else ["--no-offline"]
+                # the offline AP (every frame through the model) only where the table needs it; elsewhere the
+                # outputs of the processed frames are enough to replay the schedule
+                cmd += ["--save-results", str(ev / "outputs")] + ([] if (v, f) == HEADLINE else ["--no-offline"])
                 r.run(cmd, env=env or None)
             for mode in MODES:
                 if todo("score", ev / f"{mode}.json"):
-                    src = (["--results", str(ev / "offline")] if (v, f) == HEADLINE
-                           else [*model, "--no-offline", "--threads", str(args.threads)])
-                    r.run([det, "stream-eval", "--data", str(s), *src, "--latency", str(ev / "latency.json"),
-                           "--mode", mode, "--json", str(ev / f"{mode}.json"), "--quiet"])
+                    r.run([det, "stream-eval", "--data", str(s), "--results", str(ev / "outputs"), "--latency",
+                           str(ev / "latency.json"), "--mode", mode, "--json", str(ev / f"{mode}.json"), "--quiet"])
     if "report" in steps and not args.dry_run:
         runs = {}
         for v, f in points:

@@ -44,17 +44,22 @@ def _ids_for(labels: Path, split: str | None) -> list[str]:
               "Checkpoint mode uses the config's eval classes.")
 @click.option("--min-overlap", "min_overlap", multiple=True, metavar="CLASS=T|CLASS=BBOX,BEV,3D",
               help="IoU threshold(s) for a class (repeatable); defaults: Car/Van/Truck 0.7, others 0.5.")
+@click.option("--protocol", type=click.Choice(["kitti", "open3d-ml"]), default="kitti", show_default=True,
+              help="kitti: the KITTI protocol (Easy / Moderate / Hard / Overall, R40 and R11). open3d-ml: the "
+              "reference's own metric, Open3D-ML's mAP (BEV and 3D, every box difficulty 0; needs Open3D-ML).")
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON summary instead of the table.")
 @click.option("--config", type=click.Path(path_type=Path), help="Experiment config (checkpoint mode).")
 @click.option("--data", type=click.Path(path_type=Path), help="KITTI-format dataset root (checkpoint mode).")
 @click.option("--checkpoint", type=click.Path(path_type=Path), help="Trained checkpoint (checkpoint mode).")
 @click.option("--out", type=click.Path(path_type=Path),
-              help="Checkpoint mode: folder for result files and metrics.json (default: beside the checkpoint).")
+              help="Checkpoint mode: folder for result files and metrics.json (metrics_open3d_ml.json with "
+              "--protocol open3d-ml; default: beside the checkpoint).")
 @click.option("--device", default="cpu", show_default=True, help="Checkpoint mode: cpu or cuda.")
 @click.option("--threads", type=int, help="Checkpoint mode: torch CPU threads.")
-def eval_cmd(labels, results, split, classes, min_overlap, as_json, config, data, checkpoint, out, device,
+def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, config, data, checkpoint, out, device,
              threads) -> None:
-    """Evaluate with the KITTI protocol: AP of bbox / BEV / 3D / AOS, R40 and R11, Easy / Moderate / Hard.
+    """Evaluate with the KITTI protocol (AP of bbox / BEV / 3D / AOS, R40 and R11, Easy / Moderate / Hard and
+    Overall, where every box of the class counts) or with the reference's Open3D-ML mAP (--protocol open3d-ml).
 
     \b
     Result files (any detector's):
@@ -62,6 +67,7 @@ def eval_cmd(labels, results, split, classes, min_overlap, as_json, config, data
                     --classes Car,Chair [--json]
     A trained checkpoint (inference, result files, then the same evaluation):
       detector eval --config CONFIG.yaml --data DATA --checkpoint runs/dense/last.pt [--split val]
+    The reference's metric (Open3D-ML's mAP) on the same files: add --protocol open3d-ml.
 
     BEV and 3D overlaps use an exact float64 rotated IoU (identical boxes score 1; see docs/evaluation.md).
     Buckets with fewer than 41 valid GT cannot reach 100 and are flagged.
@@ -76,7 +82,7 @@ def eval_cmd(labels, results, split, classes, min_overlap, as_json, config, data
         if classes is not None or min_overlap:
             raise InputError("--classes / --min-overlap apply to --labels/--results; a checkpoint is evaluated with "
                              "its config's eval classes and thresholds")
-        result = _checkpoint_mode(config, data, checkpoint, split, out, device, threads)
+        result = _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol)
     elif folder_mode:
         if labels is None or results is None:
             raise InputError("--labels and --results go together")
@@ -84,19 +90,19 @@ def eval_cmd(labels, results, split, classes, min_overlap, as_json, config, data
         if not class_list:
             raise InputError("--classes is empty")
         result = evaluate_folders(labels, results, _ids_for(labels, split), class_list,
-                                  _parse_min_overlaps(min_overlap))
+                                  _parse_min_overlaps(min_overlap), protocol=protocol)
     else:
         raise InputError("nothing to evaluate: give --labels and --results, or --config, --data and --checkpoint")
     if as_json:
         click.echo(to_json(result))
     else:
         click.echo(format_table(result))
-    if as_json and result.warnings:
+    if as_json:
         for w in result.warnings:
             click.echo(f"warning: {w}", err=True)
 
 
-def _checkpoint_mode(config, data, checkpoint, split, out, device, threads):
+def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol):
     """Extension point: inference + evaluation live in :func:`detector.infer.evaluate_checkpoint`."""
     if config is None or data is None or checkpoint is None:
         raise InputError("checkpoint mode needs --config, --data and --checkpoint")
@@ -108,4 +114,4 @@ def _checkpoint_mode(config, data, checkpoint, split, out, device, threads):
                              "evaluate_checkpoint is missing); evaluate result files with --labels/--results") from None
         raise
     return evaluate_checkpoint(config, data, checkpoint, split=split or "val", out_dir=out, device=device,
-                               threads=threads)
+                               threads=threads, protocol=protocol)

@@ -23,7 +23,8 @@ from mpchair.errors import InputError
 @click.option("--latency-log", type=click.Path(path_type=Path), default=None,
               help="With measured latency: write the per-frame latencies (and the machine) to this JSON file.")
 @click.option("--save-results", type=click.Path(path_type=Path), default=None,
-              help="Write the offline outputs as result files (the --results layout), to rescore without the model.")
+              help="Write the outputs as result files (the --results layout; with --no-offline only the processed "
+                   "frames'), to rescore without the model.")
 @click.option("--offline/--no-offline", default=True, show_default=True,
               help="Run the model on every frame for the offline AP; --no-offline runs it only on processed frames.")
 @click.option("--latency-ms", type=float, default=None, help="A constant latency for every frame, milliseconds.")

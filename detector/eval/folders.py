@@ -5,7 +5,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from detector.eval.kitti import EvalResult, evaluate
+from detector.eval.kitti import EvalResult
+from detector.eval.open3d_ml import Open3DMLResult
+from detector.eval.protocols import Protocol, check_protocol, evaluate_protocol
 from mpchair.errors import InputError
 from mpchair.kitti import Labels, read_labels
 
@@ -26,13 +28,16 @@ def evaluate_folders(
     ids: Sequence[str],
     classes: Sequence[str],
     min_overlaps: Mapping[str, Sequence[float]] | None = None,
-) -> EvalResult:
-    """KITTI-evaluate ``result_dir/<id>.txt`` against ``label_dir/<id>.txt`` for every frame id (6-digit strings).
+    protocol: Protocol = "kitti",
+) -> EvalResult | Open3DMLResult:
+    """Evaluate ``result_dir/<id>.txt`` against ``label_dir/<id>.txt`` for every frame id (6-digit strings).
 
     Ground truth: 15 columns (rectified camera frame, image_2 pixels), DontCare rows included. Results: 16 columns,
-    one file per id (an empty file means no detections). Unknown classes without thresholds raise
-    :class:`InputError`; see :func:`detector.eval.kitti.evaluate` for the protocol.
+    one file per id (an empty file means no detections). ``protocol``: ``kitti`` (:func:`detector.eval.evaluate`,
+    an :class:`EvalResult`) or ``open3d-ml`` (the reference's metric, an :class:`Open3DMLResult`). Unknown classes
+    without thresholds, or a missing Open3D-ML, raise :class:`InputError`.
     """
+    check_protocol(protocol)
     label_dir, result_dir = Path(label_dir), Path(result_dir)
     if not ids:
         raise InputError("no frame ids to evaluate")
@@ -42,6 +47,6 @@ def evaluate_folders(
     gt = [read_labels(label_dir / f"{i}.txt") for i in ids]
     dt = [read_results(result_dir / f"{i}.txt") for i in ids]
     try:
-        return evaluate(gt, dt, classes, min_overlaps)
+        return evaluate_protocol(gt, dt, classes, min_overlaps, protocol)
     except ValueError as e:  # class / threshold problems come from the user's options
         raise InputError(str(e)) from None

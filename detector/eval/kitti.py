@@ -5,6 +5,8 @@ Follows the reference evaluators (devkit C++ ``evaluate_object.cpp``; OpenPCDet 
 ``kitti-format-and-eval.md`` section 4: difficulty flags with their ``<=`` / ``<`` asymmetries, neighbour classes,
 pass 1 (highest score per GT in file order), ``get_thresholds`` (at most 41), pass 2 (highest IoU, ignored
 fallback), strictly-greater IoU, DontCare suppression in 2D only, max-accumulated precision, few-GT saturation.
+Besides Easy / Moderate / Hard it evaluates a fourth level, ``overall``: the same protocol with the 2D-height,
+occlusion and truncation limits removed (every GT box of the class counts, no detection is ignored for its height).
 
 One deliberate difference: BEV and 3D overlaps come from the exact float64 polygon clip of :mod:`detector.ops`
 (identical rotated boxes score IoU 1), not the reference's float32 kernel that returns ~0 for them.
@@ -19,6 +21,7 @@ shared by all classes, difficulties and score thresholds; matching runs in numba
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -28,13 +31,22 @@ from mpchair.jit import njit_cached
 from mpchair.kitti import DONTCARE, Labels
 
 DIFFICULTIES: tuple[str, ...] = ("easy", "moderate", "hard")
-#: Per difficulty: minimum 2D box height (px; a GT fails at ``height <= min``, a detection at ``height < min``),
-#: maximum occlusion level and maximum truncation (a GT fails above them).
-MIN_HEIGHT: tuple[float, ...] = (40.0, 25.0, 25.0)
-MAX_OCCLUSION: tuple[int, ...] = (0, 1, 2)
-MAX_TRUNCATION: tuple[float, ...] = (0.15, 0.3, 0.5)
+#: Every evaluation level: the three KITTI difficulties, then ``overall`` (every GT box of the class counts, no
+#: detection is ignored for its 2D height: the single level of datasets without a difficulty split, such as the
+#: paper's Matterport-Chair, whose reference marks every box difficulty 0).
+LEVELS: tuple[str, ...] = (*DIFFICULTIES, "overall")
+#: Per level: minimum 2D box height (px; a GT fails at ``height <= min``, a detection at ``height < min``),
+#: maximum occlusion level and maximum truncation (a GT fails above them). ``overall`` has no limit (infinite
+#: bounds, so the same comparisons never fail); DontCare and the neighbour classes act as at every level.
+MIN_HEIGHT: tuple[float, ...] = (40.0, 25.0, 25.0, -math.inf)
+MAX_OCCLUSION: tuple[float, ...] = (0, 1, 2, math.inf)
+MAX_TRUNCATION: tuple[float, ...] = (0.15, 0.3, 0.5, math.inf)
+#: Index of ``overall`` in :data:`LEVELS` and in the rows of ``EvalResult.precision``.
+OVERALL = 3
 
 METRICS: tuple[str, ...] = ("bbox", "bev", "3d")
+#: AP variants: 11 recall points (0, 0.1, ..., 1) and 40 (1/40, ..., 1).
+VARIANTS: tuple[str, ...] = ("R11", "R40")
 #: Number of precision samples (threshold slots): recall 0, 1/40, ..., 1.
 N_SAMPLE_PTS = 41
 
@@ -58,13 +70,16 @@ _INVALID_ALPHA = -10.0
 
 @dataclasses.dataclass(frozen=True)
 class EvalResult:
-    """KITTI AP per class, metric, variant and difficulty (percent, 0–100).
+    """KITTI AP per class, metric, variant and level (percent, 0–100).
 
     ``ap[cls][metric][variant]`` is ``(easy, moderate, hard)`` with metric in ``bbox | bev | 3d | aos`` and variant
-    ``R11 | R40``; ``aos`` is absent when AOS is off (``aos_computed`` False: no detections, or a detection with
-    alpha = -10). ``num_gt[cls]`` is num_valid_gt per difficulty. ``precision[cls][metric]`` is the (3, 41)
-    max-accumulated precision (orientation similarity for ``aos``) per threshold slot. ``min_overlaps[cls]`` is
-    (bbox, bev, 3d). ``warnings`` lists buckets with fewer than 41 valid GT (AP cannot reach 100 there).
+    ``R11 | R40``; ``overall[cls][metric][variant]`` is the ``overall`` level's AP (every GT box of the class counts,
+    no detection is ignored for its 2D height). ``aos`` is absent when AOS is off (``aos_computed`` False: no
+    detections, or a detection with alpha = -10). ``num_gt[cls]`` is num_valid_gt per difficulty,
+    ``num_gt_overall[cls]`` at ``overall``. ``precision[cls][metric]`` is the (4, 41) max-accumulated precision
+    (orientation similarity for ``aos``) per threshold slot, rows in :data:`LEVELS` order (easy, moderate, hard,
+    overall). ``min_overlaps[cls]`` is (bbox, bev, 3d). ``warnings`` lists buckets with fewer than 41 valid GT (AP
+    cannot reach 100 there).
     """
 
     classes: tuple[str, ...]
@@ -74,21 +89,27 @@ class EvalResult:
     precision: dict[str, dict[str, np.ndarray]]
     aos_computed: bool
     num_frames: int
+    overall: dict[str, dict[str, dict[str, float]]]
+    num_gt_overall: dict[str, int]
     warnings: tuple[str, ...] = ()
 
     def to_json_dict(self) -> dict:
-        """``{"<Class>": {"bbox"|"bev"|"3d"|"aos": {"R11": [e, m, h], "R40": [e, m, h]}}, "num_gt": {...}}``.
+        """``{"<Class>": {"bbox"|"bev"|"3d"|"aos": {"R11": [e, m, h], "R40": [e, m, h], "overall": {"R11": x,
+        "R40": y}}}, "num_gt": {"<Class>": [e, m, h]}, "num_gt_overall": {"<Class>": n}}``.
 
         ``aos`` is ``null`` when AOS is off.
         """
         out: dict = {}
         for cls in self.classes:
-            entry = {m: {v: list(self.ap[cls][m][v]) for v in ("R11", "R40")} for m in METRICS}
-            entry["aos"] = (
-                {v: list(self.ap[cls]["aos"][v]) for v in ("R11", "R40")} if self.aos_computed else None
-            )
+            metrics = (*METRICS, "aos") if self.aos_computed else METRICS
+            entry: dict = {
+                m: {**{v: list(self.ap[cls][m][v]) for v in VARIANTS}, "overall": dict(self.overall[cls][m])}
+                for m in metrics
+            }
+            entry.setdefault("aos", None)
             out[cls] = entry
         out["num_gt"] = {cls: list(self.num_gt[cls]) for cls in self.classes}
+        out["num_gt_overall"] = dict(self.num_gt_overall)
         return out
 
 
@@ -274,7 +295,8 @@ def _pass2(ov, ov_off, gt_off, dt_off, gt_flag, dt_flag, score, gt_alpha, dt_alp
 
 def gt_flags(names_lower: np.ndarray, bbox: np.ndarray, occluded: np.ndarray, truncated: np.ndarray, cls: str,
              difficulty: int) -> np.ndarray:
-    """(G,) int64 GT flags for class ``cls`` (lower case) at ``difficulty`` (0 easy, 1 moderate, 2 hard).
+    """(G,) int64 GT flags for class ``cls`` (lower case) at level ``difficulty`` (index into :data:`LEVELS`:
+    0 easy, 1 moderate, 2 hard, 3 overall, where nothing fails).
 
     0 valid (class ``cls`` passing the level); 1 ignored (a neighbour class, or ``cls`` failing the level: occluded
     > max, truncated > max, or 2D height ``<=`` min); -1 otherwise.
@@ -402,8 +424,10 @@ def _flatten(gt: Sequence[Labels], dt: Sequence[Labels]) -> _Flat:
     )
 
 
-def _resolve_overlaps(classes: Sequence[str], min_overlaps: Mapping[str, Sequence[float]] | None
-                      ) -> dict[str, tuple[float, float, float]]:
+def resolve_min_overlaps(classes: Sequence[str], min_overlaps: Mapping[str, Sequence[float]] | None
+                         ) -> dict[str, tuple[float, float, float]]:
+    """``{class: (bbox, bev, 3d)}`` IoU thresholds for ``classes`` (spelled as given): :data:`DEFAULT_MIN_OVERLAPS`
+    overridden or extended by ``min_overlaps`` (keys case-insensitive); ValueError for a bad value or unknown class."""
     table = dict(DEFAULT_MIN_OVERLAPS)
     for name, values in (min_overlaps or {}).items():
         v = tuple(float(x) for x in values)
@@ -419,20 +443,9 @@ def _resolve_overlaps(classes: Sequence[str], min_overlaps: Mapping[str, Sequenc
     return out
 
 
-def evaluate(
-    gt: Sequence[Labels],
-    dt: Sequence[Labels],
-    classes: Sequence[str],
-    min_overlaps: Mapping[str, Sequence[float]] | None = None,
-) -> EvalResult:
-    """Evaluate detections against ground truth with the KITTI protocol; AP in percent.
-
-    ``gt[f]`` / ``dt[f]`` are the labels of frame f (rectified camera frame, image_2 pixel boxes); detections need
-    scores (an empty ``Labels`` may lack them). ``classes`` are matched case-insensitively against GT and detection
-    names; the keys of the result are spelled as given. ``min_overlaps`` overrides or extends
-    :data:`DEFAULT_MIN_OVERLAPS` with ``{class: (bbox, bev, 3d)}``. AOS is computed when there is at least one
-    detection and none has alpha = -10 (the devkit's rule). A bucket with no valid GT gets AP 0.
-    """
+def check_inputs(gt: Sequence[Labels], dt: Sequence[Labels], classes: Sequence[str]) -> tuple[str, ...]:
+    """``classes`` as a tuple, after checking that the frames pair up, detections have scores and no class repeats
+    case-insensitively (ValueError otherwise)."""
     if len(gt) != len(dt):
         raise ValueError(f"{len(gt)} ground-truth frames but {len(dt)} detection frames")
     for f, d in enumerate(dt):
@@ -441,26 +454,47 @@ def evaluate(
     classes = tuple(classes)
     if len({c.lower() for c in classes}) != len(classes):
         raise ValueError(f"classes repeat (case-insensitively): {classes}")
-    thr_table = _resolve_overlaps(classes, min_overlaps)
+    return classes
+
+
+def evaluate(
+    gt: Sequence[Labels],
+    dt: Sequence[Labels],
+    classes: Sequence[str],
+    min_overlaps: Mapping[str, Sequence[float]] | None = None,
+) -> EvalResult:
+    """Evaluate detections against ground truth with the KITTI protocol; AP in percent, at Easy / Moderate / Hard
+    (``EvalResult.ap``) and at ``overall`` (``EvalResult.overall``: every GT box of the class counts).
+
+    ``gt[f]`` / ``dt[f]`` are the labels of frame f (rectified camera frame, image_2 pixel boxes); detections need
+    scores (an empty ``Labels`` may lack them). ``classes`` are matched case-insensitively against GT and detection
+    names; the keys of the result are spelled as given. ``min_overlaps`` overrides or extends
+    :data:`DEFAULT_MIN_OVERLAPS` with ``{class: (bbox, bev, 3d)}``. AOS is computed when there is at least one
+    detection and none has alpha = -10 (the devkit's rule). A bucket with no valid GT gets AP 0.
+    """
+    classes = check_inputs(gt, dt, classes)
+    thr_table = resolve_min_overlaps(classes, min_overlaps)
     flat = _flatten(gt, dt)
     compute_aos = len(flat.dt_alpha) > 0 and not np.any(flat.dt_alpha == _INVALID_ALPHA)
 
     num_gt: dict[str, tuple[int, int, int]] = {}
+    num_gt_overall: dict[str, int] = {}
     ap: dict[str, dict[str, dict[str, tuple[float, float, float]]]] = {}
+    overall: dict[str, dict[str, dict[str, float]]] = {}
     precision: dict[str, dict[str, np.ndarray]] = {}
     warnings: list[str] = []
     for cls in classes:
         key = cls.lower()
-        prec = {m: np.zeros((3, N_SAMPLE_PTS)) for m in (*METRICS, "aos")}
+        prec = {m: np.zeros((len(LEVELS), N_SAMPLE_PTS)) for m in (*METRICS, "aos")}
         counts = []
-        for d in range(3):
+        for d in range(len(LEVELS)):
             g_flag = gt_flags(flat.gt_names, flat.gt_bbox, flat.gt_occluded, flat.gt_truncated, key, d)
             d_flag = dt_flags(flat.dt_names, flat.dt_bbox, key, d)
             num_valid = int(np.count_nonzero(g_flag == 0))
             counts.append(num_valid)
             if num_valid < N_SAMPLE_PTS:
                 warnings.append(
-                    f"{cls} {DIFFICULTIES[d]}: {num_valid} valid GT (< {N_SAMPLE_PTS}); "
+                    f"{cls} {LEVELS[d]}: {num_valid} valid GT (< {N_SAMPLE_PTS}); "
                     + ("AP is 0" if num_valid == 0 else "AP saturates below 100 even for perfect detections"))
             if num_valid == 0:
                 continue  # every AP of this bucket stays 0, as the reference prints
@@ -479,13 +513,14 @@ def evaluate(
                 if aos_here:
                     prec["aos"][d] = _accumulate(sim, den)
         num_gt[cls] = (counts[0], counts[1], counts[2])
+        num_gt_overall[cls] = counts[OVERALL]
         used = (*METRICS, "aos") if compute_aos else METRICS
         precision[cls] = {m: prec[m] for m in used}
-        ap[cls] = {
-            m: {"R11": tuple(float(x) for x in ap_r11(prec[m])), "R40": tuple(float(x) for x in ap_r40(prec[m]))}
-            for m in used
-        }
+        curves = {m: {"R11": ap_r11(prec[m]), "R40": ap_r40(prec[m])} for m in used}
+        ap[cls] = {m: {v: tuple(float(x) for x in curves[m][v][:OVERALL]) for v in VARIANTS} for m in used}
+        overall[cls] = {m: {v: float(curves[m][v][OVERALL]) for v in VARIANTS} for m in used}
     return EvalResult(
         classes=classes, min_overlaps=thr_table, num_gt=num_gt, ap=ap, precision=precision,
-        aos_computed=bool(compute_aos), num_frames=len(gt), warnings=tuple(warnings),
+        aos_computed=bool(compute_aos), num_frames=len(gt), overall=overall, num_gt_overall=num_gt_overall,
+        warnings=tuple(warnings),
     )

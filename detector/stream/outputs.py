@@ -2,7 +2,8 @@
 
 An :class:`Output` holds one frame's detections in *that frame's* sensor frame (x forward, y left, z up, metres).
 Three sources: ``--oracle`` (the frame's own labels, score 1: a perfect detector), ``--results RDIR`` (16-column
-KITTI result files ``RDIR/NN/NNNNNN.txt``, any detector's, in the ``detector eval`` format) and a trained model
+KITTI result files ``RDIR/NN/NNNNNN.txt``, any detector's, in the ``detector eval`` format; frames the schedule does
+not process may lack a file) and a trained model
 (:class:`ModelRunner`, which also measures latency end to end: from the in-memory point array to the final boxes —
 range filter, pillars, backbone, head, decoding and NMS —, the median of ``repeats`` runs, after warm-up runs, with a
 device synchronise on CUDA).
@@ -54,15 +55,24 @@ def oracle_outputs(stream: Stream, classes: Sequence[str]) -> list[list[Output]]
             for seq in stream.sequences]
 
 
-def result_outputs(stream: Stream, results: str | Path, classes: Sequence[str]) -> list[list[Output]]:
-    """Per sequence and frame: ``RESULTS/NN/NNNNNN.txt`` (16 columns; an empty file = no detections)."""
+def result_outputs(stream: Stream, results: str | Path, classes: Sequence[str]) -> list[list[Output | None]]:
+    """Per sequence and frame: ``RESULTS/NN/NNNNNN.txt`` (16 columns; an empty file = no detections; a missing file =
+    a frame the detector never ran on, ``None``: allowed only for frames the schedule does not process)."""
     from detector.eval import read_results
 
     results = Path(results)
     if not results.is_dir():
         raise InputError("result folder not found", results)
-    return [[labels_to_output(read_results(results / seq.name / f"{i:06d}.txt"), seq.calib(i), classes)
-             for i in range(len(seq))] for seq in stream.sequences]
+    out: list[list[Output | None]] = []
+    for seq in stream.sequences:
+        row: list[Output | None] = []
+        for i in range(len(seq)):
+            path = results / seq.name / f"{i:06d}.txt"
+            row.append(labels_to_output(read_results(path), seq.calib(i), classes) if path.is_file() else None)
+        out.append(row)
+    if not any(o is not None for row in out for o in row):
+        raise InputError(f"no result file of this stream (expected {results}/NN/NNNNNN.txt)", results)
+    return out
 
 
 class ModelRunner:

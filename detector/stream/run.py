@@ -53,7 +53,8 @@ class Prepared:
     """Mode-independent state: per sequence the frames' ground truth (``gts`` label_2 rows, ``valid`` / ``dontcare``
     sensor-frame boxes, ``calibs``), ``outputs`` per frame (``None`` for frames a model never ran on when the offline
     pass was skipped) and the ``schedules``; how latency was obtained (``latency``: ``measured``, ``constant`` or
-    ``log``) and the per-frame ``latency_log`` measured or replayed (JSON data; ``None`` for a constant)."""
+    ``log``) and the per-frame ``latency_log`` measured or replayed (JSON data; ``None`` for a constant); ``offline``:
+    every frame has an output (the offline AP can be computed)."""
 
     stream: Stream
     source: Source
@@ -175,16 +176,19 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
         for s, seq in enumerate(stream.sequences):
             schedules.append(plan(seq.times_us, _latency_function(stream, s, runner, outputs, latency_ms, latency_log,
                                                                   log, repeats, bar)))
-    if runner is not None:  # outputs of processed frames the offline pass skipped
-        for s, (seq, sched) in enumerate(zip(stream.sequences, schedules)):
-            for k in sched.inputs:
-                if outputs[s][k] is None:
-                    outputs[s][k] = runner.run(runner.frame(stream, seq, int(k)))
+    for s, (seq, sched) in enumerate(zip(stream.sequences, schedules)):  # processed frames without an output yet
+        for k in sched.inputs:
+            if outputs[s][k] is not None:
+                continue
+            if runner is None:
+                raise InputError(f"no result file for frame {seq.frame_id(int(k))} of sequence {seq.name}, which the "
+                                 "schedule processes", Path(str(source.results)) / seq.name)
+            outputs[s][k] = runner.run(runner.frame(stream, seq, int(k)))
     kind = "constant" if latency_ms is not None else "log" if latency_log is not None else "measured"
     return Prepared(stream=stream, source=source, classes=tuple(classes), min_overlaps=min_overlaps, gts=gts,
                     valid=valid, dontcare=dcs, calibs=calibs, outputs=outputs, schedules=schedules, schedule=schedule,
                     latency=kind, latency_ms=latency_ms, latency_log=log if measured else latency_log,
-                    offline=source.kind != "model" or offline)
+                    offline=all(o is not None for row in outputs for o in row))
 
 
 def _latency_function(stream: Stream, s: int, runner: ModelRunner | None, outputs: list, latency_ms: float | None,
@@ -287,7 +291,7 @@ def score(prep: Prepared, mode: str) -> dict:
         "frames": n,
         "sequences": len(prep.stream.sequences),
         "rate_hz": prep.stream.rate_hz,
-        "num_gt": {c: int(stream_result.num_gt[c][0]) for c in prep.classes},
+        "num_gt": {c: int(stream_result.num_gt_overall[c]) for c in prep.classes},
         "source": prep.source.describe(),
         **({"machine": prep.latency_log["machine"], "repeats": prep.latency_log["repeats"]}
            if prep.latency_log is not None else {}),
@@ -310,17 +314,17 @@ def source_from_options(config: Path | None, checkpoint: Path | None, results: P
 
 
 def save_results(prep: Prepared, out: str | Path) -> Path:
-    """Write every frame's offline output as a 16-column KITTI result file ``OUT/NN/NNNNNN.txt`` (rectified camera
-    frame of that frame; the ``--results`` layout), atomically per file. Needs the offline pass."""
+    """Write every output there is as a 16-column KITTI result file ``OUT/NN/NNNNNN.txt`` (rectified camera frame of
+    that frame; the ``--results`` layout), atomically per file: every frame after the offline pass, else the frames
+    the schedule processed (enough to replay the same schedule)."""
     from detector.infer import boxes_to_results
     from mpchair.kitti import write_labels
 
-    if not prep.offline:
-        raise InputError("--save-results needs the offline outputs of every frame (leave out --no-offline)")
     out = Path(out)
     for s, seq in enumerate(prep.stream.sequences):
         for i in range(len(seq)):
             o = prep.outputs[s][i]
-            write_labels(out / seq.name / f"{seq.frame_id(i)}.txt",
-                         boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i], prep.stream.image_size))
+            if o is not None:
+                write_labels(out / seq.name / f"{seq.frame_id(i)}.txt",
+                             boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i], prep.stream.image_size))
     return out

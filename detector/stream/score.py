@@ -78,22 +78,10 @@ def query_results(out: Output, pose_k: np.ndarray, pose_i: np.ndarray, same_fram
     return boxes_to_results(boxes[keep], out.scores[keep], out.names[keep], calib, image_size)
 
 
-def _all_easy(labels: Labels) -> Labels:
-    """Every non-DontCare row made KITTI Easy (truncation 0, occlusion 0, 2D height 1000 px): evaluated at Easy, the
-    result is AP over every box (issue 15's definition of the ``overall`` level)."""
-    if len(labels) == 0:
-        return labels
-    obj = ~labels.dontcare_mask()
-    bbox = labels.bbox.copy()
-    bbox[obj, 1], bbox[obj, 3] = 0.0, 1000.0
-    return Labels(labels.names, np.where(obj, 0.0, labels.truncated), np.where(obj, 0, labels.occluded),
-                  labels.alpha, bbox, labels.dims_hwl, labels.location, labels.rotation_y, labels.score)
-
-
 def evaluate_overall(gts: Sequence[Labels], dts: Sequence[Labels], classes: Sequence[str],
                      min_overlaps: Mapping[str, Sequence[float]]) -> tuple[EvalResult, dict]:
-    """Pool ``gts`` / ``dts`` (one per query frame) through the KITTI evaluator; returns the result and
-    ``{class: {"3d": {"R40": x, "R11": y}, "bev": {...}}}`` over every ground-truth box."""
-    result = evaluate([_all_easy(g) for g in gts], [_all_easy(d) for d in dts], classes, min_overlaps)
-    return result, {c: {m: {v: result.ap[c][m][v][0] for v in ("R40", "R11")} for m in ("3d", "bev")}
+    """Pool ``gts`` / ``dts`` (one per query frame) through the KITTI evaluator; returns the result and its
+    ``overall`` level as ``{class: {"3d": {"R40": x, "R11": y}, "bev": {...}}}`` (every ground-truth box counts)."""
+    result = evaluate(gts, dts, classes, min_overlaps)
+    return result, {c: {m: {v: result.overall[c][m][v] for v in ("R40", "R11")} for m in ("3d", "bev")}
                     for c in classes}

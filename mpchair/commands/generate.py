@@ -21,7 +21,9 @@ def _parse_shard(value: str) -> tuple[int, int]:
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--root", required=True, type=click.Path(path_type=Path),
-              help="Matterport3D root (v1/scans/<id>/..., zips or folders) or a folder of houses.")
+              help="Where the houses are, searched at any depth: the folder holding v1, v1, v1/scans, one scan folder, "
+                   "a house_segmentations.zip, mp3d_habitat.zip or its extracted mp3d/ folder (release or habitat "
+                   "layout; see mpchair houses).")
 @click.option("--house", "houses", multiple=True, required=True, help="House id; repeat for several houses.")
 @click.option("--frames", required=True, type=int, help="Frames per house.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Dataset folder.")
@@ -41,22 +43,28 @@ def _parse_shard(value: str) -> tuple[int, int]:
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Worker processes.")
 @click.option("--shard", default="0/1", show_default=True,
               help="Make only frames g with g % N == i (cluster array jobs); the last shard writes the manifest.")
+@click.option("--viewpoints", type=click.Choice(["auto", "regions", "navmesh"]), default="auto", show_default=True,
+              help="Where robot positions are drawn: regions = inside the .house region floor polygons; navmesh = on "
+                   "habitat's <id>.navmesh islands of radius >= 1.5 m (as habitat's PointNav episodes); auto = navmesh "
+                   "when the house has one, else regions. The same validity checks apply to both.")
 @click.option("--max-attempts", default=400, show_default=True, type=click.IntRange(1),
               help="Viewpoint candidates per frame before giving up.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor: str, seed: int, height: float,
              robot_radius: float, categories: tuple[str, ...], keep_empty: bool, split_mode: str, backend: str,
-             workers: int, shard: str, max_attempts: int, as_json: bool, quiet: bool) -> None:
+             workers: int, shard: str, viewpoints: str, max_attempts: int, as_json: bool, quiet: bool) -> None:
     """Generate a Matterport-Chair dataset in KITTI layout by raycasting the labelled house meshes (Embree).
 
     Writes OUT/training/{velodyne,label_2,calib,image_2,pose}/NNNNNN.*, OUT/ImageSets/{train,val,test}.txt and
     OUT/manifest.json. Re-running the same command resumes an interrupted run; the result is byte-identical for a
-    given seed whatever --workers is.
+    given seed whatever --workers is, and whichever layout (release or habitat) the house was read from (only the
+    manifest differs: it names and hashes the files read).
 
     \b
     Examples:
       mpchair generate --root houses/ --house X --frames 200 --out dataset/
+      mpchair generate --root mp3d_habitat.zip --house X --frames 200 --viewpoints navmesh --out dataset/
       mpchair generate --root mp3d/ --house A --house B --frames 3750 --height 1.25 --split-mode paper --out mpc/
       mpchair generate ... --shard 3/8        # one job of a cluster array
     """
@@ -70,6 +78,7 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
         root=root, houses=tuple(houses), frames=frames, out=out, sensor=sensor, seed=seed, height=height,
         robot_radius=robot_radius, categories=tuple(categories), keep_empty=keep_empty, split_mode=split_mode,
         backend=backend, workers=workers, shard=_parse_shard(shard), max_attempts=max_attempts, progress=not quiet,
+        viewpoints=viewpoints,
     )  # fmt: skip
     summary = run(req)
     if as_json:

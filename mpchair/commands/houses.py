@@ -12,9 +12,30 @@ import click
 from mpchair.errors import InputError
 
 
+def _navmesh_summary(house) -> dict | None:
+    """The house's navmesh (None without one): islands, those --viewpoints navmesh samples (radius >= 1.5 m, where
+    habitat's PointNav episodes start) and the walkable area (horizontal, m²)."""
+    if house.navmesh is None:
+        return None
+    from mpchair.scan.navmesh import NavmeshSampler
+
+    try:
+        s = NavmeshSampler(house.navmesh)
+        big = len(s.islands)
+    except ValueError:  # no island large enough: still describe the others
+        s, big = NavmeshSampler(house.navmesh, min_island_radius=0.0), 0
+    return {
+        "version": house.navmesh.version,
+        "islands": len(s.island_radius),
+        "islands_sampled": big,
+        "walkable_area_m2": round(float(s.island_area.sum()), 3),
+    }
+
+
 def _house_summary(house) -> dict:
     return {
         "id": house.id,
+        "layout": house.layout,
         "version": house.version,
         "levels": len(house.levels),
         "regions": len(house.regions),
@@ -24,6 +45,7 @@ def _house_summary(house) -> dict:
         "unlabelled_faces": house.unlabelled_faces,
         "label_mismatch_rate": house.label_mismatch_rate,
         "objects_by_category": house.objects_by_category(),
+        "navmesh": _navmesh_summary(house),
         "warnings": list(house.warnings),
     }
 
@@ -43,27 +65,33 @@ def _object_row(o) -> dict:
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--root", required=True, type=click.Path(path_type=Path),
-              help="Download root (v1/scans/<id>/...), a scans/ folder, a house folder or a house_segmentations.zip.")
+              help="Where the houses are, searched at any depth: the folder holding v1, v1, v1/scans, one scan folder, "
+                   "a house_segmentations.zip, mp3d_habitat.zip or its extracted mp3d/ (or mp3d/<id>/) folder.")
 @click.option("--house", "house_id", default=None, help="Only this house id.")
 @click.option("--objects", "list_objects", is_flag=True, help="List the objects of --house with their aligned boxes.")
 @click.option("--category", "categories", multiple=True,
               help="With --objects: only these mpcat40 classes (name or index; repeatable), e.g. chair or 3.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
 def houses(root: Path, house_id: str | None, list_objects: bool, categories: tuple[str, ...], as_json: bool) -> None:
-    """List every house found under ROOT: levels, regions, objects, faces, vertices, unlabelled faces and objects
-    per mpcat40 class. With --house ID --objects: that house's objects and their vertically aligned boxes
+    """List every house found under ROOT, in the release (house_segmentations) or habitat (mp3d_habitat) layout:
+    levels, regions, objects, faces, vertices, unlabelled faces, objects per mpcat40 class and, when the house has a
+    .navmesh, its islands. With --house ID --objects: that house's objects and their vertically aligned boxes
     [x, y, z_center, l, w, h, yaw] (world frame, metres, radians CCW from +x).
 
     \b
     JSON shapes:
-      {"houses": [{"id", "levels", "regions", "objects", "faces", "vertices", "unlabelled_faces",
-                   "objects_by_category": {"chair": n, ...}, ...}]}
+      {"houses": [{"id", "layout": "release" | "habitat", "levels", "regions", "objects", "faces", "vertices",
+                   "unlabelled_faces", "label_mismatch_rate" (null for habitat),
+                   "objects_by_category": {"chair": n, ...},
+                   "navmesh": null | {"version", "islands", "islands_sampled" (radius >= 1.5 m),
+                                      "walkable_area_m2"}, ...}]}
       --objects: {"id", "objects": [{"index", "id", "region", "raw_category", "mpcat40_index",
                    "mpcat40_name", "aligned_box": [7 numbers], "tilt_deg"}]}
 
     \b
     Examples:
       mpchair houses --root houses/ --json
+      mpchair houses --root /data/mp3d_habitat.zip
       mpchair houses --root houses/ --house 17DRP5sb8fy --objects --category chair
     """
     from tqdm import tqdm
@@ -85,7 +113,7 @@ def houses(root: Path, house_id: str | None, list_objects: bool, categories: tup
         # Warnings are reported in the output (text and JSON), not as Python warnings on stderr.
         warnings.simplefilter("ignore")
         if list_objects:
-            house = read_house(found[house_id], side_files=False)
+            house = read_house(found[house_id], side_files=False, navmesh=False)
             objs = objects_of(house, sorted(wanted)) if wanted else house.objects
             if as_json:
                 click.echo(json.dumps({"id": house.id, "objects": [_object_row(o) for o in objs]}, indent=1))
@@ -109,11 +137,17 @@ def houses(root: Path, house_id: str | None, list_objects: bool, categories: tup
         return
     for r in rows:
         cats = ", ".join(f"{k} {v}" for k, v in r["objects_by_category"].items()) or "none"
+        rate = r["label_mismatch_rate"]
         click.echo(
-            f"{r['id']}: ASCII {r['version']}, {r['levels']} levels, {r['regions']} regions, {r['objects']} objects, "
-            f"{r['faces']} faces, {r['vertices']} vertices, {r['unlabelled_faces']} unlabelled faces, "
-            f"label mismatch {r['label_mismatch_rate']:.2%}"
+            f"{r['id']} ({r['layout']}): ASCII {r['version']}, {r['levels']} levels, {r['regions']} regions, "
+            f"{r['objects']} objects, {r['faces']} faces, {r['vertices']} vertices, {r['unlabelled_faces']} unlabelled "
+            f"faces, label mismatch {'n/a' if rate is None else f'{rate:.2%}'}"
         )
         click.echo(f"    objects per class: {cats}")
+        nav = r["navmesh"]
+        if nav is not None:
+            click.echo(f"    navmesh: version {nav['version']}, {nav['islands']} islands "
+                       f"({nav['islands_sampled']} with radius >= 1.5 m), "
+                       f"{nav['walkable_area_m2']:.1f} m2 walkable")  # fmt: skip
         for w in r["warnings"]:
             click.echo(f"    warning: {w}")

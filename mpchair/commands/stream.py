@@ -28,6 +28,9 @@ import click
 @click.option("--max-geodesic", default=30.0, show_default=True, type=float, help="Longest start-goal path, m.")
 @click.option("--min-ratio", default=1.1, show_default=True, type=float,
               help="Least geodesic / straight-line distance of a start-goal pair.")
+@click.option("--free-space", type=click.Choice(["auto", "regions", "navmesh"]), default="auto", show_default=True,
+              help="Where the robot may drive: the house's floor polygons (regions) or its habitat navmesh; auto: the "
+                   "navmesh when the house has one.")
 @click.option("--sensor", default="mp3d-depth90", show_default=True,
               help="Sensor profile: a name in configs/sensors/ (mp3d-depth90, lidar64, lidar16) or a YAML path.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed: same seed, same bytes.")
@@ -42,8 +45,9 @@ import click
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def stream(root: Path, houses: tuple[str, ...], episodes: int, out: Path, rate: float, speed: float,
            turn_rate: float, accel: float, duration: float | None, look_around: bool, min_geodesic: float,
-           max_geodesic: float, min_ratio: float, sensor: str, seed: int, height: float, robot_radius: float,
-           categories: tuple[str, ...], backend: str, workers: int, as_json: bool, quiet: bool) -> None:
+           max_geodesic: float, min_ratio: float, free_space: str, sensor: str, seed: int, height: float,
+           robot_radius: float, categories: tuple[str, ...], backend: str, workers: int, as_json: bool,
+           quiet: bool) -> None:
     """Drive a robot through houses and record what its sensor sees: KITTI-odometry-style sequences for streaming
     evaluation (detector stream-eval).
 
@@ -67,7 +71,7 @@ def stream(root: Path, houses: tuple[str, ...], episodes: int, out: Path, rate: 
         root=root, houses=tuple(houses), episodes=episodes, out=out, rate=rate, speed=speed, turn_rate=turn_rate,
         accel=accel, sensor=sensor, seed=seed, height=height, robot_radius=robot_radius, categories=tuple(categories),
         look_around=look_around, duration=duration, min_geodesic=min_geodesic, max_geodesic=max_geodesic,
-        min_ratio=min_ratio, backend=backend, workers=workers, progress=not quiet,
+        min_ratio=min_ratio, free_space=free_space, backend=backend, workers=workers, progress=not quiet,
     )  # fmt: skip
     summary = run(req)
     if as_json:

@@ -29,11 +29,13 @@ from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
 from mpchair.labels.visibility import ObjectScenes, cast_pixels, covering_boxes, outside_vertices
 from mpchair.matterport.categories import resolve_category
 from mpchair.matterport.house import House
+from mpchair.scan.navmesh import NavmeshSampler
 from mpchair.scan.raycast import Raycaster, make_raycaster
 from mpchair.scan.sensors import CameraConfig, SensorConfig, camera_calib
 from mpchair.scan.viewpoints import (
     FloorArea,
     FloorSampler,
+    PointSampler,
     Viewpoint,
     ViewpointParams,
     face_normals_z,
@@ -72,13 +74,44 @@ def floor_areas(house: House, skip_labels: tuple[str, ...] = SKIP_REGION_LABELS)
     return areas
 
 
+#: Where viewpoint candidates come from: ``regions`` (the .house floor polygons), ``navmesh`` (habitat's navmesh
+#: islands), ``auto`` (the navmesh when the house has one, else regions).
+VIEWPOINT_SOURCES = ("auto", "regions", "navmesh")
+
+
+def resolve_viewpoints(house: House, requested: str) -> str:
+    """``regions`` or ``navmesh`` for ``house`` (``requested`` one of :data:`VIEWPOINT_SOURCES`); asking for the
+    navmesh of a house without one is an :class:`InputError`."""
+    if requested not in VIEWPOINT_SOURCES:
+        raise InputError(f"--viewpoints must be one of {', '.join(VIEWPOINT_SOURCES)}, got {requested!r}")
+    if requested == "auto":
+        return "navmesh" if house.navmesh is not None else "regions"
+    if requested == "navmesh" and house.navmesh is None:
+        raise InputError(f"house {house.id} has no <id>.navmesh (habitat layout); use --viewpoints regions")
+    return requested
+
+
+def viewpoint_sampler(house: House, source: str) -> PointSampler:
+    """The candidate sampler of ``house`` for ``source`` (``regions`` or ``navmesh``, see :func:`resolve_viewpoints`);
+    a house without floor to stand on, or whose navmesh has no island of radius >= 1.5 m, is an :class:`InputError`."""
+    try:
+        if source == "navmesh":
+            return NavmeshSampler(house.navmesh)
+        areas = floor_areas(house)
+        if not areas:
+            raise InputError(f"house {house.id} has no floor polygon and no floor faces to place the robot on")
+        return FloorSampler(areas)
+    except ValueError as e:
+        raise InputError(f"house {house.id}: {e}") from None
+
+
 @dataclasses.dataclass
 class HouseContext:
     """Everything a worker needs to make frames of one house; the raycasting scene is built once here."""
 
     house: House
     raycaster: Raycaster
-    sampler: FloorSampler
+    sampler: PointSampler
     floor_ok: np.ndarray
     normal_z: np.ndarray
     class_objects: np.ndarray
@@ -89,10 +122,12 @@ class HouseContext:
 
 
 def build_context(
-    house: House, categories: frozenset[int], backend: str = "embree", box_margin: float = LabelFilters.box_margin
+    house: House, categories: frozenset[int], backend: str = "embree", box_margin: float = LabelFilters.box_margin,
+    viewpoints: str = "auto",
 ) -> HouseContext:
-    """Scene, floor sampler and class objects of ``house`` (``categories``: mpcat40 indices to label; ``box_margin``
-    the filters' in-box margin, metres, for the faces that can hit outside their box).
+    """Scene, viewpoint sampler and class objects of ``house`` (``categories``: mpcat40 indices to label;
+    ``box_margin`` the filters' in-box margin, metres, for the faces that can hit outside their box; ``viewpoints``
+    one of :data:`VIEWPOINT_SOURCES`).
 
     A house with no object of the classes, or without any floor to stand on, is an :class:`InputError`.
     """
@@ -103,13 +138,7 @@ def build_context(
         names = ", ".join(sorted(mpcat40_name(c) for c in categories))
         raise InputError(f"house {house.id} has no object of class {names} (it has: "
                          f"{', '.join(f'{k} {v}' for k, v in house.objects_by_category().items()) or 'no objects'})")
-    areas = floor_areas(house)
-    if not areas:
-        raise InputError(f"house {house.id} has no floor polygon and no floor faces to place the robot on")
-    try:
-        sampler = FloorSampler(areas)
-    except ValueError as e:
-        raise InputError(f"house {house.id}: {e}") from None
+    sampler = viewpoint_sampler(house, resolve_viewpoints(house, viewpoints))
     floor = resolve_category("floor")
     floor_ok = (house.face_category == floor) | (house.face_object < 0)
     boxes = np.stack([house.objects[i].aligned_box for i in objs]).astype(np.float64)
@@ -129,13 +158,15 @@ def build_context(
 
 @dataclasses.dataclass(frozen=True)
 class FrameSettings:
-    """What every frame of a run shares: sensor profile, viewpoint parameters, seed and acceptance rules."""
+    """What every frame of a run shares: sensor profile, viewpoint parameters and candidate source
+    (:data:`VIEWPOINT_SOURCES`), seed and acceptance rules."""
 
     sensor: SensorConfig
     viewpoints: ViewpointParams
     seed: int
     keep_empty: bool = False
     max_attempts: int = 400
+    viewpoint_source: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)

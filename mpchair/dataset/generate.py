@@ -40,6 +40,8 @@ from mpchair.dataset.frame import (
     frame_rng,  # noqa: F401  (re-exported for callers that reproduce one frame's viewpoint)
     make_frame,
     record_path,
+    resolve_viewpoints,
+    viewpoint_sampler,
     warm_up,
     write_frame,
 )
@@ -49,7 +51,7 @@ from mpchair.heap import keep_freed_memory
 from mpchair.kitti import write_imageset
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House, objects_of, read_house
-from mpchair.matterport.source import HouseSource, find_houses
+from mpchair.matterport.source import SUFFIXES, HouseSource, find_houses
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 
@@ -60,7 +62,8 @@ FRAME_DIRS = ("velodyne", "label_2", "calib", "image_2", "pose")
 @dataclasses.dataclass(frozen=True)
 class GenerateRequest:
     """Arguments of one ``generate`` run. ``frames`` is per house; ``shard`` is ``(i, N)``; ``sensor`` a profile name
-    or YAML path; ``height`` / ``robot_radius`` metres; ``categories`` mpcat40 names or indices."""
+    or YAML path; ``height`` / ``robot_radius`` metres; ``categories`` mpcat40 names or indices; ``viewpoints``
+    where candidates come from (``auto``: a house's navmesh when it has one, else ``regions``; or ``navmesh``)."""
 
     root: Path
     houses: tuple[str, ...]
@@ -78,6 +81,7 @@ class GenerateRequest:
     shard: tuple[int, int] = (0, 1)
     max_attempts: int = 400
     progress: bool = True
+    viewpoints: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,7 +169,7 @@ def _work(task: tuple[int, str, int]) -> dict:
     ctx = _STATE["ctx"].get(house_id)
     if ctx is None:  # the scene is built once per house and process, then reused for all its frames
         ctx = build_context(_STATE["houses"][house_id], _STATE["cats"], _STATE["backend"],
-                            _STATE["settings"].sensor.filters.box_margin)
+                            _STATE["settings"].sensor.filters.box_margin, _STATE["settings"].viewpoint_source)
         _STATE["ctx"][house_id] = ctx
     settings: FrameSettings = _STATE["settings"]
     result = make_frame(ctx, settings, index, _STATE["dirs"])
@@ -233,22 +237,27 @@ def generate(req: GenerateRequest) -> GenerateSummary:
         raise InputError(f"unknown house {unknown[0]!r} (available: {', '.join(sorted(found))})", req.root)
     houses: dict[str, House] = {}
     hashes: dict[str, dict[str, str]] = {}
+    sources: dict[str, str] = {}
     for hid in req.houses:
-        house = read_house(found[hid])
+        house = read_house(found[hid], navmesh=req.viewpoints != "regions")
         if not objects_of(house, cat_idx):
             have = ", ".join(f"{k} {v}" for k, v in house.objects_by_category().items()) or "no objects"
             raise InputError(f"house {hid} has no object of class {', '.join(cats)} (it has: {have})",
                              found[hid].describe(".house"))
+        sources[hid] = resolve_viewpoints(house, req.viewpoints)
+        viewpoint_sampler(house, sources[hid])  # a navmesh without a large enough island fails here, not in a frame
         houses[hid] = house
         src = found[hid]
-        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in (".house", ".ply", ".fsegs.json", ".semseg.json")
-                       if src.exists(s)}
+        used = [s for s in SUFFIXES[src.layout] if s != ".navmesh"] + [".navmesh"] * (sources[hid] == "navmesh")
+        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in used if src.exists(s)}
 
     out = Path(req.out)
     settings = _settings(req, sensor, params, cats)
+    if "navmesh" in sources.values():  # only then: regions-only runs keep the settings (and resume) they had
+        settings["viewpoint_sources"] = sources
     _check_settings(out, settings)
     fs = FrameSettings(sensor=sensor, viewpoints=params, seed=req.seed, keep_empty=req.keep_empty,
-                       max_attempts=req.max_attempts)
+                       max_attempts=req.max_attempts, viewpoint_source=req.viewpoints)
 
     n_total = len(req.houses) * req.frames
     tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
@@ -335,6 +344,8 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
         command += ["--category", c]
     if req.keep_empty:
         command.append("--keep-empty")
+    if req.viewpoints != "auto":
+        command += ["--viewpoints", req.viewpoints]
     manifest = {
         "format": MANIFEST_FORMAT,
         "command": command,

@@ -18,10 +18,13 @@ from mpchair.geometry.camera import (
     project_boxes_to_image,
 )
 from mpchair.geometry.frames import (
+    HABITAT_TO_MP3D,
     SENSOR_TO_CAMERA,
     canonical_yaw,
+    habitat_to_mp3d,
     invert_rigid,
     make_tr_velo_to_cam,
+    mp3d_to_habitat,
     rigid_from,
     rotate_vectors,
     transform_boxes,
@@ -35,6 +38,7 @@ from mpchair.geometry.region import REGION_TESTS, in_region, region_failures
 
 __all__ = [
     "BOX_EDGES",
+    "HABITAT_TO_MP3D",
     "NEAR_PLANE",
     "REGION_TESTS",
     "SENSOR_TO_CAMERA",
@@ -44,11 +48,13 @@ __all__ = [
     "boxes_to_kitti_camera",
     "fov_mask",
     "grid_size",
+    "habitat_to_mp3d",
     "in_region",
     "invert_rigid",
     "kitti_camera_to_boxes",
     "labels_to_boxes",
     "make_tr_velo_to_cam",
+    "mp3d_to_habitat",
     "pillar_coords",
     "points_in_boxes",
     "project_boxes_to_image",

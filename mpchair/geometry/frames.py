@@ -16,6 +16,12 @@ import numpy as np
 SENSOR_TO_CAMERA: np.ndarray = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 SENSOR_TO_CAMERA.setflags(write=False)
 
+#: Rotation habitat's run-time frame (y up, -z forward) → the Matterport world frame (z up): habitat rotates every MP3D
+#: asset by -90 deg about +x at load time, so ``(x, y, z)_habitat → (x, -z, y)_mp3d`` (its inverse is the transpose,
+#: ``(x, y, z)_mp3d → (x, z, -y)_habitat``). Habitat's ``.navmesh`` files, agent states and episodes use that frame.
+HABITAT_TO_MP3D: np.ndarray = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+HABITAT_TO_MP3D.setflags(write=False)
+
 
 def wrap_angle(a: np.ndarray | float, offset: float = 0.5, period: float = 2 * math.pi) -> np.ndarray:
     """Wrap angles (radians) into ``[-offset, 1 - offset) * period``: ``a - floor(a / period + offset) * period``.
@@ -129,6 +135,16 @@ def transform_boxes(boxes: np.ndarray, T: np.ndarray) -> np.ndarray:
     out[:, :3] = transform_points(b[:, :3], T)
     out[:, 6] = wrap_angle(b[:, 6] + dyaw)
     return out
+
+
+def habitat_to_mp3d(points: np.ndarray) -> np.ndarray:
+    """(N,3) float64 points in habitat's y-up frame → the Matterport world frame (z up), metres: ``(x, -z, y)``."""
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ HABITAT_TO_MP3D.T
+
+
+def mp3d_to_habitat(points: np.ndarray) -> np.ndarray:
+    """(N,3) float64 points in the Matterport world frame (z up) → habitat's y-up frame, metres: ``(x, z, -y)``."""
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ HABITAT_TO_MP3D
 
 
 def make_tr_velo_to_cam(translation: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:

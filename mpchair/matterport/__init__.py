@@ -1,7 +1,9 @@
-"""Read (and write) Matterport3D house annotations in the exact release format: ``.house`` records, the labelled
-house ``.ply``, the ``.fsegs.json``/``.semseg.json`` side files, extracted or inside ``house_segmentations.zip``. The
-result is a :class:`House` (mesh, per-face object and mpcat40 labels, objects with their oriented and vertically
-aligned boxes, regions with floor polygons, levels), all in the raw Matterport world frame (metres, z up).
+"""Read (and write) Matterport3D house annotations in the exact release format (``.house`` records, the labelled
+house ``.ply``, the ``.fsegs.json``/``.semseg.json`` side files, extracted or inside ``house_segmentations.zip``) and
+in habitat's layout (``mp3d/<id>/<id>_semantic.ply`` + ``.house``, the ``.navmesh``, extracted or inside
+``mp3d_habitat.zip``). The result is a :class:`House` (mesh, per-face object and mpcat40 labels, objects with their
+oriented and vertically aligned boxes, regions with floor polygons, levels, the navmesh), all in the raw Matterport
+world frame (metres, z up).
 """
 
 from mpchair.matterport.boxes import aligned_box, obb_from_aligned, orthonormal_axes

@@ -1,14 +1,21 @@
 """The :class:`House`: one Matterport3D house (mesh, per-face labels, objects with boxes, regions, levels).
 
-:func:`read_house` joins the ``.house`` records with the house ``.ply`` along the chain habitat uses:
-``face.material_id`` → the ``E`` record with that ``id`` → ``E.object`` → ``O`` → ``C[O.category]`` → mpcat40 index.
-The ``.ply``'s own ``segment_id`` (object index) and ``category_id`` (category_mapping index) are cross-checked and the
-disagreeing fraction of faces is reported as ``label_mismatch_rate``. Everything is in the raw Matterport world frame
-(metres, z up).
+:func:`read_house` joins the ``.house`` records with the labelled mesh of either layout (``mpchair.matterport.source``):
+
+- **release** ``<id>.ply``: along the chain habitat's converter used, ``face.material_id`` → the ``E`` record with that
+  ``id`` → ``E.object`` → ``O`` → ``C[O.category]`` → mpcat40 index. The ``.ply``'s own ``segment_id`` (object index)
+  and ``category_id`` (category_mapping index) are cross-checked and the disagreeing fraction of faces is reported as
+  ``label_mismatch_rate``;
+- **habitat** ``<id>_semantic.ply``: each face's ``object_id`` is that ``O`` record's index already (-1, or any id
+  outside ``[0, #O)``, is unlabelled); no E lookup, no second label to cross-check (``label_mismatch_rate`` None).
+
+The same house read from either layout gives the same vertices, faces, objects and per-face labels. A ``<id>.navmesh``
+beside the files is read too (``House.navmesh``). Everything is in the raw Matterport world frame (metres, z up).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -17,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from mpchair.errors import InputError
+from mpchair.geometry import habitat_to_mp3d
 from mpchair.matterport.boxes import TILT_WARN_DEG, aligned_box, orthonormal_axes
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.housefile import (
@@ -29,8 +37,14 @@ from mpchair.matterport.housefile import (
     region_height,
 )
 from mpchair.matterport.jsonfiles import SegGroup, read_fsegs, read_semseg
-from mpchair.matterport.ply import read_ply
+from mpchair.matterport.navmesh import NavMesh, read_navmesh
+from mpchair.matterport.ply import PlyMesh, read_ply, read_semantic_ply
 from mpchair.matterport.source import HouseSource, find_houses
+
+#: Frame check of a semantic mesh: this fraction of its vertices must lie inside the ``.house`` ``H`` box grown by
+#: ``FRAME_BOX_MARGIN`` metres (real scans reach a little beyond the annotated box; a mesh in another frame does not).
+FRAME_INSIDE_MIN = 0.99
+FRAME_BOX_MARGIN = 0.5
 
 #: Region labels (one character, data_organization.md) → names.
 REGION_LABELS = {
@@ -108,8 +122,10 @@ class House:
 
     ``vertices (V,3) float64``, ``faces (F,3) int64`` (file order), ``face_object (F,) int64`` (position in
     ``objects``, -1 unlabelled), ``face_category (F,) int64`` (mpcat40 index, -1 none), ``face_segment (F,)`` the raw
-    ``material_id``. ``label_mismatch_rate`` is the fraction of faces whose ``segment_id``/``category_id`` disagree with
-    the material chain. ``warnings`` collects recoverable oddities (also issued as :class:`HouseWarning`).
+    per-face label (release: ``material_id``; habitat: ``object_id``). ``label_mismatch_rate`` is the fraction of faces
+    whose ``segment_id``/``category_id`` disagree with the material chain (None for the habitat layout, which has no
+    second label). ``warnings`` collects recoverable oddities (also issued as :class:`HouseWarning`). ``layout`` is
+    ``"release"`` or ``"habitat"``; ``navmesh`` the house's habitat navmesh (world frame) when it has one.
     """
 
     id: str
@@ -128,8 +144,10 @@ class House:
     images: tuple[ImageRecord, ...]
     seg_groups: tuple[SegGroup, ...]
     bbox: np.ndarray
-    label_mismatch_rate: float
+    label_mismatch_rate: float | None
     warnings: tuple[str, ...]
+    layout: str = "release"
+    navmesh: NavMesh | None = None
 
     @property
     def unlabelled_faces(self) -> int:
@@ -215,12 +233,14 @@ def _segment_lookup(material: np.ndarray, seg_ids: np.ndarray, seg_values: np.nd
     return np.where(hit, seg_values[order][pos_c], -1)
 
 
-def read_house(source: HouseSource | str | Path, *, side_files: bool = True) -> House:
-    """Read one house from a :class:`HouseSource` (or a path that :func:`find_houses` resolves to exactly one house).
+def read_house(source: HouseSource | str | Path, *, side_files: bool = True, navmesh: bool = True) -> House:
+    """Read one house from a :class:`HouseSource` (or a path that :func:`find_houses` resolves to exactly one house),
+    in either layout (module docstring).
 
     ``side_files`` also reads ``.fsegs.json`` (cross-checked against ``material_id``) and ``.semseg.json`` (kept as
-    ``seg_groups``) when present. Recoverable oddities go to ``House.warnings`` and are issued as
-    :class:`HouseWarning`; bad input raises :class:`InputError` naming the file and line or record.
+    ``seg_groups``) when present (release layout); ``navmesh`` reads ``<id>.navmesh`` when present. Recoverable
+    oddities go to ``House.warnings`` and are issued as :class:`HouseWarning`; bad input raises :class:`InputError`
+    naming the file and line or record.
     """
     if not isinstance(source, HouseSource):
         found = find_houses(source)
@@ -234,17 +254,48 @@ def read_house(source: HouseSource | str | Path, *, side_files: bool = True) -> 
     except UnicodeDecodeError:
         text = raw.decode("latin-1")
     hf = parse_house_text(text, house_path)
-    ply_path = source.describe(".ply")
-    mesh = read_ply(source.read_bytes(".ply"), ply_path)
     notes: list[str] = []
-
     region_level = {r.index: r.level for r in hf.regions}
     objects, obj_notes = _build_objects(hf, region_level, house_path)
     notes += obj_notes
-    nf = len(mesh.faces)
 
-    # Face → object → category along the material chain.
     o_index = np.array([o.index for o in hf.objects], dtype=np.int64)
+    if source.layout == "habitat":
+        mesh, face_object, face_segment, rate, seg_groups = _habitat_faces(source, hf, o_index, notes)
+    else:
+        mesh, face_object, face_segment, rate, seg_groups = _release_faces(source, hf, objects, o_index, notes,
+                                                                           side_files)  # fmt: skip
+    obj_mp = np.array([o.mpcat40_index for o in objects] + [-1], dtype=np.int64)
+    # Index -1 picks the appended sentinel, so unlabelled faces map to -1 without a branch.
+    face_category = obj_mp[face_object]
+    if hf.version == "1.0" or not objects:
+        notes.append(f"{house_path}: no objects (ASCII {hf.version}); regions and floors only")
+    nav = None
+    if navmesh and source.exists(".navmesh"):
+        nav = read_navmesh(source.read_bytes(".navmesh"), source.describe(".navmesh"))
+
+    levels = []
+    for lv in hf.levels:
+        regs = tuple(r.index for r in hf.regions if r.level == lv.index)
+        levels.append(Level(lv.index, lv.label, regs, lv.position.copy(), lv.bbox.copy()))
+    for n in notes:
+        warnings.warn(n, HouseWarning, stacklevel=2)
+    return House(
+        id=source.id, version=hf.version, vertices=mesh.vertices, faces=mesh.faces, face_object=face_object,
+        face_category=face_category, face_segment=face_segment, objects=tuple(objects),
+        regions=tuple(_build_regions(hf)), levels=tuple(levels), categories=hf.categories, portals=hf.portals,
+        panoramas=hf.panoramas, images=hf.images, seg_groups=seg_groups, bbox=hf.header.bbox.copy(),
+        label_mismatch_rate=rate, warnings=tuple(notes), layout=source.layout, navmesh=nav,
+    )  # fmt: skip
+
+
+def _release_faces(source: HouseSource, hf: HouseFile, objects: list[HouseObject], o_index: np.ndarray,
+                   notes: list[str], side_files: bool) -> tuple:
+    """Release ``<id>.ply``: mesh, face → object along the material chain, raw material ids, mismatch rate and the
+    ``.semseg.json`` groups (side files cross-checked into ``notes``)."""
+    house_path, ply_path = source.describe(".house"), source.describe(".ply")
+    mesh = read_ply(source.read_bytes(".ply"), ply_path)
+    nf = len(mesh.faces)
     pos_of_index = {int(i): p for p, i in enumerate(o_index)}
     seg_ids = np.array([e.id for e in hf.segments], dtype=np.int64)
     seg_obj = np.array([pos_of_index.get(e.object, -1) for e in hf.segments], dtype=np.int64)
@@ -255,10 +306,7 @@ def read_house(source: HouseSource | str | Path, *, side_files: bool = True) -> 
     if mesh.material_id is None:
         raise InputError("house mesh lacks the per-face 'material_id' property", ply_path)
     face_object = _segment_lookup(mesh.material_id, seg_ids, seg_obj)
-    obj_mp = np.array([o.mpcat40_index for o in objects] + [-1], dtype=np.int64)
     obj_map = np.array([o.mapping_index for o in objects] + [-1], dtype=np.int64)
-    # Index -1 picks the appended sentinel, so unlabelled faces map to -1 without a branch.
-    face_category = obj_mp[face_object]
 
     mismatch = np.zeros(nf, dtype=bool)
     if mesh.segment_id is not None:
@@ -280,22 +328,62 @@ def read_house(source: HouseSource | str | Path, *, side_files: bool = True) -> 
                 notes.append(f"{source.describe('.fsegs.json')}: {frac:.2%} of segIndices differ from material_id")
         if source.exists(".semseg.json"):
             seg_groups = read_semseg(source.read_bytes(".semseg.json"), source.describe(".semseg.json"))
-    if hf.version == "1.0" or not objects:
-        notes.append(f"{house_path}: no objects (ASCII {hf.version}); regions and floors only")
+    return mesh, face_object, mesh.material_id, rate, seg_groups
 
-    levels = []
-    for lv in hf.levels:
-        regs = tuple(r.index for r in hf.regions if r.level == lv.index)
-        levels.append(Level(lv.index, lv.label, regs, lv.position.copy(), lv.bbox.copy()))
-    for n in notes:
-        warnings.warn(n, HouseWarning, stacklevel=2)
-    return House(
-        id=source.id, version=hf.version, vertices=mesh.vertices, faces=mesh.faces, face_object=face_object,
-        face_category=face_category, face_segment=mesh.material_id, objects=tuple(objects),
-        regions=tuple(_build_regions(hf)), levels=tuple(levels), categories=hf.categories, portals=hf.portals,
-        panoramas=hf.panoramas, images=hf.images, seg_groups=seg_groups, bbox=hf.header.bbox.copy(),
-        label_mismatch_rate=rate, warnings=tuple(notes),
-    )  # fmt: skip
+
+def _habitat_faces(source: HouseSource, hf: HouseFile, o_index: np.ndarray, notes: list[str]) -> tuple:
+    """habitat ``<id>_semantic.ply``: mesh (frame-checked), face → object from ``object_id``, the raw ids."""
+    ply_path = source.describe("_semantic.ply")
+    mesh = read_semantic_ply(source.read_bytes("_semantic.ply"), ply_path)
+    mesh = _check_frame(mesh, hf.header.bbox, ply_path, notes)
+    ids = mesh.object_id
+    # O index → position in House.objects (indices are unique; usually equal to the position).
+    pos_of = np.full(int(o_index.max()) + 1 if len(o_index) else 0, -1, dtype=np.int64)
+    pos_of[o_index] = np.arange(len(o_index))
+    known = (ids >= 0) & (ids < len(pos_of))
+    face_object = np.full(len(ids), -1, dtype=np.int64)
+    face_object[known] = pos_of[ids[known]]
+    missing = (ids >= 0) & (ids < len(o_index)) & (face_object < 0)
+    if missing.any():
+        f = int(np.flatnonzero(missing)[0])
+        raise InputError(f"face {f} has object_id {int(ids[f])} but the .house has no O record with that index "
+                         f"({int(np.count_nonzero(missing))} faces like it)", ply_path)  # fmt: skip
+    stray = (ids != -1) & (face_object < 0)
+    if stray.any():
+        notes.append(f"{ply_path}: {int(np.count_nonzero(stray))} faces have an object_id outside [0, {len(o_index)}) "
+                     "(read as unlabelled)")  # fmt: skip
+    return mesh, face_object, ids, None, ()
+
+
+def _check_frame(mesh: PlyMesh, bbox: np.ndarray, path: str, notes: list[str]) -> PlyMesh:
+    """The semantic mesh as stored must be in the ``.house`` frame (z up): at least :data:`FRAME_INSIDE_MIN` of its
+    vertices inside the ``H`` box grown by :data:`FRAME_BOX_MARGIN`. A mesh re-exported in habitat's y-up frame is
+    converted back (with a warning); anything else is an :class:`InputError`."""
+    if len(mesh.vertices) == 0 or not np.any(bbox):
+        return mesh
+    lo, hi = bbox[:3] - FRAME_BOX_MARGIN, bbox[3:] + FRAME_BOX_MARGIN
+
+    def inside(v: np.ndarray) -> float:
+        return float(np.mean(np.all((v >= lo) & (v <= hi), axis=1)))
+
+    frac = inside(mesh.vertices)
+    if frac >= FRAME_INSIDE_MIN:
+        return mesh
+    converted = habitat_to_mp3d(mesh.vertices)
+    if inside(converted) >= FRAME_INSIDE_MIN:
+        notes.append(f"{path}: vertices are in habitat's y-up frame (re-exported?); converted (x, y, z) -> (x, -z, y)")
+        return dataclasses.replace(mesh, vertices=converted)
+    raise InputError(f"only {frac:.1%} of the vertices lie inside the .house H box grown by {FRAME_BOX_MARGIN} m "
+                     f"(need {FRAME_INSIDE_MIN:.0%}; also in habitat's y-up frame): not this house's mesh, or not in "
+                     "its frame", path)  # fmt: skip
+
+
+def habitat_object_ids(hf: HouseFile, material_id: np.ndarray) -> np.ndarray:
+    """(F,) int64 the ``object_id`` habitat's converter (``Mp3dInstanceMeshData``) wrote per face of the release mesh:
+    ``material_id`` → the E record with that id → its O index (-1 when no E record matches or it has no object)."""
+    seg_ids = np.array([e.id for e in hf.segments], dtype=np.int64)
+    seg_obj = np.array([e.object for e in hf.segments], dtype=np.int64)
+    return _segment_lookup(np.asarray(material_id, dtype=np.int64), seg_ids, seg_obj)
 
 
 def aligned_boxes(objects: Iterable[HouseObject]) -> np.ndarray:
@@ -304,4 +392,7 @@ def aligned_boxes(objects: Iterable[HouseObject]) -> np.ndarray:
     return np.stack(boxes) if boxes else np.zeros((0, 7))
 
 
-__all__ = ["House", "HouseObject", "HouseWarning", "Level", "Region", "aligned_boxes", "objects_of", "read_house"]
+__all__ = [
+    "House", "HouseObject", "HouseWarning", "Level", "Region", "aligned_boxes", "habitat_object_ids", "objects_of",
+    "read_house",
+]  # fmt: skip

@@ -9,6 +9,12 @@ The release layout (``house_segmentations/<id>.ply``) is::
 
     vertex: float x y z nx ny nz tx ty; uchar red green blue                      (35 bytes packed)
     face:   list uchar int vertex_indices; int material_id segment_id category_id  (25 bytes packed)
+
+habitat's ``<id>_semantic.ply`` (:func:`read_semantic_ply`, :func:`encode_semantic_ply`) is the same mesh with fewer
+fields, one ``object_id`` (the ``.house`` O index) per face::
+
+    vertex: float x y z; uchar red green blue                                      (15 bytes packed)
+    face:   list uchar int vertex_indices; int object_id                           (17 bytes packed)
 """
 
 from __future__ import annotations
@@ -27,6 +33,12 @@ _TYPES = {
 
 #: The face fields of the release mesh, in header order after ``vertex_indices``.
 FACE_FIELDS = ("material_id", "segment_id", "category_id")
+#: numpy types a semantic mesh's ``object_id`` may have: MP3D writes int; Gibson/Replica-style files use ushort.
+OBJECT_ID_TYPES = ("i4", "u4", "i2", "u2")
+#: Bytes a zip member may hold beyond what its PLY header declares (trailing newline, padding) before it is refused.
+BODY_SLACK = 1 << 16
+#: Bytes one ASCII PLY value may take at most (``%.17g`` of a double plus a separator is 25): sizes ASCII members.
+ASCII_VALUE_BYTES = 48
 
 
 @dataclass(frozen=True)
@@ -42,6 +54,7 @@ class PlyMesh:
     category_id: np.ndarray | None
     normals: np.ndarray | None = None
     colors: np.ndarray | None = None
+    object_id: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -102,6 +115,11 @@ def _parse_header(data: bytes | memoryview, path: str) -> tuple[str, list[_Eleme
     return fmt, els, body_start
 
 
+def _values_per_record(el: _Element) -> int:
+    """Numbers one record of ``el`` holds in an ASCII body (a list is its count plus 3 entries: triangles only)."""
+    return sum(4 if c is not None else 1 for _, _, c in el.props)
+
+
 def _dtype(el: _Element, endian: str) -> np.dtype:
     fields = []
     for name, typ, count_type in el.props:
@@ -120,27 +138,69 @@ def read_ply(data: bytes | memoryview, path: str = "<ply>") -> PlyMesh:
     Raises :class:`InputError` for a body shorter than the header declares, non-triangle faces, out-of-range vertex
     indices or non-finite coordinates.
     """
+    fmt, elements, arrays, _ = _read_body(data, path)
+    return _to_mesh(arrays, elements, path)
+
+
+def read_semantic_ply(data: bytes | memoryview, path: str = "<ply>") -> PlyMesh:
+    """Parse habitat's ``<id>_semantic.ply`` (the house mesh with one ``object_id`` per face; Matterport world frame,
+    z up, as stored). The header drives the numpy dtypes, so any property order is read; ``object_id`` must be a
+    face property of type int, uint, short or ushort.
+
+    Raises :class:`InputError` for everything :func:`read_ply` does, for a missing or non-integer ``object_id`` and for
+    a binary body longer than its header declares (the file is not what the header says).
+    """
+    fmt, elements, arrays, end = _read_body(data, path)
+    face = next((e for e in elements if e.name == "face"), None)
+    if face is not None:
+        prop = next((p for p in face.props if p[0] == "object_id"), None)
+        if prop is None:
+            raise InputError("semantic mesh lacks the per-face 'object_id' property", path, face.lineno)
+        if prop[2] is not None or prop[1] not in OBJECT_ID_TYPES:
+            raise InputError("face property 'object_id' must be int, uint, short or ushort", path, face.lineno)
+    if fmt != "ascii" and end < len(data):
+        raise InputError(f"PLY body is longer than its header says: {len(data) - end} bytes after the last element "
+                         f"(at offset {end})", path)  # fmt: skip
+    return _to_mesh(arrays, elements, path)
+
+
+def ply_byte_limit(head: bytes, path: str = "<ply>") -> int:
+    """The most bytes a PLY file whose first bytes are ``head`` (its header, at least) may sensibly hold: the header,
+    plus each element's count × record size (binary; ASCII: × :data:`ASCII_VALUE_BYTES` per value), plus
+    :data:`BODY_SLACK`. Used to refuse zip members (zip bombs) before decompressing them; a bad header raises the
+    same :class:`InputError` as :func:`read_ply`."""
+    fmt, elements, body_start = _parse_header(head, path)
+    need = 0
+    for el in elements:
+        if fmt == "ascii":
+            need += el.count * ASCII_VALUE_BYTES * _values_per_record(el)
+        else:
+            need += el.count * _dtype(el, "<").itemsize
+    return body_start + need + BODY_SLACK
+
+
+def _read_body(data: bytes | memoryview, path: str) -> tuple[str, list[_Element], dict[str, np.ndarray], int]:
+    """Header and element arrays of a PLY file; also the byte offset where the declared body ends (binary)."""
     fmt, elements, pos = _parse_header(data, path)
     names = [e.name for e in elements]
     if "vertex" not in names or "face" not in names:
         raise InputError("PLY file needs 'vertex' and 'face' elements", path)
     arrays: dict[str, np.ndarray] = {}
     if fmt == "ascii":
-        arrays = _read_ascii_body(data, pos, elements, path)
-    else:
-        endian = "<" if fmt == "binary_little_endian" else ">"
-        for el in elements:
-            dt = _dtype(el, endian)
-            nbytes = dt.itemsize * el.count
-            if pos + nbytes > len(data):
-                raise InputError(
-                    f"PLY body is shorter than its header says: element '{el.name}' needs {nbytes} bytes at offset "
-                    f"{pos}, file has {len(data) - pos} left",
-                    path, el.lineno,
-                )  # fmt: skip
-            arrays[el.name] = np.frombuffer(data, dtype=dt, count=el.count, offset=pos)
-            pos += nbytes
-    return _to_mesh(arrays, elements, path)
+        return fmt, elements, _read_ascii_body(data, pos, elements, path), len(data)
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    for el in elements:
+        dt = _dtype(el, endian)
+        nbytes = dt.itemsize * el.count
+        if pos + nbytes > len(data):
+            raise InputError(
+                f"PLY body is shorter than its header says: element '{el.name}' needs {nbytes} bytes at offset "
+                f"{pos}, file has {len(data) - pos} left",
+                path, el.lineno,
+            )  # fmt: skip
+        arrays[el.name] = np.frombuffer(data, dtype=dt, count=el.count, offset=pos)
+        pos += nbytes
+    return fmt, elements, arrays, pos
 
 
 def _read_ascii_body(data: bytes | memoryview, pos: int, elements: list[_Element], path: str) -> dict:
@@ -149,7 +209,7 @@ def _read_ascii_body(data: bytes | memoryview, pos: int, elements: list[_Element
     at = 0
     for el in elements:
         dt = _dtype(el, "<")
-        width = sum(4 if c is not None else 1 for _, _, c in el.props)
+        width = _values_per_record(el)
         need = width * el.count
         if at + need > len(tokens):
             raise InputError(
@@ -208,7 +268,7 @@ def _to_mesh(arrays: dict, elements: list[_Element], path: str) -> PlyMesh:
         raise InputError(f"face {bad} references a vertex outside 0..{len(vertices) - 1}", path,
                          by_name["face"].lineno)  # fmt: skip
     fnames = f.dtype.names or ()
-    fields = {k: (f[k].astype(np.int64) if k in fnames else None) for k in FACE_FIELDS}
+    fields = {k: (f[k].astype(np.int64) if k in fnames else None) for k in (*FACE_FIELDS, "object_id")}
     return PlyMesh(vertices, faces, normals=normals, colors=colors, **fields)
 
 
@@ -285,3 +345,39 @@ def encode_ply(
                                       f["category_id"].tolist())  # fmt: skip
     ]
     return header + ("\n".join(lines) + "\n").encode("ascii")
+
+
+def encode_semantic_ply(vertices: np.ndarray, faces: np.ndarray, object_id: np.ndarray,
+                        colors: np.ndarray | None = None, *, id_type: str = "int") -> bytes:
+    """Bytes of habitat's ``<id>_semantic.ply`` as its Datatool wrote them (binary little-endian; ``float x y z``,
+    ``uchar red green blue``; ``list uchar int vertex_indices``, ``<id_type> object_id``).
+
+    ``vertices`` (V,3) metres, Matterport world frame (stored as float32, as in the release ``.ply``), ``faces`` (F,3)
+    indices, ``object_id`` (F,) the ``.house`` O index (-1 unlabelled), ``colors`` (V,3) uint8 (grey by default).
+    ``id_type`` ``int`` (MP3D) or ``ushort`` (other habitat datasets).
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    nv, nf = len(vertices), len(faces)
+    if colors is None:
+        colors = np.full((nv, 3), 128, dtype=np.uint8)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {nv}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {nf}\n"
+        "property list uchar int vertex_indices\n"
+        f"property {id_type} object_id\n"
+        "end_header\n"
+    ).encode("ascii")
+    vdt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    fdt = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("object_id", "<" + _TYPES[id_type])])
+    v = np.zeros(nv, dtype=vdt)
+    v["x"], v["y"], v["z"] = vertices[:, 0], vertices[:, 1], vertices[:, 2]
+    v["red"], v["green"], v["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+    f = np.zeros(nf, dtype=fdt)
+    f["n"] = 3
+    f["v"] = faces
+    f["object_id"] = object_id
+    return header + v.tobytes() + f.tobytes()

@@ -1,4 +1,9 @@
-"""Robot viewpoints on free floor: sample inside floor areas, drop onto the floor by a ray, check clearance.
+"""Robot viewpoints on free floor: sample a candidate spot, drop onto the floor by a ray, check clearance.
+
+Candidates come from a :class:`PointSampler`: :class:`FloorSampler` (``--viewpoints regions``: uniform inside the
+``.house`` region floor polygons) or :class:`mpchair.scan.navmesh.NavmeshSampler` (``--viewpoints navmesh``: uniform
+on habitat's navmesh islands of radius >= 1.5 m, as habitat-lab's PointNav generator). Either way the checks below
+decide.
 
 Everything here is in the world frame (Matterport, z up, metres). A viewpoint is a sensor pose: position
 ``(x, y, floor_z + height)`` and a yaw (radians, CCW about +z, uniform in [0, 2 pi)); no pitch or roll.
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator, Sequence
+from typing import Protocol
 
 import numpy as np
 import shapely
@@ -87,6 +93,12 @@ class Viewpoint:
         return T
 
 
+class PointSampler(Protocol):
+    """Draws viewpoint candidates: ``sample(rng) -> (area index, x, y, floor z)`` (world frame, metres)."""
+
+    def sample(self, rng: np.random.Generator) -> tuple[int, float, float, float]: ...
+
+
 class FloorSampler:
     """Uniform (area-weighted) points inside a set of floor areas; built once per house."""
 
@@ -105,8 +117,9 @@ class FloorSampler:
         for p in polys:
             shapely.prepare(p)
 
-    def sample(self, rng: np.random.Generator) -> tuple[int, float, float]:
-        """One ``(area index, x, y)``; x, y uniform inside the chosen area's polygon (rejection in its bbox)."""
+    def sample(self, rng: np.random.Generator) -> tuple[int, float, float, float]:
+        """One ``(area index, x, y, z)``; x, y uniform inside the chosen area's polygon (rejection in its bbox), z the
+        area's floor height."""
         k = int(self._keep[min(int(np.searchsorted(self._cum, rng.random(), side="right")), len(self._keep) - 1)])
         x0, y0, x1, y1 = self._bounds[k]
         poly = self._polys[k]
@@ -116,7 +129,7 @@ class FloorSampler:
             y = y0 + xy[:, 1] * (y1 - y0)
             inside = np.flatnonzero(shapely.contains_xy(poly, x, y))
             if len(inside):
-                return k, float(x[inside[0]]), float(y[inside[0]])
+                return k, float(x[inside[0]]), float(y[inside[0]]), float(self.areas[k].z)
 
 
 def validate_candidates(
@@ -165,7 +178,7 @@ def validate_candidates(
 
 def viewpoint_stream(
     rng: np.random.Generator,
-    sampler: FloorSampler,
+    sampler: PointSampler,
     raycaster: Raycaster,
     floor_ok: np.ndarray,
     face_normal_z: np.ndarray,
@@ -174,18 +187,18 @@ def viewpoint_stream(
 ) -> Iterator[Viewpoint]:
     """Valid viewpoints in candidate order, drawn from ``rng``, until ``max_attempts`` candidates were tried.
 
-    Each candidate draws ``(area, x, y)`` then a yaw from ``rng``, so the stream is a pure function of the
+    Each candidate draws ``(area, x, y, z)`` then a yaw from ``rng``, so the stream is a pure function of the
     generator's state (batching only groups the raycasts). ``Viewpoint.attempt`` counts candidates from 0.
     """
     attempt = 0
     while attempt < max_attempts:
         n = min(params.batch, max_attempts - attempt)
         cand, yaws = [], np.empty(n)
-        for i in range(n):  # area, x, y, then yaw, candidate by candidate: the batch size cannot change the stream
+        for i in range(n):  # spot, then yaw, candidate by candidate: the batch size cannot change the stream
             cand.append(sampler.sample(rng))
             yaws[i] = rng.random() * 2.0 * np.pi
         xy = np.array([[c[1], c[2]] for c in cand])
-        z = np.array([sampler.areas[c[0]].z for c in cand])
+        z = np.array([c[3] for c in cand])
         valid, fz = validate_candidates(xy, z, raycaster, floor_ok, face_normal_z, params)
         for i in range(n):
             if valid[i]:

@@ -1,11 +1,11 @@
 """Where a robot can stand: a 5 cm grid per house level, each cell checked like a ``generate`` viewpoint.
 
-A level's floor polygons (:func:`mpchair.dataset.frame.floor_areas`, grouped by ``FloorArea.level``) are rasterised
-at ``cell`` metres; every cell centre inside one of them is validated with
-:func:`mpchair.scan.viewpoints.validate_candidates` (drop onto a floor face, headroom, ``robot_radius`` clearance at
-several heights), so free space is exactly the set of places ``generate`` could put its sensor. Free cells form
-*islands* (8-connected components); an island's radius is the largest distance of its cells from their centroid
-(habitat-sim's island radius, on the grid).
+A level's floor polygons (:func:`mpchair.dataset.frame.floor_areas`, grouped by ``FloorArea.level``), or a habitat
+navmesh's walkable triangles grouped by island (:func:`navmesh_areas`), are rasterised at ``cell`` metres; every cell
+centre inside one of them is validated with :func:`mpchair.scan.viewpoints.validate_candidates` (drop onto a floor
+face, headroom, ``robot_radius`` clearance at several heights), so free space is exactly the set of places
+``generate`` could put its sensor. Free cells form *islands* (8-connected components); an island's radius is the
+largest distance of its cells from their centroid (habitat-sim's island radius, on the grid).
 
 World frame (Matterport, z up, metres). Grid cell ``(row, col)`` has its centre at ``origin + (col, row) * cell``.
 """
@@ -19,6 +19,8 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
+from mpchair.matterport.navmesh import NavMesh
+from mpchair.scan.navmesh import island_labels
 from mpchair.scan.raycast import Raycaster
 from mpchair.scan.viewpoints import FloorArea, ViewpointParams, validate_candidates
 
@@ -71,22 +73,24 @@ class FreeSpace:
 
 
 def _level_grid(polygons: list[tuple[shapely.Polygon, float]], cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(origin (2,), z (H, W))``: the floor height of the first polygon containing each cell centre (NaN: none)."""
+    """``(origin (2,), z (H, W))``: the floor height of the first polygon containing each cell centre (NaN: none).
+    Each polygon is tested only on the cells of its own bounding box."""
     bounds = np.array([p.bounds for p, _ in polygons])
     lo = np.floor(bounds[:, :2].min(axis=0) / cell) * cell
     hi = bounds[:, 2:].max(axis=0)
     w, h = (np.floor((hi - lo) / cell).astype(np.int64) + 1).tolist()
-    xs = lo[0] + np.arange(w) * cell
-    ys = lo[1] + np.arange(h) * cell
-    gx, gy = np.meshgrid(xs, ys)
     z = np.full((h, w), np.nan)
-    for poly, pz in polygons:
-        x0, y0, x1, y1 = poly.bounds
-        box = (gx >= x0) & (gx <= x1) & (gy >= y0) & (gy <= y1) & np.isnan(z)
-        if box.any():
-            inside = shapely.contains_xy(poly, gx[box], gy[box])
-            idx = np.flatnonzero(box)[inside]
-            z.flat[idx] = pz
+    for (poly, pz), (x0, y0, x1, y1) in zip(polygons, bounds):
+        c0, r0 = np.ceil((np.array([x0, y0]) - lo) / cell - 1e-9).astype(np.int64)
+        c1, r1 = np.floor((np.array([x1, y1]) - lo) / cell + 1e-9).astype(np.int64)
+        if c1 < c0 or r1 < r0:
+            continue
+        gx, gy = np.meshgrid(lo[0] + np.arange(c0, c1 + 1) * cell, lo[1] + np.arange(r0, r1 + 1) * cell)
+        window = z[r0 : r1 + 1, c0 : c1 + 1]
+        todo = np.isnan(window)
+        inside = np.zeros_like(todo)
+        inside[todo] = shapely.contains_xy(poly, gx[todo], gy[todo])
+        window[inside] = pz
     return lo, z
 
 
@@ -101,6 +105,15 @@ def _island_radii(islands: np.ndarray, n: int, cell: float) -> np.ndarray:
     out = np.zeros(n + 1)
     np.maximum.at(out, ids, d)
     return out
+
+
+def navmesh_areas(nav: NavMesh) -> list[FloorArea]:
+    """The walkable surface of a habitat navmesh as floor areas: one triangle each (x, y, mean z), grouped by island
+    (``FloorArea.level`` = island id, so each island gets its own grid); unusable polygons are left out."""
+    islands = island_labels(nav)
+    tri_island = islands[nav.triangle_poly]
+    return [FloorArea(t[:, :2].copy(), float(t[:, 2].mean()), int(k)) for t, k in zip(nav.triangles, tri_island)
+            if k >= 0]
 
 
 def free_space(

@@ -29,7 +29,15 @@ import numpy as np
 
 from mpchair.atomic import write_text
 from mpchair.config import to_dict
-from mpchair.dataset.frame import HouseContext, build_context, cast_scan, floor_areas, label_pose, warm_up
+from mpchair.dataset.frame import (
+    HouseContext,
+    build_context,
+    cast_scan,
+    floor_areas,
+    label_pose,
+    resolve_viewpoints,
+    warm_up,
+)
 from mpchair.dataset.generate import _versions as package_versions
 from mpchair.dataset.generate import sha256_of
 from mpchair.errors import InputError
@@ -41,7 +49,7 @@ from mpchair.matterport.source import find_houses
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 from mpchair.stream.episodes import Episode, EpisodeSettings, plan_episode
-from mpchair.stream.freespace import free_space
+from mpchair.stream.freespace import free_space, navmesh_areas
 from mpchair.stream.routes import RouteRules
 from mpchair.stream.unicycle import Limits
 from mpchair.stream.writer import FRAME_DIRS, record_path, sequence_dir, write_sequence_files, write_stream_frame
@@ -53,7 +61,8 @@ STREAM_FORMAT = "mpchair-stream/1"
 class StreamRequest:
     """Arguments of one ``stream`` run: ``episodes`` per house, sensor ``rate`` (Hz), motion limits (``speed`` m/s,
     ``turn_rate`` rad/s, ``accel`` m/s^2), ``duration`` cap per episode (seconds; ``None`` = until the goal),
-    route rules (metres), sensor ``height`` and ``robot_radius`` (metres)."""
+    route rules (metres), sensor ``height`` and ``robot_radius`` (metres), ``free_space`` source (``auto``: the house's
+    navmesh when it has one, else ``regions``: its floor polygons; ``navmesh``)."""
 
     root: Path
     houses: tuple[str, ...]
@@ -73,6 +82,7 @@ class StreamRequest:
     min_geodesic: float = 5.0
     max_geodesic: float = 30.0
     min_ratio: float = 1.1
+    free_space: str = "auto"
     backend: str = "embree"
     workers: int = 1
     progress: bool = True
@@ -118,6 +128,8 @@ def _check_request(req: StreamRequest) -> None:
         raise InputError(f"--duration must be > 0 seconds, got {req.duration}")
     if req.speed == 0 and req.duration is None:
         raise InputError("--speed 0 (a robot that stays put) needs --duration")
+    if req.free_space not in ("auto", "regions", "navmesh"):
+        raise InputError(f"--free-space must be auto, regions or navmesh, got {req.free_space!r}")
 
 
 def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, params: ViewpointParams,
@@ -135,6 +147,7 @@ def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, par
         "viewpoints": to_dict(params),
         "seed": req.seed,
         "categories": cats,
+        "free_space": req.free_space,
         "backend": req.backend,
     }
 
@@ -161,7 +174,12 @@ def _plan(req: StreamRequest, houses: dict[str, House], contexts: dict[str, Hous
     plan = []
     for hp, hid in enumerate(req.houses):
         ctx = contexts[hid]
-        spaces = free_space(floor_areas(houses[hid]), ctx.raycaster, ctx.floor_ok, ctx.normal_z, params)
+        house = houses[hid]
+        if req.free_space == "navmesh" and house.navmesh is None:
+            raise InputError(f"house {hid} has no <id>.navmesh (habitat layout); use --free-space regions")
+        areas = (navmesh_areas(house.navmesh) if resolve_viewpoints(house, req.free_space) == "navmesh"
+                 else floor_areas(house))
+        spaces = free_space(areas, ctx.raycaster, ctx.floor_ok, ctx.normal_z, params)
         if not spaces:
             raise InputError(f"house {hid}: no free floor cell with {req.robot_radius} m clearance")
         for e in range(req.episodes):
@@ -313,7 +331,7 @@ def _write_stream_json(out: Path, req: StreamRequest, settings: dict, hashes: di
                 "--turn-rate", repr(req.turn_rate), "--accel", repr(req.accel), "--sensor", settings["sensor"]["name"],
                 "--seed", str(req.seed), "--height", repr(req.height), "--robot-radius", repr(req.robot_radius),
                 "--min-geodesic", repr(req.min_geodesic), "--max-geodesic", repr(req.max_geodesic),
-                "--min-ratio", repr(req.min_ratio), "--backend", req.backend]
+                "--min-ratio", repr(req.min_ratio), "--free-space", req.free_space, "--backend", req.backend]
     if req.duration is not None:
         command += ["--duration", repr(req.duration)]
     if not req.look_around:

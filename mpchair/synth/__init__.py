@@ -1,6 +1,7 @@
-"""Synthetic houses in the exact Matterport3D release format: procedural multi-room homes (doors, windows, stairs,
-holes) furnished with chairs of five styles and non-chair distractors, written as ``v1/scans/<id>/house_segmentations``
-(extracted or zipped) so the one reader in :mod:`mpchair.matterport` serves real and synthetic data. The construction
+"""Synthetic houses in the exact Matterport3D release and habitat formats: procedural multi-room homes (doors, windows,
+stairs, holes) furnished with chairs of five styles and non-chair distractors, written as
+``v1/scans/<id>/house_segmentations`` or habitat's ``mp3d/<id>/`` (with a navmesh built from the floor: ``navmesh.py``),
+extracted or zipped, so the one reader in :mod:`mpchair.matterport` serves real and synthetic data. The construction
 record (:class:`SyntheticHouse`) carries the ground-truth objects and aligned boxes the reader must reproduce.
 """
 

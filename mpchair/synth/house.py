@@ -10,8 +10,10 @@ then rotated by a random yaw and shifted by a random offset, so nothing is axis-
 
 :func:`synthesize_house` returns a :class:`SyntheticHouse`: the records, the mesh with its per-face fields and the
 ground-truth objects (with the aligned boxes they were built with); :meth:`SyntheticHouse.files` encodes the four
-``house_segmentations`` files. :func:`write_synthetic_houses` writes ``ROOT/v1/scans/<id>/house_segmentations/...``
-(or the release zip). Everything is a pure function of the seed.
+``house_segmentations`` files, :meth:`SyntheticHouse.habitat_files` the same house in habitat's layout
+(``_semantic.ply``, ``.house``, ``.navmesh``). :func:`write_synthetic_houses` writes
+``ROOT/v1/scans/<id>/house_segmentations/...`` (or the release zip), or ``ROOT/mp3d/<id>/...`` (or
+``ROOT/mp3d_habitat.zip``). Everything is a pure function of the seed.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from shapely.geometry import box as shapely_box
 from mpchair.atomic import atomic_open, write_bytes
 from mpchair.geometry.frames import wrap_angle
 from mpchair.matterport.boxes import obb_from_aligned
-from mpchair.matterport.categories import mpcat40_color, mpcat40_name
+from mpchair.matterport.categories import mpcat40_color, mpcat40_name, resolve_category
+from mpchair.matterport.house import habitat_object_ids
 from mpchair.matterport.housefile import (
     CategoryRecord,
     HouseFile,
@@ -46,8 +49,10 @@ from mpchair.matterport.housefile import (
     format_house,
 )
 from mpchair.matterport.jsonfiles import encode_fsegs, encode_semseg
-from mpchair.matterport.ply import encode_ply
+from mpchair.matterport.navmesh import encode_navmesh
+from mpchair.matterport.ply import encode_ply, encode_semantic_ply
 from mpchair.synth import furniture as fu
+from mpchair.synth.navmesh import navmesh_polygons, walkable_polygons
 from mpchair.synth.primitives import Mesh, box, cbox, rect_minus_rect, rotate_z
 
 #: Raw categories used (category_mapping index, raw name with spaces, mpcat40 index). Indices below 2000 are the
@@ -123,6 +128,21 @@ class SyntheticHouse:
                                colors=self.colors),  # fmt: skip
             ".fsegs.json": encode_fsegs(self.material_id, self.id),
             ".semseg.json": encode_semseg(self.id, list(self.seg_groups)),
+        }
+
+    def habitat_files(self) -> dict[str, bytes]:
+        """The house in habitat's layout as ``{suffix: bytes}``: ``.house`` (the same file), ``_semantic.ply`` (the
+        same mesh, ``object_id`` per face as habitat's converter derives it) and ``.navmesh`` (one-tile MSET version
+        1, built from the floor by :mod:`mpchair.synth.navmesh`)."""
+        floor_objects = [o.index for o in self.objects if o.mpcat40_index == resolve_category("floor")]
+        floor = np.isin(self.segment_id, floor_objects)
+        nav_vertices, polys = navmesh_polygons(walkable_polygons(self.vertices, self.faces, floor))
+        return {
+            ".house": format_house(self.house_file).encode("utf-8"),
+            "_semantic.ply": encode_semantic_ply(self.vertices, self.faces,
+                                                 habitat_object_ids(self.house_file, self.material_id),
+                                                 colors=self.colors),  # fmt: skip
+            ".navmesh": encode_navmesh(nav_vertices, polys),
         }
 
 
@@ -819,12 +839,15 @@ def plan_houses(n: int, seed: int) -> list[tuple[str, int, int]]:
     return out
 
 
-def _zip_bytes(house_id: str, files: dict[str, bytes]) -> bytes:
-    """A ``house_segmentations.zip`` as the download script fetches it (fixed timestamps: deterministic bytes)."""
+#: Where the habitat layout keeps a house (``mp3d/<id>/`` inside ``mp3d_habitat.zip`` and once extracted).
+HABITAT_ZIP = "mp3d_habitat.zip"
+
+
+def _zip_bytes(members: dict[str, bytes]) -> bytes:
+    """A zip of ``{member name: bytes}`` as the download script fetches it (fixed timestamps: deterministic bytes)."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for suffix, data in files.items():
-            name = f"{house_id}/house_segmentations/{house_id}{suffix}"
+        for name, data in members.items():
             info = zipfile.ZipInfo(name, date_time=(2017, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
@@ -832,13 +855,29 @@ def _zip_bytes(house_id: str, files: dict[str, bytes]) -> bytes:
     return buf.getvalue()
 
 
-def write_house(out_root: str | Path, house: SyntheticHouse, zip_files: bool = False) -> Path:
-    """Write one house under ``out_root/v1/scans/<id>/`` (extracted ``house_segmentations/`` or the zip)."""
+def _habitat_members(house: SyntheticHouse) -> dict[str, bytes]:
+    return {f"mp3d/{house.id}/{house.id}{suffix}": data for suffix, data in house.habitat_files().items()}
+
+
+def write_house(out_root: str | Path, house: SyntheticHouse, zip_files: bool = False,
+                layout: str = "release") -> Path:
+    """Write one house under ``out_root``: release layout ``v1/scans/<id>/`` (extracted ``house_segmentations/`` or
+    the zip), habitat layout ``mp3d/<id>/`` (or ``mp3d_habitat.zip`` holding just this house)."""
+    if layout == "habitat":
+        if zip_files:
+            with atomic_open(Path(out_root) / HABITAT_ZIP, "wb") as f:
+                f.write(_zip_bytes(_habitat_members(house)))
+            return Path(out_root) / HABITAT_ZIP
+        for name, data in _habitat_members(house).items():
+            write_bytes(Path(out_root) / name, data)
+        return Path(out_root) / "mp3d" / house.id
+    if layout != "release":
+        raise ValueError(f"layout must be 'release' or 'habitat', got {layout!r}")
     scan = Path(out_root) / "v1" / "scans" / house.id
     files = house.files()
     if zip_files:
         with atomic_open(scan / "house_segmentations.zip", "wb") as f:
-            f.write(_zip_bytes(house.id, files))
+            f.write(_zip_bytes({f"{house.id}/house_segmentations/{house.id}{k}": v for k, v in files.items()}))
         return scan / "house_segmentations.zip"
     folder = scan / "house_segmentations"
     for suffix, data in files.items():
@@ -878,18 +917,26 @@ def subdivide_house(house: SyntheticHouse, times: int) -> SyntheticHouse:
 
 
 def write_synthetic_houses(
-    out_root: str | Path, n: int, seed: int, zip_files: bool = False, progress=None, subdivide: int = 0
+    out_root: str | Path, n: int, seed: int, zip_files: bool = False, progress=None, subdivide: int = 0,
+    layout: str = "release",
 ) -> list[str]:
-    """Write ``n`` synthetic houses (seeded by ``seed``) under ``out_root`` in the download layout; return their ids.
-
-    ``progress`` is an optional callable invoked once per written house (e.g. a tqdm ``update``); ``subdivide``
-    splits every triangle into 4 that many times (:func:`subdivide_house`).
+    """Write ``n`` synthetic houses (seeded by ``seed``) under ``out_root`` in the download ``layout`` (``release``:
+    ``v1/scans/<id>/...``; ``habitat``: ``mp3d/<id>/...``, with ``zip_files`` one ``mp3d_habitat.zip`` for all);
+    return their ids. ``progress`` is an optional callable invoked once per house (e.g. a tqdm ``update``);
+    ``subdivide`` splits every triangle into 4 that many times (:func:`subdivide_house`).
     """
     ids = []
+    members: dict[str, bytes] = {}
     for hid, hs, levels in plan_houses(n, seed):
-        write_house(out_root, subdivide_house(synthesize_house(hs, hid, levels=levels), subdivide),
-                    zip_files=zip_files)
+        house = subdivide_house(synthesize_house(hs, hid, levels=levels), subdivide)
+        if layout == "habitat" and zip_files:
+            members.update(_habitat_members(house))
+        else:
+            write_house(out_root, house, zip_files=zip_files, layout=layout)
         ids.append(hid)
         if progress is not None:
             progress(1)
+    if members:
+        with atomic_open(Path(out_root) / HABITAT_ZIP, "wb") as f:
+            f.write(_zip_bytes(members))
     return ids
