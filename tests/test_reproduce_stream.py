@@ -45,7 +45,11 @@ def test_report_section_and_markers(tool, tmp_path):
             for mode, loss in (("raw", 2 * slow), ("ego", slow)):
                 off = base + 20 if (v, f) == tool.HEADLINE else None
                 runs[(m, v, f, mode)] = _summary(base + 20 - loss, off, 800.0 if m == "dense" else 80.0)
+    for m, lat, raw, ego in (("dense", 800.0, 1.0, 60.0), ("sparse", 80.0, 40.0, 95.0)):
+        for mode, ap in (("raw", raw), ("ego", ego)):
+            runs[(f"oracle@{m}", *tool.HEADLINE, mode)] = _summary(ap, 100.0, lat)
     text = tool.results_section(runs, speeds, rates, {"speed": "img/s.png", "rate": "img/r.png"}, "note")
+    assert "| oracle at sparse's latency | 100.00 / 101.00 | 40.00 / 41.00 | 95.00 / 96.00 | 80.0 (constant) |" in text
     assert "| dense | 80.00 / 81.00 | 40.00 / 41.00 | 60.00 / 61.00 | 800.0 / 960.0 |" in text
     assert "| sparse | 70.00 / 71.00 | 60.00 / 61.00 | 65.00 / 66.00 | 80.0 / 96.0 |" in text
     # ego: dense 80 - 40 v, sparse 70 - 10 v: equal at v = 1/3 m/s; raw: sparse is ahead from 0.25 m/s on
@@ -72,5 +76,7 @@ def test_dry_run_lists_the_commands(tool, tmp_path, capsys):
     assert len(measure) == 10 and all("MALLOC_MMAP_MAX_=0" in ln and "--threads 2" in ln for ln in measure)
     assert all("--save-results" in ln for ln in measure)
     assert sum("--no-offline" not in ln for ln in measure) == 2  # the offline pass only on the headline stream
-    assert all("--results" in ln and "--latency " in ln for ln in lines if "--mode" in ln)
-    assert sum("--mode raw" in ln for ln in lines) == sum("--mode ego" in ln for ln in lines) == 10
+    assert all("--results" in ln and "--latency " in ln for ln in lines if "--mode" in ln and "--oracle" not in ln)
+    oracle = [ln for ln in lines if "--oracle" in ln]
+    assert len(oracle) == 4 and all("v0.5-f10" in ln and "median latency>" in ln for ln in oracle)
+    assert sum("--mode raw" in ln for ln in lines) == sum("--mode ego" in ln for ln in lines) == 12

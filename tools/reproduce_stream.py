@@ -9,7 +9,8 @@ Steps (each a list of exact ``mpchair`` / ``detector`` command lines, run as sub
                                       2 torch threads, and the outputs (--save-results): of every frame on the
                                       headline stream (for the offline AP), of the processed frames elsewhere
     score     detector stream-eval    ego and raw from the saved outputs, replaying the measured latencies exactly
-                                      (--results, --latency LOG)
+                                      (--results, --latency LOG); and the oracle (a perfect detector) at each
+                                      model's median latency on the headline stream: what the latency alone costs
     report    docs/streaming.md       the results section between its markers: the table, the curves (PNG), the
                                       speed at which sparse overtakes dense
 
@@ -114,6 +115,16 @@ def results_section(runs: dict, speeds: list[float], rates: list[float], figures
             f"| {_f(_ap(ego), 2)} / {_f(_ap(ego, metric='bev'), 2)} "
             f"| {_f(lat['median'])} / {_f(lat['p95'])} | {_f(st['mean'])} / {_f(st['p95'])} "
             f"| {_f(sf['mean'], 2)} / {_f(sf['p95'], 2)} | {100 * ego['frames_processed']:.1f} % |")
+    for m in MODELS:  # what the same latency costs a perfect detector: the upper bound of each model's sAP
+        raw, ego = runs.get((f"oracle@{m}", v0, f0, "raw")), runs.get((f"oracle@{m}", v0, f0, "ego"))
+        if raw is not None and ego is not None:
+            lat, st, sf = ego["latency_ms"], ego["staleness_ms"], ego["staleness_frames"]
+            lines.append(
+                f"| oracle at {m}'s latency | {_f(_ap(ego, 'offline_AP'), 2)} / {_f(_ap(ego, 'offline_AP', 'bev'), 2)} "
+                f"| {_f(_ap(raw), 2)} / {_f(_ap(raw, metric='bev'), 2)} "
+                f"| {_f(_ap(ego), 2)} / {_f(_ap(ego, metric='bev'), 2)} | {_f(lat['median'])} (constant) "
+                f"| {_f(st['mean'])} / {_f(st['p95'])} | {_f(sf['mean'], 2)} / {_f(sf['p95'], 2)} "
+                f"| {100 * ego['frames_processed']:.1f} % |")
     machine = next((r["machine"] for r in runs.values() if r.get("machine")), None)
     if machine:
         lines += ["", f"Latency measured end to end per processed frame on {machine['cpu']}, "
@@ -284,6 +295,17 @@ def main(argv: list[str] | None = None) -> int:
                 if todo("score", ev / f"{mode}.json"):
                     r.run([det, "stream-eval", "--data", str(s), "--results", str(ev / "outputs"), "--latency",
                            str(ev / "latency.json"), "--mode", mode, "--json", str(ev / f"{mode}.json"), "--quiet"])
+    # the oracle (each frame's own labels) at each model's median latency: what that latency alone costs
+    s = out / "streams" / stream_name(*HEADLINE)
+    for m in MODELS:
+        measured = out / "eval" / stream_name(*HEADLINE) / m / "measure.json"
+        for mode in MODES:
+            target = out / "eval" / stream_name(*HEADLINE) / f"oracle-at-{m}" / f"{mode}.json"
+            if todo("score", target) and (args.dry_run or measured.exists()):
+                ms = (json.loads(measured.read_text())["latency_ms"]["median"] if measured.exists()
+                      else f"<{m} median latency>")
+                r.run([det, "stream-eval", "--data", str(s), "--oracle", "--latency-ms", str(ms), "--mode", mode,
+                       "--json", str(target), "--quiet"])
     if "report" in steps and not args.dry_run:
         runs = {}
         for v, f in points:
@@ -296,6 +318,11 @@ def main(argv: list[str] | None = None) -> int:
                         if measured.exists():  # the machine the latencies were measured on
                             summary.setdefault("machine", json.loads(measured.read_text()).get("machine"))
                         runs[(m, v, f, mode)] = summary
+        for m in MODELS:
+            for mode in MODES:
+                path = out / "eval" / stream_name(*HEADLINE) / f"oracle-at-{m}" / f"{mode}.json"
+                if path.exists():
+                    runs[(f"oracle@{m}", *HEADLINE, mode)] = json.loads(path.read_text())
         doc = args.docs or (ROOT / "docs" / "streaming.md" if args.scale == "full" else out / "streaming.md")
         img_dir = doc.parent / "img" / ("streaming" if args.scale == "full" else "streaming-" + args.scale)
         figures = plot_curves(runs, speeds, rates, img_dir)
