@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 export MPLBACKEND := Agg
 export PYVISTA_OFF_SCREEN := true
 
-.PHONY: demo test venv reproduce
+.PHONY: demo test venv reproduce reproduce-stream
 
 venv:
 	@tools/bootstrap.sh $(PYTHON)
@@ -21,3 +21,8 @@ test: venv
 SCALE ?= full
 reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)
+
+# Streaming AP (sAP) of make reproduce's trained models on a robot driving through its houses (docs/streaming.md);
+# `make reproduce-stream SCALE=small` is a few-minute check.
+reproduce-stream: venv
+	$(BIN)/python tools/reproduce_stream.py --scale $(SCALE)

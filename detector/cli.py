@@ -10,6 +10,7 @@ from mpchair.clitools import LazyGroup, run_cli
 COMMANDS = {
     "train": "detector.commands.train:train",
     "eval": "detector.commands.eval:eval_cmd",
+    "stream-eval": "detector.commands.stream_eval:stream_eval",
     "bench": "detector.commands.bench:bench",
     "ops": "detector.commands.ops:ops",
     "viz-sparsity": "detector.commands.viz:viz_sparsity",
@@ -29,6 +30,7 @@ def cli() -> None:
     Typical use:
       detector train --config configs/models/mpchair_dense.yaml --data dataset/ --out runs/dense
       detector eval --config configs/models/mpchair_dense.yaml --data dataset/ --checkpoint runs/dense/last.pt
+      detector stream-eval --data stream/ --config configs/models/mpchair_dense.yaml --checkpoint runs/dense/last.pt
       detector bench --config configs/models/mpchair_dense.yaml \\
         --config configs/models/mpchair_sparse.yaml --data dataset/
     Distributed: torchrun --nproc-per-node=2 -m detector train ...

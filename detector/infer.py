@@ -28,7 +28,7 @@ from detector.models import Detections, ExperimentConfig, build_model, load_expe
 from mpchair.atomic import write_text
 from mpchair.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
-from mpchair.kitti import Labels, frame_paths, read_image_size, write_labels
+from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
 
 RESULTS_SUBDIR = "data"  # result files go to OUT/data/<id>.txt (OpenPCDet's final_result/data layout)
 
@@ -44,14 +44,22 @@ def detections_to_labels(
     boxes = det.boxes.detach().cpu().to(torch.float64).numpy().reshape(-1, 7)
     scores = det.scores.detach().cpu().to(torch.float64).numpy().reshape(-1)
     labels = det.labels.detach().cpu().numpy().reshape(-1)
+    names = np.array([classes[int(k)] for k in labels], dtype=str)
+    return boxes_to_results(boxes, scores, names, frame.calib, image_size)
+
+
+def boxes_to_results(boxes: np.ndarray, scores: np.ndarray, names: np.ndarray, calib: Calib,
+                     image_size: tuple[int, int]) -> Labels:
+    """16-column KITTI result rows of (M,7) sensor-frame ``boxes`` with ``scores`` (M,) and class ``names`` (M,),
+    in the rectified camera frame of ``calib``; 2D boxes projected and clipped to ``image_size`` ``(W, H)``."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     n = len(boxes)
     if n == 0:
         return Labels.empty(with_score=True)
-    location, dims_hwl, rotation_y, alpha = boxes_to_kitti_camera(boxes, frame.calib)
-    bbox, _ = project_boxes_to_image(boxes, frame.calib, image_size)
-    names = np.array([classes[int(k)] for k in labels], dtype=str)
+    location, dims_hwl, rotation_y, alpha = boxes_to_kitti_camera(boxes, calib)
+    bbox, _ = project_boxes_to_image(boxes, calib, image_size)
     return Labels(
-        names=names,
+        names=np.asarray(names, dtype=str),
         truncated=np.full(n, -1.0),
         occluded=np.full(n, -1, dtype=np.int64),
         alpha=alpha,
@@ -59,7 +67,7 @@ def detections_to_labels(
         dims_hwl=dims_hwl,
         location=location,
         rotation_y=rotation_y,
-        score=scores,
+        score=np.asarray(scores, dtype=np.float64),
     )
 
 

@@ -75,3 +75,19 @@ def write_text(path: str | Path, text: str) -> None:
     """Atomically write ``text`` (utf-8) to ``path``."""
     with atomic_open(path, "w") as f:
         f.write(text)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` for a writer that wants a file name (not a file object); renamed to ``path``
+    when the block succeeds, removed when it fails. The writer must have finished writing when the block ends."""
+    path = Path(path)
+    fd, tmp = _create_temp(path)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise

@@ -11,6 +11,7 @@ COMMANDS = {
     "synth": "mpchair.commands.synth:synth",
     "houses": "mpchair.commands.houses:houses",
     "generate": "mpchair.commands.generate:generate",
+    "stream": "mpchair.commands.stream:stream",
     "stats": "mpchair.commands.stats:stats",
     "view": "mpchair.commands.view:view",
     "view-house": "mpchair.commands.view:view_house",
@@ -31,6 +32,7 @@ def cli() -> None:
       mpchair synth --out houses/               # synthetic houses in the Matterport3D release format
       mpchair houses --root houses/             # what the reader finds
       mpchair generate --root houses/ --house X --frames 200 --out dataset/
+      mpchair stream --root houses/ --house X --episodes 2 --out stream/   # a moving robot's frames
       mpchair stats --density dataset/
     """
 

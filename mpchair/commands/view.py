@@ -20,8 +20,12 @@ def _png(path: Path, option: str) -> Path:
 
 @click.command(context_settings=_CTX)
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("--frame", "frame", required=True, help="Frame id (123 or 000123).")
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Bird's-eye view PNG.")
+@click.option("--frame", "frame", help="Frame id (123 or 000123).")
+@click.option("--out", type=click.Path(path_type=Path), help="Bird's-eye view PNG.")
+@click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
+              help="Instead of a picture: write DATASET (a stream or a dataset) as a Rerun recording (.rrd): per frame "
+                   "the points, labelled boxes and sensor pose in the house frame (needs the rerun extra).")
+@click.option("--limit", type=int, default=None, help="With --rerun on a dataset: only its first N frames.")
 @click.option("--results", type=click.Path(path_type=Path), default=None,
               help="Folder of KITTI result files (16 columns): detections drawn in red with scores.")
 @click.option("--3d", "three_d", is_flag=True,
@@ -34,17 +38,25 @@ def _png(path: Path, option: str) -> Path:
 @click.option("--zmax", type=float, default=None,
               help="Drop points at or above this z (sensor frame, metres), e.g. an indoor ceiling.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
-def view(dataset: Path, frame: str, out: Path, results: Path | None, three_d: bool, fov_crop: bool,
-         size: tuple[int, int], extent, zmax: float | None, as_json: bool) -> None:
+def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | None, limit: int | None,
+         results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int], extent, zmax: float | None,
+         as_json: bool) -> None:
     """Picture of one frame of DATASET: bird's-eye view of the scan (coloured by z) with its labelled boxes (green,
-    class names) and, with --results, detections (red, dashed, scores). Headless; PNG output.
+    class names) and, with --results, detections (red, dashed, scores). Headless; PNG output. With --rerun, a Rerun
+    recording of a whole stream (mpchair stream) or dataset instead, to watch in the Rerun viewer.
 
     \b
-    Example:
+    Examples:
       mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
+      mpchair view stream/ --rerun stream.rrd && rerun stream.rrd
     """
+    if rerun_out is not None:
+        _rerun(dataset, rerun_out, limit, as_json, other=frame is not None or out is not None)
+        return
     from mpchair.render import RenderError, frame_picture
 
+    if frame is None or out is None:
+        raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd")
     if not frame.isdigit() or len(frame) > 6:
         raise click.BadParameter(f"{frame!r} is not a frame id (up to 6 digits)", param_hint="--frame")
     fid = f"{int(frame):06d}"
@@ -65,6 +77,24 @@ def view(dataset: Path, frame: str, out: Path, results: Path | None, three_d: bo
         click.echo(f"wrote {out}" + (f" and {out_3d}" if out_3d else "") + f": frame {fid}, {info['points']} points, "
                    f"{info['boxes']} boxes" + ("" if info["detections"] is None else f", {info['detections']} "
                                                "detections"))
+
+
+def _rerun(dataset: Path, out: Path, limit: int | None, as_json: bool, other: bool) -> None:
+    """``mpchair view --rerun``: a stream (``stream.json``) or a dataset as a Rerun recording."""
+    from mpchair.rerun_log import check_rerun_path, log_dataset, log_stream
+
+    if other:
+        raise InputError("--rerun writes a recording of the whole folder; leave out --frame / --out")
+    check_rerun_path(out)
+    if limit is not None and limit < 1:
+        raise InputError(f"--limit must be >= 1, got {limit}")
+    is_stream = (Path(dataset) / "stream.json").is_file()
+    info = log_stream(dataset, out) if is_stream else log_dataset(dataset, out, limit)
+    info = {"recording": str(out), "kind": "stream" if is_stream else "dataset", **info}
+    if as_json:
+        click.echo(json.dumps(info, indent=1))
+    else:
+        click.echo(f"wrote {out}: {info['kind']} {dataset}, {info['frames']} frames (open it with: rerun {out})")
 
 
 @click.command("view-house", context_settings=_CTX)

@@ -24,7 +24,7 @@ from mpchair.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image, rotate_vectors
 from mpchair.jit import njit_cached
 from mpchair.kitti import DONTCARE, Calib, Labels, format_calib, frame_paths, write_labels, write_velodyne
-from mpchair.labels.filters import LabelFilters
+from mpchair.labels.filters import OUTSIDE_REGION_REASONS, LabelFilters
 from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes
 from mpchair.labels.visibility import ObjectScenes, cast_pixels, covering_boxes, outside_vertices
 from mpchair.matterport.categories import resolve_category
@@ -235,12 +235,17 @@ def warm_up(sensor: SensorConfig) -> None:
     depth_image(np.zeros((1, 4), dtype=np.float32), camera_calib(camera), (camera.width, camera.height), 1.0)
 
 
+def label_pose(ctx: HouseContext, sensor: SensorConfig, pose: np.ndarray) -> BoxDecisions:
+    """Every filter but the scan-point one (:func:`mpchair.labels.select.decide_boxes`) for the class objects of
+    ``ctx`` seen from ``pose`` (4,4) sensor → world."""
+    return decide_boxes(ctx.class_boxes, ctx.class_objects, pose, ctx.raycaster, ctx.house.face_object, sensor.camera,
+                        camera_calib(sensor.camera), sensor.filters, ctx.scenes, ctx.cover_boxes, ctx.outside)
+
+
 def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, directions: np.ndarray) -> FrameResult:
     """Frame ``index`` of ``ctx.house`` (see the module docstring); raises :class:`InputError` when no candidate in
     ``settings.max_attempts`` gives a valid viewpoint (or a kept box), saying how many valid viewpoints were found."""
     sensor = settings.sensor
-    camera = sensor.camera
-    calib = camera_calib(camera)
     filters: LabelFilters = sensor.filters
     rng = frame_rng(settings.seed, ctx.house.id, index)
     views = 0
@@ -249,8 +254,7 @@ def make_frame(ctx: HouseContext, settings: FrameSettings, index: int, direction
                                settings.max_attempts):
         views += 1
         pose = vp.pose()
-        dec = decide_boxes(ctx.class_boxes, ctx.class_objects, pose, ctx.raycaster, ctx.house.face_object, camera,
-                           calib, filters, ctx.scenes, ctx.cover_boxes, ctx.outside)
+        dec = label_pose(ctx, sensor, pose)
         rays += dec.dense_rays
         if not dec.kept.any() and not settings.keep_empty:
             continue
@@ -308,22 +312,46 @@ def why_no_viewpoint(ctx: HouseContext, settings: FrameSettings, index: int) -> 
             "m free around it; lower --robot-radius")
 
 
-def frame_labels(result: FrameResult, names: list[str], calib: Calib, size: tuple[int, int]) -> Labels:
-    """KITTI labels of the kept boxes (``names`` = KITTI type per candidate); one DontCare row when none is kept.
+def box_labels(decisions: BoxDecisions, idx: np.ndarray, names: list[str], calib: Calib,
+               size: tuple[int, int]) -> Labels:
+    """KITTI label rows of candidates ``idx`` (``names`` = KITTI type per candidate): 2D box = projection clipped to
+    the image, truncation = fraction of the projected box outside it (both from ``mpchair.geometry``), occluded from
+    the dense visible fraction (-1 where not computed), alpha / rotation_y from the box conversion."""
+    boxes = decisions.boxes[idx]
+    loc, dims, ry, alpha = boxes_to_kitti_camera(boxes, calib)
+    bbox, trunc = project_boxes_to_image(boxes, calib, size)
+    return Labels(np.array([names[i] for i in idx], dtype=str), trunc, decisions.occluded[idx], alpha, bbox, dims,
+                  loc, ry)
 
-    2D box = projection clipped to the image, truncation = fraction of the projected box outside it (both from
-    ``mpchair.geometry``), occluded from the dense visible fraction, alpha / rotation_y from the box conversion.
+
+def dontcare_candidates(decisions: BoxDecisions) -> np.ndarray:
+    """Candidates rejected *inside* the labelled region (a reason not in
+    :data:`~mpchair.labels.filters.OUTSIDE_REGION_REASONS`: too occluded, too few points, ...)."""
+    return np.flatnonzero([r != "" and r not in OUTSIDE_REGION_REASONS for r in decisions.reasons]).astype(np.int64)
+
+
+def frame_labels(decisions: BoxDecisions, names: list[str], calib: Calib, size: tuple[int, int],
+                 dontcare: bool = False) -> Labels:
+    """KITTI labels of the kept boxes (:func:`box_labels`); one DontCare row when there is no row at all.
+
+    With ``dontcare``, each of the :func:`dontcare_candidates` becomes a DontCare row with its projected 2D box, so
+    that a detection of it is not counted as a false positive (KITTI applies DontCare to 2D boxes only; see
+    ``docs/streaming.md`` for 3D).
     """
-    dec = result.decisions
-    k = np.flatnonzero(dec.kept)
-    if len(k) == 0:
+    k = np.flatnonzero(decisions.kept)
+    d = dontcare_candidates(decisions) if dontcare else np.zeros(0, dtype=np.int64)
+    if len(k) == 0 and len(d) == 0:
         # OpenPCDet's info builder crashes on an empty label file: a DontCare row loads as zero boxes.
         return Labels(np.array([DONTCARE]), [-1.0], [-1], [-10.0], np.zeros((1, 4)), -np.ones((1, 3)),
                       np.full((1, 3), -1000.0), [-10.0])
-    boxes = dec.boxes[k]
-    loc, dims, ry, alpha = boxes_to_kitti_camera(boxes, calib)
-    bbox, trunc = project_boxes_to_image(boxes, calib, size)
-    return Labels(np.array([names[i] for i in k]), trunc, dec.occluded[k], alpha, bbox, dims, loc, ry)
+    labels = box_labels(decisions, k, names, calib, size)
+    if len(d) == 0:
+        return labels
+    dc_bbox, _ = project_boxes_to_image(decisions.boxes[d], calib, size)
+    n = len(d)
+    ignored = Labels(np.full(n, DONTCARE), np.full(n, -1.0), np.full(n, -1), np.full(n, -10.0), dc_bbox,
+                     -np.ones((n, 3)), np.full((n, 3), -1000.0), np.full(n, -10.0))
+    return Labels.concatenate([labels, ignored])
 
 
 def _r(x: float, nd: int = 6) -> float | None:
@@ -373,7 +401,7 @@ def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dic
 
 
 @functools.lru_cache(maxsize=4)
-def _calib_text(camera: CameraConfig) -> str:
+def calib_text(camera: CameraConfig) -> str:
     """The calib file of every frame of a camera (the same text each time: formatted once per process)."""
     return format_calib(camera_calib(camera))
 
@@ -387,8 +415,8 @@ def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResu
     names = [kitti_name(house.objects[int(o)].mpcat40_name) for o in result.decisions.objects]
     paths = frame_paths(out, fid)
     write_velodyne(paths.velodyne, result.points)
-    write_labels(paths.label_2, frame_labels(result, names, calib, size))
-    write_text(paths.calib, _calib_text(camera))
+    write_labels(paths.label_2, frame_labels(result.decisions, names, calib, size))
+    write_text(paths.calib, calib_text(camera))
     write_bytes(paths.image_2, png_bytes(depth_image(result.points, calib, size, sensor.max_range)))
     pose = result.viewpoint.pose()
     write_text(out / "training" / "pose" / f"{fid}.txt", " ".join(f"{v:.9e}" for v in pose[:3].reshape(-1)) + "\n")

@@ -2,7 +2,8 @@
 ``[x, y, z, l, w, h, yaw]`` (geometric centre, ``l`` along the heading, yaw CCW about +z from +x) in the sensor frame
 (x forward, y left, z up, metres) unless a docstring says world frame (Matterport, z up, metres). ``frames`` holds
 angle wrapping and rigid 4×4 transforms, ``boxes`` corners / BEV polygons / point membership, ``camera`` the
-conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule. See
+conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule,
+``region`` the labelled region (box centre height, distance, field of view). See
 ``docs/conventions.md``.
 """
 
@@ -33,11 +34,13 @@ from mpchair.geometry.frames import (
     yaw_of,
 )
 from mpchair.geometry.pillars import grid_size, pillar_coords
+from mpchair.geometry.region import REGION_TESTS, in_region, region_failures
 
 __all__ = [
     "BOX_EDGES",
     "HABITAT_TO_MP3D",
     "NEAR_PLANE",
+    "REGION_TESTS",
     "SENSOR_TO_CAMERA",
     "bev_polygons",
     "box_corners",
@@ -46,6 +49,7 @@ __all__ = [
     "fov_mask",
     "grid_size",
     "habitat_to_mp3d",
+    "in_region",
     "invert_rigid",
     "kitti_camera_to_boxes",
     "labels_to_boxes",
@@ -54,6 +58,7 @@ __all__ = [
     "pillar_coords",
     "points_in_boxes",
     "project_boxes_to_image",
+    "region_failures",
     "rigid_from",
     "transform_boxes",
     "rotate_vectors",

@@ -5,18 +5,20 @@ projected boxes), points in box, in-box fraction, and optionally points of the s
 thresholds (one frozen dataclass, with units and reasons), ``visibility`` the dense casting, ``select`` the decisions.
 """
 
-from mpchair.labels.filters import REJECT_REASONS, LabelFilters
+from mpchair.labels.filters import OUTSIDE_REGION_REASONS, REJECT_REASONS, LabelFilters
 from mpchair.labels.select import (
     BoxDecisions,
     apply_scan_points,
     boxes_to_sensor,
     centre_reasons,
     decide_boxes,
+    label_half_fov,
     occlusion_level,
 )
 from mpchair.labels.visibility import DenseHits, ObjectScenes, cast_dense, grid_regions, object_visibility
 
 __all__ = [
+    "OUTSIDE_REGION_REASONS",
     "REJECT_REASONS",
     "BoxDecisions",
     "DenseHits",
@@ -28,6 +30,7 @@ __all__ = [
     "centre_reasons",
     "decide_boxes",
     "grid_regions",
+    "label_half_fov",
     "object_visibility",
     "occlusion_level",
 ]

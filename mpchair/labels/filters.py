@@ -8,9 +8,10 @@ from __future__ import annotations
 
 # The dataclass lives with the sensor profiles (each profile's YAML carries its thresholds, in the units of its own
 # camera grid and rays); it is re-exported here, where the filters are applied.
+from mpchair.geometry.region import REGION_TESTS
 from mpchair.scan.sensors import LabelFilters
 
-__all__ = ["REJECT_REASONS", "LabelFilters"]
+__all__ = ["OUTSIDE_REGION_REASONS", "REJECT_REASONS", "LabelFilters"]
 
 
 #: Reasons written to the manifest for a rejected box, in the order the filters are applied (first failure wins).
@@ -23,3 +24,7 @@ REJECT_REASONS: tuple[str, ...] = (
     "in_box_fraction",  # < min_in_box_fraction of the visible points inside the box
     "scan_points",  # < min_scan_points saved-scan points inside the box
 )
+
+#: Reasons that put a box outside the labelled region (:mod:`mpchair.geometry.region`). A box rejected for any other
+#: reason lies inside it: ``mpchair stream`` writes such boxes as DontCare (ignored) instead of dropping them.
+OUTSIDE_REGION_REASONS: tuple[str, ...] = REGION_TESTS

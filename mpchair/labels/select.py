@@ -13,7 +13,14 @@ import math
 
 import numpy as np
 
-from mpchair.geometry import canonical_yaw, invert_rigid, points_in_boxes, transform_boxes, transform_points
+from mpchair.geometry import (
+    canonical_yaw,
+    invert_rigid,
+    points_in_boxes,
+    region_failures,
+    transform_boxes,
+    transform_points,
+)
 from mpchair.kitti import Calib
 from mpchair.labels.filters import LabelFilters
 from mpchair.labels.visibility import (
@@ -80,20 +87,16 @@ def centre_reasons(boxes: np.ndarray, filters: LabelFilters, camera: CameraConfi
     """The cheap tests on box centres (sensor frame): ``"height"``, ``"distance"``, ``"fov"`` or ``""`` (passed).
 
     Height: ``|z| <= max_abs_dz``; distance: ``hypot(x, y) <= max_distance``; fov: ``x > 0`` and
-    ``atan2(|y|, x) < hfov / 2`` (only when ``filters.fov``).
+    ``atan2(|y|, x) < hfov / 2`` (only when ``filters.fov``): the labelled region of
+    :mod:`mpchair.geometry.region`.
     """
-    half = math.radians(camera.hfov_deg) / 2.0
-    out = []
-    for x, y, z in np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[:, :3]:
-        if abs(z) > filters.max_abs_dz:
-            out.append("height")
-        elif math.hypot(x, y) > filters.max_distance:
-            out.append("distance")
-        elif filters.fov and not (x > 0 and math.atan2(abs(y), x) < half):
-            out.append("fov")
-        else:
-            out.append("")
-    return out
+    return region_failures(np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[:, :3], filters.max_abs_dz,
+                           filters.max_distance, label_half_fov(filters, camera))
+
+
+def label_half_fov(filters: LabelFilters, camera: CameraConfig) -> float | None:
+    """Half the horizontal field of view (radians) of the labelled region, or ``None`` when ``filters.fov`` is off."""
+    return math.radians(camera.hfov_deg) / 2.0 if filters.fov else None
 
 
 def occlusion_level(visible_fraction: np.ndarray, cutoffs: tuple[float, float]) -> np.ndarray:

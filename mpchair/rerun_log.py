@@ -1,0 +1,179 @@
+"""Rerun recordings (``.rrd``) of streams and datasets, for the Rerun viewer (``rerun OUT.rrd``).
+
+Entities, in the house (world) frame, z up, metres:
+
+* ``world/<seq>/sensor``: the sensor pose at each frame (a transform, sensor → world); its children are in the
+  sensor frame: ``points`` (the scan), ``labels`` (kept chairs, green, named), ``dontcare`` (DontCare chairs, grey);
+* ``world/<seq>/trajectory``: the whole path of the sensor (static);
+* ``detector stream-eval --rerun`` adds ``world/<seq>/sensor/detections/{raw,ego}``: the boxes the detector had at
+  that moment, as emitted (stale) and moved by the robot's motion.
+
+Timelines: ``frame`` (index within the sequence) and ``time`` (capture time, seconds; streams only). A dataset made
+by ``generate`` has no sequences: its frames are logged as ``world/frames`` in frame order.
+
+Part of the shared floor (``docs/design.md``): it imports only ``mpchair.geometry`` and ``mpchair.kitti``, and
+rerun-sdk, an optional extra, only when a recording is written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from mpchair.atomic import atomic_path
+from mpchair.errors import InputError
+from mpchair.geometry import labels_to_boxes
+from mpchair.kitti import frame_paths, read_calib, read_labels, read_poses, read_times, read_velodyne
+
+#: How to get the optional dependency.
+INSTALL_HINT = "install the rerun extra: pip install -e '.[rerun]' (rerun-sdk==0.41.0)"
+GREEN, GREY, RED, BLUE = (40, 200, 80), (150, 150, 150), (230, 60, 50), (60, 120, 240)
+
+
+def check_rerun_path(path: str | Path) -> None:
+    """Fail early (:class:`InputError`) when ``path`` is not an ``.rrd`` file name or rerun-sdk is missing."""
+    if Path(path).suffix.lower() != ".rrd":
+        raise InputError("--rerun must name a .rrd file", path)
+    _rerun()
+
+
+def _rerun():
+    try:
+        import rerun
+    except ImportError:
+        raise InputError(f"--rerun needs rerun-sdk, which is not installed; {INSTALL_HINT}") from None
+    return rerun
+
+
+class Recorder:
+    """A recording written to the temporary file ``path`` (see :func:`recording`)."""
+
+    def __init__(self, path: str | Path, application: str = "mpchair"):
+        rr = self.rr = _rerun()
+        self.rec = rr.RecordingStream(application)
+        self.rec.save(str(path))
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    def time(self, frame: int, time_us: int | None = None) -> None:
+        """Set the timelines for what is logged next: ``frame`` index and capture time (microseconds)."""
+        self.rec.set_time("frame", sequence=int(frame))
+        if time_us is not None:
+            self.rec.set_time("time", duration=int(time_us) * 1e-6)
+
+    def pose(self, entity: str, T: np.ndarray) -> None:
+        """A (4,4) transform of ``entity`` into its parent's frame (child → parent)."""
+        T = np.asarray(T, dtype=np.float64)
+        self.rec.log(entity, self.rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+
+    def points(self, entity: str, points: np.ndarray) -> None:
+        """(N,3+) points in the parent entity's frame (metres)."""
+        self.rec.log(entity, self.rr.Points3D(np.asarray(points)[:, :3], radii=0.01))
+
+    def boxes(self, entity: str, boxes: np.ndarray, color: tuple[int, int, int], labels: list[str] | None = None,
+              ) -> None:
+        """(N,7) boxes ``[x, y, z, l, w, h, yaw]`` (geometric centre, yaw CCW about +z) in the parent entity's frame."""
+        rr = self.rr
+        b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        angles = [rr.RotationAxisAngle(axis=[0.0, 0.0, 1.0], radians=float(y)) for y in b[:, 6]]
+        self.rec.log(entity, rr.Boxes3D(centers=b[:, :3], half_sizes=b[:, 3:6] / 2, rotation_axis_angles=angles,
+                                        colors=[color] * len(b), labels=labels))
+
+    def path(self, entity: str, xyz: np.ndarray) -> None:
+        """A static line through (K,3) world points."""
+        self.rec.log(entity, self.rr.LineStrips3D([np.asarray(xyz, dtype=np.float64)], colors=[BLUE]), static=True)
+
+    def close(self) -> None:
+        """Write everything to the file and close it."""
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+@contextlib.contextmanager
+def recording(out: str | Path) -> Iterator[Recorder]:
+    """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.atomic``)."""
+    with atomic_path(out) as tmp:
+        rec = Recorder(tmp)
+        try:
+            yield rec
+        finally:
+            rec.close()
+
+
+def _frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[str]]:
+    """Sensor-frame boxes and names of a label file's objects (DontCare rows carry no 3D box and are left out)."""
+    if not label_file.is_file():
+        return np.zeros((0, 7)), []
+    objs = read_labels(label_file).objects()
+    if len(objs) == 0:
+        return np.zeros((0, 7)), []
+    return labels_to_boxes(objs, read_calib(calib_file)), [str(n) for n in objs.names]
+
+
+FrameHook = Callable[[Recorder, str, str, int], None]
+
+
+def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None) -> dict:
+    """Write the stream folder ``root`` (``mpchair stream``) as a recording ``out``; ``extra(recorder, entity,
+    sequence, i)`` may log more under ``entity`` (the sensor) for each frame. Returns ``{"sequences", "frames"}``."""
+    root = Path(root)
+    meta_path = root / "stream.json"
+    if not meta_path.is_file():
+        raise InputError("not a complete stream folder (no stream.json)", root)
+    try:
+        names = sorted(json.loads(meta_path.read_text(encoding="utf-8"))["sequences"])
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise InputError(f"malformed stream file ({type(e).__name__})", meta_path) from None
+    frames = 0
+    with recording(out) as rec:
+        for seq in names:
+            frames += _log_sequence(rec, root / "sequences" / seq, seq, extra)
+    return {"sequences": len(names), "frames": frames}
+
+
+def _log_sequence(rec: Recorder, d: Path, seq: str, extra: FrameHook | None) -> int:
+    """Log sequence ``seq`` of folder ``d``; returns its frame count."""
+    times, poses = read_times(d / "times.txt"), read_poses(d / "poses.txt")
+    if len(times) != len(poses):
+        raise InputError(f"{len(poses)} poses but {len(times)} capture times", d / "poses.txt")
+    rec.path(f"world/{seq}/trajectory", poses[:, :3, 3])
+    sensor = f"world/{seq}/sensor"
+    for i in range(len(times)):
+        fid = f"{i:06d}"
+        rec.time(i, int(times[i]))
+        rec.pose(sensor, poses[i])
+        rec.points(f"{sensor}/points", read_velodyne(d / "velodyne" / f"{fid}.bin"))
+        boxes, labels = _frame_boxes(d / "label_2" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
+        rec.boxes(f"{sensor}/labels", boxes, GREEN, labels)
+        dc, _ = _frame_boxes(d / "label_dontcare" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
+        rec.boxes(f"{sensor}/dontcare", dc, GREY)
+        if extra is not None:
+            extra(rec, sensor, seq, i)
+    return len(times)
+
+
+def log_dataset(root: str | Path, out: str | Path, limit: int | None = None) -> dict:
+    """Write the first ``limit`` frames (all: ``None``) of a ``generate`` dataset ``root`` as a recording ``out``:
+    each frame's pose (``training/pose``), scan and labels under ``world/frames``. Returns ``{"frames"}``."""
+    root = Path(root)
+    velodyne = root / "training" / "velodyne"
+    if not velodyne.is_dir():
+        raise InputError("not a KITTI-format dataset (no training/velodyne)", root)
+    ids = sorted(p.stem for p in velodyne.glob("*.bin"))[:limit]
+    if not ids:
+        raise InputError("the dataset has no frames", velodyne)
+    sensor = "world/frames/sensor"
+    with recording(out) as rec:
+        for n, fid in enumerate(ids):
+            paths = frame_paths(root, fid)
+            rec.time(n)
+            pose_file = root / "training" / "pose" / f"{fid}.txt"
+            if pose_file.is_file():
+                rec.pose(sensor, read_poses(pose_file)[0])
+            rec.points(f"{sensor}/points", read_velodyne(paths.velodyne))
+            boxes, labels = _frame_boxes(paths.label_2, paths.calib)
+            rec.boxes(f"{sensor}/labels", boxes, GREEN, labels)
+    return {"frames": len(ids)}

@@ -1,0 +1,398 @@
+"""``mpchair stream`` as a library call: robot episodes through houses → timed, labelled scan sequences.
+
+For every house (in the order given) and episode ``e < episodes``, sequence ``NN = house position * episodes + e``:
+plan the episode (:mod:`mpchair.stream.episodes`: free space, route, unicycle drive, capture times at ``rate`` Hz),
+then make every frame at its pose with ``generate``'s own raycaster, label filters and scan
+(:func:`mpchair.dataset.frame.label_pose`, :func:`~mpchair.dataset.frame.cast_scan`,
+:func:`~mpchair.labels.select.apply_scan_points`) and write it (:mod:`mpchair.stream.writer`). ``stream.json`` is
+written last, when every frame exists.
+
+Determinism and resuming: a frame depends only on its pose and the settings, never on ``workers``; every file is
+written atomically and the stream file holds no times or absolute paths, so a run killed at any point (even SIGKILL)
+and re-run with the same arguments ends byte-identical to an uninterrupted one. A folder made with other settings is
+refused (``.stream.json``). Every check of the input (houses, sensor, options, routes) runs before the first file is
+written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from mpchair.atomic import temp_glob, write_text
+from mpchair.config import to_dict
+from mpchair.dataset.frame import (
+    HouseContext,
+    build_context,
+    cast_scan,
+    floor_areas,
+    label_pose,
+    resolve_viewpoints,
+    warm_up,
+)
+from mpchair.dataset.generate import _versions as package_versions
+from mpchair.dataset.generate import sha256_of
+from mpchair.dataset.workers import WorkerDied, imap_unordered
+from mpchair.errors import InputError, RunError
+from mpchair.heap import keep_freed_memory
+from mpchair.labels.select import apply_scan_points, label_half_fov
+from mpchair.lock import folder_lock
+from mpchair.matterport.categories import mpcat40_name, resolve_categories
+from mpchair.matterport.house import House, objects_of, read_house
+from mpchair.matterport.source import SUFFIXES, find_houses
+from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
+from mpchair.scan.viewpoints import ViewpointParams
+from mpchair.stream.episodes import Episode, EpisodeSettings, plan_episode
+from mpchair.stream.freespace import free_space, navmesh_areas
+from mpchair.stream.routes import RouteRules
+from mpchair.stream.unicycle import Limits
+from mpchair.stream.writer import FRAME_DIRS, record_path, sequence_dir, write_sequence_files, write_stream_frame
+
+STREAM_FORMAT = "mpchair-stream/1"
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamRequest:
+    """Arguments of one ``stream`` run: ``episodes`` per house, sensor ``rate`` (Hz), motion limits (``speed`` m/s,
+    ``turn_rate`` rad/s, ``accel`` m/s^2), ``duration`` cap per episode (seconds; ``None`` = until the goal),
+    route rules (metres), sensor ``height`` and ``robot_radius`` (metres), ``free_space`` source (``auto``: the house's
+    navmesh when it has one, else ``regions``: its floor polygons; ``navmesh``)."""
+
+    root: Path
+    houses: tuple[str, ...]
+    episodes: int
+    out: Path
+    rate: float = 10.0
+    speed: float = 0.5
+    turn_rate: float = 1.0
+    accel: float = 0.5
+    sensor: str = "mp3d-depth90"
+    seed: int = 0
+    height: float = 1.0
+    robot_radius: float = 0.25
+    categories: tuple[str, ...] = ("chair",)
+    look_around: bool = True
+    duration: float | None = None
+    min_geodesic: float = 5.0
+    max_geodesic: float = 30.0
+    min_ratio: float = 1.1
+    free_space: str = "auto"
+    backend: str = "embree"
+    workers: int = 1
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamSummary:
+    """What a run did: ``sequences`` and ``frames`` in the stream, frames ``made`` now and ``resumed`` (present),
+    ``complete`` (stream.json written), boxes ``kept`` and ``dontcare`` over the whole stream, mean ``points`` per
+    frame, ``seconds`` wall time, ``frames_per_second`` of this run's frames."""
+
+    out: str
+    sequences: int
+    frames: int
+    made: int
+    resumed: int
+    complete: bool
+    kept: int
+    dontcare: int
+    points: float
+    seconds: float
+    frames_per_second: float
+
+    def line(self) -> str:
+        """One-line human summary."""
+        return (f"{self.out}: {self.sequences} sequences, {self.frames} frames; this run made {self.made} in "
+                f"{self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s), resumed {self.resumed}; chairs "
+                f"kept {self.kept}, DontCare {self.dontcare}; {self.points:.0f} points/frame")
+
+
+def _check_request(req: StreamRequest) -> None:
+    if req.episodes < 1:
+        raise InputError(f"--episodes must be >= 1, got {req.episodes}")
+    if not (req.rate > 0 and math.isfinite(req.rate)):
+        raise InputError(f"--rate must be a positive number of Hz, got {req.rate}")
+    if req.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {req.workers}")
+    if not req.houses:
+        raise InputError("give at least one --house")
+    if len(set(req.houses)) != len(req.houses):
+        raise InputError("a --house is repeated")
+    if req.duration is not None and not req.duration > 0:
+        raise InputError(f"--duration must be > 0 seconds, got {req.duration}")
+    if req.speed == 0 and req.duration is None:
+        raise InputError("--speed 0 (a robot that stays put) needs --duration")
+    if req.free_space not in ("auto", "regions", "navmesh"):
+        raise InputError(f"--free-space must be auto, regions or navmesh, got {req.free_space!r}")
+
+
+def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, params: ViewpointParams,
+              cats: list[str]) -> dict:
+    """The deterministic part of a run (what the output depends on); stored in ``.stream.json`` and ``stream.json``."""
+    return {
+        "houses": list(req.houses),
+        "episodes_per_house": req.episodes,
+        "rate_hz": req.rate,
+        "limits": to_dict(es.limits),
+        "route_rules": to_dict(es.rules),
+        "look_around": es.look_around,
+        "duration_s": req.duration,
+        "sensor": to_dict(sensor),
+        "viewpoints": to_dict(params),
+        "seed": req.seed,
+        "categories": cats,
+        "free_space": req.free_space,
+        "backend": req.backend,
+    }
+
+
+STREAM_LOCK = ".stream.lock"
+
+
+def _check_settings(out: Path, settings: dict) -> None:
+    """Write ``.stream.json`` into a new folder, or check that an existing one holds these settings (the caller holds
+    the folder's lock, so temp files of a killed settings write are stale and removed)."""
+    path = out / ".stream.json"
+    text = json.dumps(settings, sort_keys=True, indent=1) + "\n"
+    for p in out.glob(temp_glob(path.name)):
+        p.unlink(missing_ok=True)
+    if path.is_file():
+        if path.read_text(encoding="utf-8") != text:
+            old = json.loads(path.read_text(encoding="utf-8"))
+            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            raise InputError(f"holds a stream made with other settings ({', '.join(diff)} differ); use a new --out "
+                             "or the same arguments to resume", path)
+        return
+    if out.exists() and any(p.name != STREAM_LOCK for p in out.iterdir()):
+        raise InputError("exists and is not an mpchair stream folder (no .stream.json); choose an empty --out", out)
+    write_text(path, text)
+
+
+def _plan(req: StreamRequest, houses: dict[str, House], contexts: dict[str, HouseContext], es: EpisodeSettings,
+          params: ViewpointParams) -> list[tuple[str, Episode]]:
+    """``(sequence name, episode)`` for every house and episode; bad houses / impossible routes are InputErrors."""
+    width = max(2, len(str(len(req.houses) * req.episodes - 1)))
+    plan = []
+    for hp, hid in enumerate(req.houses):
+        ctx = contexts[hid]
+        house = houses[hid]
+        if req.free_space == "navmesh" and house.navmesh is None:
+            raise InputError(f"house {hid} has no <id>.navmesh (habitat layout); use --free-space regions")
+        areas = (navmesh_areas(house.navmesh) if resolve_viewpoints(house, req.free_space) == "navmesh"
+                 else floor_areas(house))
+        spaces = free_space(areas, ctx.raycaster, ctx.floor_ok, ctx.normal_z, params)
+        if not spaces:
+            raise InputError(f"house {hid}: no free floor cell with {req.robot_radius} m clearance")
+        for e in range(req.episodes):
+            try:
+                ep = plan_episode(spaces, hid, e, es)
+            except ValueError as err:
+                raise InputError(f"house {hid}, episode {e}: {err}; relax --min-geodesic / --max-geodesic / "
+                                 "--min-ratio for a small house") from None
+            plan.append((f"{hp * req.episodes + e:0{width}d}", ep))
+    return plan
+
+
+# Per-process state of pool workers (fork start method: inherited from the parent, never pickled).
+_STATE: dict = {}
+
+
+def _work(task: tuple[str, int]) -> dict:
+    """Make and write frame ``i`` of sequence ``seq`` (in a worker or in-process); returns its record."""
+    seq, i = task
+    ep: Episode = _STATE["episodes"][seq]
+    ctx: HouseContext = _STATE["contexts"][ep.house]
+    sensor: SensorConfig = _STATE["sensor"]
+    pose = ep.poses[i]
+    dec = label_pose(ctx, sensor, pose)
+    points = cast_scan(sensor, _STATE["dirs"], pose, ctx.raycaster)
+    dec = apply_scan_points(dec, points, sensor.filters)
+    return write_stream_frame(_STATE["out"], seq, f"{i:06d}", ctx.house, dec, points, sensor, int(ep.times_us[i]),
+                              dec.dense_rays + len(_STATE["dirs"]))
+
+
+def _init_worker(state: dict) -> None:
+    keep_freed_memory()
+    _STATE.clear()
+    _STATE.update(state)
+
+
+def _remove_stale_temps(out: Path, seqs: list[str]) -> None:
+    """Delete temp files (``.<name>.*.tmp``) a killed run left behind."""
+    dirs = [out] + [sequence_dir(out, s) / d for s in seqs for d in FRAME_DIRS] + [sequence_dir(out, s) for s in seqs]
+    dirs += [out / ".frames" / s for s in seqs]
+    for d in dirs:
+        if d.is_dir():
+            for p in d.iterdir():
+                if p.name.startswith(".") and p.name.endswith(".tmp"):
+                    p.unlink(missing_ok=True)
+
+
+def stream(req: StreamRequest) -> StreamSummary:
+    """Make (or resume) the stream described by ``req``; see the module docstring. Bad input raises
+    :class:`InputError` before any file is written."""
+    t0 = time.perf_counter()
+    _check_request(req)
+    sensor = load_sensor(req.sensor)
+    try:
+        params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
+        es = EpisodeSettings(
+            rate=float(req.rate), limits=Limits(speed=req.speed, turn_rate=req.turn_rate, accel=req.accel),
+            rules=RouteRules(min_geodesic=req.min_geodesic, max_geodesic=req.max_geodesic, min_ratio=req.min_ratio),
+            height=req.height, look_around=req.look_around,
+            duration_us=None if req.duration is None else int(round(req.duration * 1e6)), seed=req.seed)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    cat_idx = resolve_categories(list(req.categories))
+    cats = sorted(mpcat40_name(c) for c in cat_idx)
+    found = find_houses(req.root)
+    unknown = [h for h in req.houses if h not in found]
+    if unknown:
+        raise InputError(f"unknown house {unknown[0]!r} (available: {', '.join(sorted(found)) or 'none'})", req.root)
+    houses: dict[str, House] = {}
+    contexts: dict[str, HouseContext] = {}
+    hashes: dict[str, dict[str, str]] = {}
+    for hid in req.houses:
+        house = read_house(found[hid])
+        if not objects_of(house, cat_idx):
+            have = ", ".join(f"{k} {v}" for k, v in house.objects_by_category().items()) or "no objects"
+            raise InputError(f"house {hid} has no object of class {', '.join(cats)} (it has: {have})",
+                             found[hid].describe(".house"))
+        houses[hid] = house
+        contexts[hid] = build_context(house, cat_idx, req.backend, sensor.filters.box_margin)
+        src = found[hid]
+        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in SUFFIXES[src.layout] if src.exists(s)}
+    plan = _plan(req, houses, contexts, es, params)
+
+    out = Path(req.out)
+    settings = _settings(req, sensor, es, params, cats)
+    with folder_lock(out / STREAM_LOCK, "mpchair stream"):
+        return _make(req, out, settings, plan, contexts, sensor, hashes, houses, cats, t0)
+
+
+def _make(req: StreamRequest, out: Path, settings: dict, plan: list[tuple[str, Episode]],
+          contexts: dict[str, HouseContext], sensor: SensorConfig, hashes: dict, houses: dict[str, House],
+          cats: list[str], t0: float) -> StreamSummary:
+    """Write the stream's missing frames and its summary files (under the folder's lock)."""
+    _check_settings(out, settings)
+    seqs = [s for s, _ in plan]
+    _remove_stale_temps(out, seqs)
+    for seq, ep in plan:
+        write_sequence_files(out, seq, ep.times_us, ep.poses)
+    tasks = [(seq, i) for seq, ep in plan for i in range(len(ep.times_us))]
+    pending = [t for t in tasks if not record_path(out, t[0], f"{t[1]:06d}").is_file()]
+    resumed = len(tasks) - len(pending)
+
+    state = {"episodes": dict(plan), "contexts": contexts, "sensor": sensor, "dirs": scan_directions(sensor),
+             "out": out}
+    if pending:
+        warm_up(sensor)  # before forking: the workers inherit the loaded kernels
+    from tqdm import tqdm
+
+    t_frames = time.perf_counter()
+    bar = tqdm(total=len(tasks), initial=resumed, unit="frame", disable=not req.progress, file=sys.stderr,
+               dynamic_ncols=True, desc="stream")
+    try:
+        if req.workers == 1 or len(pending) <= 1:
+            _init_worker(state)
+            for task in pending:
+                _work(task)
+                bar.update(1)
+        else:
+            # forked workers inherit the houses and scenes instead of rebuilding them; a worker that dies (the OOM
+            # killer) or raises stops the others at once (mpchair.dataset.workers), as in `mpchair generate`
+            for _ in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
+                                    initargs=(state,), chunksize=4):
+                bar.update(1)
+    except WorkerDied as e:
+        raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "
+                       "command again to resume") from None
+    finally:
+        bar.close()
+    made_seconds = time.perf_counter() - t_frames
+
+    records = [json.loads(record_path(out, s, f"{i:06d}").read_text(encoding="utf-8")) for s, i in tasks]
+    _write_stream_json(out, req, settings, hashes, houses, cats, plan, records,
+                       label_half_fov(sensor.filters, sensor.camera))
+    made = len(pending)
+    return StreamSummary(
+        out=str(out), sequences=len(plan), frames=len(tasks), made=made, resumed=resumed, complete=True,
+        kept=sum(r["kept"] for r in records), dontcare=sum(r["dontcare"] for r in records),
+        points=float(np.mean([r["points"] for r in records])) if records else 0.0,
+        seconds=time.perf_counter() - t0,
+        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0,
+    )  # fmt: skip
+
+
+def _r(x: float, nd: int = 6) -> float:
+    return round(float(x), nd)
+
+
+def _write_stream_json(out: Path, req: StreamRequest, settings: dict, hashes: dict, houses: dict[str, House],
+                       cats: list[str], plan: list[tuple[str, Episode]], records: list[dict],
+                       half_fov: float | None) -> None:
+    """``stream.json`` (last): settings, versions, house checksums, the labelled region (``half_fov`` radians or
+    ``None``), one entry per sequence, totals, conventions."""
+    by_seq: dict[str, list[dict]] = {}
+    for r in records:
+        by_seq.setdefault(r["sequence"], []).append(r)
+    command = ["mpchair", "stream", "--root", Path(req.root).name]
+    for h in req.houses:
+        command += ["--house", h]
+    command += ["--episodes", str(req.episodes), "--rate", repr(req.rate), "--speed", repr(req.speed),
+                "--turn-rate", repr(req.turn_rate), "--accel", repr(req.accel), "--sensor", settings["sensor"]["name"],
+                "--seed", str(req.seed), "--height", repr(req.height), "--robot-radius", repr(req.robot_radius),
+                "--min-geodesic", repr(req.min_geodesic), "--max-geodesic", repr(req.max_geodesic),
+                "--min-ratio", repr(req.min_ratio), "--free-space", req.free_space, "--backend", req.backend]
+    if req.duration is not None:
+        command += ["--duration", repr(req.duration)]
+    if not req.look_around:
+        command.append("--no-look-around")
+    for c in cats:
+        command += ["--category", c]
+    rejected: Counter[str] = Counter()
+    for r in records:
+        rejected.update(r["rejected"])
+    doc = {
+        "format": STREAM_FORMAT,
+        "command": command,
+        "config": settings,
+        "versions": package_versions(req.backend),
+        "seed": req.seed,
+        "rate_hz": req.rate,
+        # the labelled region in numbers (mpchair.geometry.region), so that a reader need not re-derive it
+        "region": {"max_abs_dz": settings["sensor"]["filters"]["max_abs_dz"],
+                   "max_distance": settings["sensor"]["filters"]["max_distance"], "half_fov": half_fov},
+        "image_size": [settings["sensor"]["camera"]["width"], settings["sensor"]["camera"]["height"]],
+        "houses": {hid: {"files_sha256": hashes[hid], "objects_of_class": len(objects_of(houses[hid], cats)),
+                         "sequences": [s for s, ep in plan if ep.house == hid]} for hid in req.houses},
+        "sequences": {
+            seq: {"house": ep.house, "episode": ep.index, "level": ep.route.level, "frames": len(ep.times_us),
+                  "duration_s": _r(ep.times_us[-1] / 1e6), "start_xy": [_r(v) for v in ep.route.waypoints[0]],
+                  "goal_xy": [_r(v) for v in ep.route.waypoints[-1]], "start_yaw": _r(ep.start_yaw),
+                  "path_m": _r(ep.route.length), "geodesic_m": _r(ep.route.geodesic),
+                  "euclidean_m": _r(ep.route.euclidean), "kept": sum(r["kept"] for r in by_seq[seq]),
+                  "dontcare": sum(r["dontcare"] for r in by_seq[seq])}
+            for seq, ep in plan
+        },
+        "totals": {"sequences": len(plan), "frames": len(records), "boxes_kept": sum(r["kept"] for r in records),
+                   "dontcare": sum(r["dontcare"] for r in records), "boxes_rejected": dict(sorted(rejected.items())),
+                   "points": int(sum(r["points"] for r in records))},
+        "conventions": {
+            "frame": "sensor: x forward, y left, z up, metres (right-handed)",
+            "velodyne": "float32 x, y, z, 1.0 (constant 4th channel)",
+            "poses": "poses.txt: 3x4 row-major sensor -> world (Matterport z-up metres) per frame",
+            "times": "times.txt: capture time in seconds from the sequence start, exact integer microseconds",
+            "label_2": "kept boxes, then DontCare rows (2D box) for boxes rejected inside the labelled region",
+            "label_dontcare": "the DontCare boxes with their 3D box (KITTI 15 columns)",
+            "region": "box centre |z| <= max_abs_dz, hypot(x, y) <= max_distance, inside the camera's hfov if fov",
+        },
+    }
+    write_text(out / "stream.json", json.dumps(doc, sort_keys=True, indent=1) + "\n")
