@@ -57,8 +57,9 @@ class Scale:
 
 SCALES = {
     "small": Scale(houses=2, episodes=1, duration=8.0, repeats=1, warmup=2),
-    # every reproduction house, one 30 s episode each (look-around included): ~2,400 frames at 10 Hz per stream
-    "full": Scale(houses=None, episodes=1, duration=30.0, repeats=3, warmup=10),
+    # every reproduction house, one 20 s episode each (look-around included): ~1,600 frames at 10 Hz per stream;
+    # about 45 min on 2 idle AVX2 cores, most of it the dense model's measured latencies (2 repeats per frame)
+    "full": Scale(houses=None, episodes=1, duration=20.0, repeats=2, warmup=10),
 }
 
 
