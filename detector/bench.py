@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from detector.device import use_device
 from detector.models import ExperimentConfig, PointPillars, build_model, load_experiment
 from mpchair.errors import InputError
 from mpchair.geometry import pillar_coords
@@ -244,15 +245,7 @@ def run_bench(
         raise InputError("bench needs at least one --config")
     if frames < 1 or trials < 1 or warmup < 0:
         raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
-    if device not in ("cpu", "cuda"):
-        raise InputError(f"unknown device {device!r} (cpu or cuda)")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device is available")
-    if threads is not None:
-        if threads < 1:
-            raise InputError(f"--threads must be >= 1, got {threads}")
-        torch.set_num_threads(threads)
-    dev = torch.device(device)
+    dev = use_device(device, threads)
     cfgs = [load_experiment(m.config) for m in models]
     names = [m.name or default_name(c, m.config) for m, c in zip(models, cfgs)]
     if len(set(names)) != len(names):

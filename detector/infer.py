@@ -23,6 +23,7 @@ from tqdm import tqdm
 from detector.checkpoint import load_checkpoint
 from detector.data import Frame, KittiDataset
 from detector.data.pipeline import make_eval_sample
+from detector.device import use_device
 from detector.experiment import augment_options, open_split
 from detector.models import Detections, ExperimentConfig, build_model, load_experiment
 from mpchair.atomic import write_text
@@ -233,14 +234,7 @@ def evaluate_checkpoint(
     from detector.eval.protocols import check_protocol
 
     check_protocol(protocol)
-    if threads is not None:
-        if threads < 1:
-            raise InputError(f"--threads must be >= 1, got {threads}")
-        torch.set_num_threads(threads)
-    if device not in ("cpu", "cuda"):
-        raise InputError(f"unknown device {device!r} (cpu or cuda)")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device is available")
+    use_device(device, threads)
     cfg = load_experiment(config_path)
     model = load_model_from_checkpoint(checkpoint, cfg, device)
     # A missing folder, split or frame file fails here, before any output (a progress bar included).

@@ -79,22 +79,13 @@ class ModelRunner:
     """A trained model (``config`` + ``checkpoint``) run on stream frames, one at a time (batch 1, eval mode)."""
 
     def __init__(self, config: str | Path, checkpoint: str | Path, device: str = "cpu", threads: int | None = None):
-        import torch
-
+        from detector.device import use_device
         from detector.experiment import augment_options
         from detector.infer import load_model_from_checkpoint
         from detector.models import load_experiment
 
-        if threads is not None:
-            if threads < 1:
-                raise InputError(f"--threads must be >= 1, got {threads}")
-            torch.set_num_threads(threads)
-        if device not in ("cpu", "cuda"):
-            raise InputError(f"unknown device {device!r} (cpu or cuda)")
-        if device == "cuda" and not torch.cuda.is_available():
-            raise InputError("--device cuda: no CUDA device is available")
+        self.device = use_device(device, threads)
         self.cfg = load_experiment(config)
-        self.device = torch.device(device)
         self.model = load_model_from_checkpoint(checkpoint, self.cfg, self.device).eval()
         self.options = augment_options(self.cfg)
         self.classes = tuple(self.cfg.eval.classes)
