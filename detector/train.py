@@ -120,11 +120,29 @@ def _world_active() -> bool:
     return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
 
 
+class _AllReduceSum(torch.autograd.Function):
+    """Differentiable sum over ranks: every rank gets the sum, and the gradient of each rank's input is the sum of
+    the output gradients of all ranks (each rank's output depends on every input).
+
+    Written here with the public ``dist.all_reduce`` because ``torch.distributed.nn.functional.all_reduce`` is
+    deprecated (a FutureWarning per call site and rank) and its suggested replacement is a private module."""
+
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, tensor: torch.Tensor) -> torch.Tensor:
+        out = tensor.clone(memory_format=torch.contiguous_format)
+        dist.all_reduce(out)
+        return out
+
+    @staticmethod
+    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor) -> torch.Tensor:
+        return _AllReduceSum.apply(grad)
+
+
 class _GlobalStatsBatchNorm(nn.modules.batchnorm._BatchNorm):
     """Mixin that makes a BatchNorm's training statistics span every process (see :func:`convert_to_global_batchnorm`).
 
     Mean and biased variance (used to normalise) come from all-reduced sums ``sum x`` and ``sum (x - mean)^2`` over
-    all ranks; the all-reduce is differentiable (``torch.distributed.nn``), so gradients flow through the statistics
+    all ranks; the all-reduce is differentiable (:class:`_AllReduceSum`), so gradients flow through the statistics
     exactly as in one process. Running buffers get the global mean and the unbiased global variance. Outside
     distributed training it is the ordinary BatchNorm.
     """
@@ -132,8 +150,7 @@ class _GlobalStatsBatchNorm(nn.modules.batchnorm._BatchNorm):
     def forward(self, input: torch.Tensor) -> torch.Tensor:
         if not (self.training and _world_active()):
             return super().forward(input)
-        from torch.distributed.nn.functional import all_reduce
-
+        all_reduce = _AllReduceSum.apply
         self._check_input_dim(input)
         c = input.shape[1]
         dims = [0, *range(2, input.dim())]

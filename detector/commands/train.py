@@ -37,16 +37,20 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
     Distributed (DDP, gloo on CPU / nccl on CUDA; train.batch_size is per process):
       torchrun --standalone --nproc-per-node=2 -m detector train --config CFG --data DIR --out RUN
     """
-    from detector.train import TrainingError
+    from detector.train import TrainingError, dist_info_from_env
     from detector.train import train as run_training
 
+    # Under torchrun every rank runs this command; rank 0 speaks for the job (the others' results are the same).
+    main_rank = dist_info_from_env().is_main
     try:
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
                               max_steps=max_steps, device=device, threads=threads, split=split,
                               eval_split=eval_split, progress=not no_progress)
     except TrainingError as e:
-        click.echo(f"error: {e}", err=True)
+        if main_rank:  # the failing loss / gradient norm is all-reduced: every rank stops at the same step
+            click.echo(f"error: {e}", err=True)
         sys.exit(1)
-    loss = "n/a" if result.last_loss is None else f"{result.last_loss:.4f}"
-    click.echo(f"trained {result.epoch} epoch(s), {result.step} step(s), last loss {loss}; "
-               f"checkpoint {result.last_checkpoint}")
+    if main_rank:
+        loss = "n/a" if result.last_loss is None else f"{result.last_loss:.4f}"
+        click.echo(f"trained {result.epoch} epoch(s), {result.step} step(s), last loss {loss}; "
+                   f"checkpoint {result.last_checkpoint}")
