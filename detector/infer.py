@@ -207,6 +207,13 @@ def load_model_from_checkpoint(
     return model
 
 
+def default_results_dir(checkpoint: str | Path, split: str) -> Path:
+    """Where ``detector eval --checkpoint`` writes without ``--out``: ``<checkpoint folder>/<checkpoint name>_<split>``
+    (``runs/dense/last.pt``, ``val`` → ``runs/dense/last_val``)."""
+    ckpt = Path(checkpoint)
+    return ckpt.parent / f"{ckpt.stem}_{split}"
+
+
 def evaluate_checkpoint(
     config_path: str | Path,
     data_dir: str | Path,
@@ -244,6 +251,5 @@ def evaluate_checkpoint(
         frames.check()
         recalibrate_batchnorm(model, frames, cfg, device=device, progress=progress)
     if out_dir is None:
-        ckpt = Path(checkpoint)
-        out_dir = ckpt.parent / f"{ckpt.stem}_{split}"
+        out_dir = default_results_dir(checkpoint, split)
     return evaluate_model(model, cfg, data_dir, split, out_dir, device=device, progress=progress, protocol=protocol)

@@ -42,7 +42,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import get_args
 
@@ -70,6 +70,10 @@ SAVE_INTERVAL_S = 900.0
 #: Config keys that may change between a run and its resume: they do not change the trained weights. (``epochs`` only
 #: with the constant schedule: it fixes the length of a one-cycle schedule, see :func:`train`.)
 RESUMABLE_CHANGES = ("epochs", "num_workers", "checkpoint_every", "eval_every")
+#: The start-up estimate times ESTIMATE_STEPS steps after ESTIMATE_WARMUP untimed ones (the first step of a process
+#: allocates its buffers and is several times slower than the rest).
+ESTIMATE_WARMUP = 1
+ESTIMATE_STEPS = 3
 
 
 class TrainingError(Exception):
@@ -368,14 +372,17 @@ def train(
     split: str = "train",
     eval_split: str = "val",
     progress: bool = True,
+    log: Callable[[str], None] | None = None,
 ) -> TrainResult:
     """Train the experiment ``config_path`` on ``data_dir`` (KITTI layout) into the run folder ``out_dir``.
 
     ``epochs`` overrides ``train.epochs`` and ``precision`` ``train.precision``; ``max_steps`` stops after that many
     global steps (counted over the whole run, resumed parts included) and saves ``last.pt``; ``resume`` continues
     from ``out_dir/last.pt`` (a fresh start if there is none). Under torchrun (``WORLD_SIZE`` > 1) the process group
-    is joined here (gloo on CPU, nccl on CUDA). Raises :class:`InputError` for bad input and :class:`TrainingError`
-    for a non-finite loss or gradient (no checkpoint is written for the failing step).
+    is joined here (gloo on CPU, nccl on CUDA). ``log`` receives the lines meant for a person, on rank 0 only: the
+    plan and, after the first few steps, the expected duration (steps x measured seconds per step), one line per
+    epoch (mean loss, time) and one per validation (AP). Raises :class:`InputError` for bad input and
+    :class:`TrainingError` for a non-finite loss or gradient (no checkpoint is written for the failing step).
     """
     info = dist_info_from_env()
     if threads is not None:
@@ -453,7 +460,7 @@ def train(
             return _train_loop(cfg, frames, out, dev, info, state, max_steps=max_steps, global_batch=global_batch,
                                steps_per_epoch=steps_per_epoch, samples_per_epoch=samples_per_epoch,
                                total_steps=total_steps, data_dir=data_dir, eval_split=eval_split, progress=progress,
-                               database=database, new_database=new_database)
+                               database=database, new_database=new_database, report=log)
     finally:
         if info.distributed and dist.is_initialized():
             dist.destroy_process_group()
@@ -462,9 +469,15 @@ def train(
 def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: torch.device, info: DistInfo,
                 state: dict | None, *, max_steps: int | None, global_batch: int, steps_per_epoch: int,
                 samples_per_epoch: int, total_steps: int, data_dir: str | Path, eval_split: str,
-                progress: bool, database: GTDatabase | None, new_database: bool) -> TrainResult:
+                progress: bool, database: GTDatabase | None, new_database: bool,
+                report: Callable[[str], None] | None = None) -> TrainResult:
     tc = cfg.train
     show = progress and info.is_main
+
+    def say(line: str) -> None:
+        if report is not None and info.is_main:
+            report(line)
+
     db_path = out / "gt_database.npz"
     if info.is_main:
         _remove_stale_temps(out)
@@ -520,9 +533,12 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
     def evaluate() -> None:
         """The end-of-epoch evaluation (rank 0; the others wait)."""
         if info.is_main:
+            t_eval = time.perf_counter()
             result = _evaluate_during_training(model, cfg, data_dir, eval_split, out, epoch, dev, show)
             if result is not None:
                 emit({"kind": "eval", "epoch": epoch, "step": step, "split": eval_split, **result})
+                say(f"epoch {epoch}/{tc.epochs} validation on {eval_split}: {_ap_text(result, cfg.eval.classes)}, "
+                    f"{format_duration(time.perf_counter() - t_eval)}")
         _barrier()
 
     # A run stopped during an epoch's evaluation resumes from that epoch's end: evaluate those weights first. (Rank 0
@@ -541,6 +557,15 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
     last_loss = None
     last_save = time.monotonic()
     stopped = False
+    first_step = step
+    end_step = total_steps if max_steps is None else min(total_steps, max(max_steps, step))
+    todo = end_step - first_step
+    say(f"training {todo} step(s): {tc.epochs} epochs x {steps_per_epoch} steps (global batch {global_batch})"
+        + (f", resumed at step {step}" if step else "")
+        + (f", stopping at --max-steps {max_steps}" if end_step < total_steps else "")
+        + ("; timing the first steps..." if todo > ESTIMATE_WARMUP + ESTIMATE_STEPS else ""))
+    # wall clock at the end of step ESTIMATE_WARMUP of this process (data loading, checkpoints included)
+    t_timed: float | None = None
     try:
         while epoch < tc.epochs:
             if max_steps is not None and step >= max_steps:
@@ -551,8 +576,9 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
             keys = rank_batches(frame_order, epoch=epoch, global_batch=global_batch, rank=info.rank,
                                 per_rank=tc.batch_size, start_step=step_in_epoch)
             ddp.train()
+            # leave=False: the epoch's line (below) replaces its finished bar
             bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{tc.epochs}",
-                       unit="step", disable=not show, dynamic_ncols=True)
+                       unit="step", disable=not show, dynamic_ncols=True, leave=False)
             sums = {"total": 0.0, "cls": 0.0, "reg": 0.0, "dir": 0.0}
             n_steps = 0
             t_epoch = time.perf_counter()
@@ -602,6 +628,15 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                 emit({"kind": "step", "epoch": epoch + 1, "step": step, **{f"loss_{k}": v for k, v in values.items()},
                       "grad_norm": grad_norm, "num_pos": int(pos_global), "lr": lr, "beta1": beta1,
                       "time_s": round(time.perf_counter() - t0, 4)})
+                if step - first_step == ESTIMATE_WARMUP:
+                    t_timed = time.perf_counter()
+                elif (step - first_step == ESTIMATE_WARMUP + ESTIMATE_STEPS and t_timed is not None
+                      and todo > ESTIMATE_WARMUP + ESTIMATE_STEPS):
+                    per_step = (time.perf_counter() - t_timed) / ESTIMATE_STEPS
+                    validation = (f" (+ validation on {eval_split} every {tc.eval_every} epochs)"
+                                  if tc.eval_every > 0 and imageset_path(data_dir, eval_split).is_file() else "")
+                    say(f"{todo} steps, ~{per_step:.2f} s/step measured -> ~{format_duration(per_step * todo)}"
+                        + validation)
                 bar.update(1)
                 bar.set_postfix(loss=f"{values['total']:.4f}")
                 if info.is_main and time.monotonic() - last_save > SAVE_INTERVAL_S:
@@ -613,9 +648,13 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
                 break
             epoch += 1
             step_in_epoch = 0
+            epoch_s = time.perf_counter() - t_epoch
+            means = {k: v / max(n_steps, 1) for k, v in sums.items()}
             emit({"kind": "epoch", "epoch": epoch, "step": step, "steps": n_steps,
-                  **{f"loss_{k}": v / max(n_steps, 1) for k, v in sums.items()},
-                  "time_s": round(time.perf_counter() - t_epoch, 3)})
+                  **{f"loss_{k}": v for k, v in means.items()}, "time_s": round(epoch_s, 3)})
+            say(f"epoch {epoch}/{tc.epochs}: loss {means['total']:.4f} (cls {means['cls']:.4f}, reg "
+                f"{means['reg']:.4f}, dir {means['dir']:.4f}), {n_steps} steps in {format_duration(epoch_s)}, "
+                f"step {step}/{total_steps}")
             if epoch % max(tc.checkpoint_every, 1) == 0 or epoch == tc.epochs:
                 checkpoint(out / "checkpoints" / f"epoch_{epoch:03d}.pt")
             checkpoint(out / "last.pt")
@@ -629,6 +668,22 @@ def _train_loop(cfg: ExperimentConfig, frames: KittiDataset, out: Path, dev: tor
             log.close()
     _barrier()
     return TrainResult(out_dir=out, epoch=epoch, step=step, last_checkpoint=out / "last.pt", last_loss=last_loss)
+
+
+def format_duration(seconds: float) -> str:
+    """``"42 s"``, ``"12 min"`` or ``"3.4 h"``: a duration as a person reads it."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _ap_text(result: dict, classes: tuple[str, ...]) -> str:
+    """``"Chair BEV AP 12.34, 3D AP 5.67"`` (R40, Overall level) of a KITTI result's JSON dict."""
+    parts = [f"{c} BEV AP {result[c]['bev']['overall']['R40']:.2f}, 3D AP {result[c]['3d']['overall']['R40']:.2f}"
+             for c in classes if c in result]
+    return "; ".join(parts) + " (R40, Overall)"
 
 
 def _evaluate_during_training(model: nn.Module, cfg: ExperimentConfig, data_dir: str | Path, split: str, out: Path,

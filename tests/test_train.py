@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ import torch
 from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_config
 
 from detector.cli import main
-from detector.eval import evaluate_folders
+from detector.eval import all_ap_zero, evaluate_folders
 from detector.infer import evaluate_checkpoint
 from detector.train import epoch_frames, rank_batches, train
 from mpchair.geometry import kitti_camera_to_boxes, project_boxes_to_image, wrap_angle
@@ -211,6 +212,52 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, t
     assert len(steps) == 5 and all(math.isfinite(s["loss_total"]) for s in steps)  # epoch 2 failed at its 2nd step
 
 
+def _seconds(text: str) -> float:
+    """``"18 s"`` / ``"3 min"`` / ``"1.5 h"`` (detector.train.format_duration) in seconds."""
+    value, unit = text.split()
+    return float(value) * {"s": 1, "min": 60, "h": 3600}[unit]
+
+
+def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path, capsys):
+    """Without progress bars ``detector train`` still prints its plan, the expected duration measured on the first
+    steps, and one line per epoch; ``detector eval`` says where it wrote its files and that the all-zero AP of so
+    short a training is expected, naming the checkpoint's step count."""
+    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=2))  # 2 x 4 steps
+    run = tmp_path / "run"
+    code, out, err = _cli(["train", "--config", cfg, "--data", data, "--out", run, "--max-steps", "6", "--threads",
+                           "1", "--no-progress"], capsys)
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0] == ("training 6 step(s): 2 epochs x 4 steps (global batch 2), stopping at --max-steps 6; "
+                        "timing the first steps...")
+    # steps 2-4 timed (step 1 is the slow first one): the wall time between step ends holds each step's own time
+    estimate = re.fullmatch(r"6 steps, ~(\d+\.\d\d) s/step measured -> ~(.+)", lines[1])
+    assert estimate, lines[1]
+    per_step = float(estimate.group(1))
+    steps = _steps(run)
+    assert per_step >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
+    assert abs(_seconds(estimate.group(2)) - 6 * per_step) <= max(1.0, 0.05 * 6 * per_step)
+    (epoch,) = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
+    assert re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
+                        rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8",
+                        lines[2]), lines[2]
+    assert lines[3:] == [f"trained 1 epoch(s), 6 step(s), last loss {steps[-1]['loss_total']:.4f}; checkpoint "
+                         f"{run / 'last.pt'}"]
+
+    code, out, err = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint", run / "last.pt", "--threads",
+                           "1"], capsys)
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0].startswith("KITTI evaluation, 8 frames")
+    folder = run / "last_val"  # the default: beside the checkpoint
+    wrote = f"wrote {folder / 'data'}/ (8 result files, one per frame of the split) and {folder / 'metrics.json'}"
+    assert wrote in lines
+    assert len(list((folder / "data").glob("*.txt"))) == 8 and (folder / "metrics.json").is_file()
+    (note,) = [ln for ln in lines if ln.startswith("note: ")]
+    assert note.startswith("note: every AP is 0. That is expected of an under-trained model: "
+                           f"{run / 'last.pt'} holds 6 optimiser step(s) (1 completed epoch(s))")
+
+
 def test_cli_rejects_bad_input_without_traceback(data, tmp_path, capsys):
     code, _, err = _cli(["train", "--config", tmp_path / "nope.yaml", "--data", data, "--out", tmp_path / "r"], capsys)
     assert code == 2 and err.startswith("error: ") and "config file not found" in err
@@ -231,8 +278,9 @@ def test_cli_rejects_bad_input_without_traceback(data, tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def smoke_run(data, tmp_path_factory) -> tuple[Path, Path]:
-    """(config, run folder) of the smoke training, validating on the val split every SMOKE_EVAL_EVERY epochs.
+def smoke_run(data, tmp_path_factory) -> tuple[Path, Path, list[str]]:
+    """(config, run folder, the lines it reported) of the smoke training, validating on the val split every
+    SMOKE_EVAL_EVERY epochs.
 
     Score threshold 0 (training does not use it): without re-estimated BatchNorm statistics, which periodic
     validation does not do (as the reference), every score of the short run stays under the default 0.1, and the
@@ -240,14 +288,15 @@ def smoke_run(data, tmp_path_factory) -> tuple[Path, Path]:
     base = tmp_path_factory.mktemp("smoke")
     cfg = write_test_config(base / "cfg.yaml", model=dict(score_thr=0.0),
                             train=dict(batch_size=2, epochs=SMOKE_EPOCHS, eval_every=SMOKE_EVAL_EVERY))
-    result = train(cfg, data, base / "run", threads=1, progress=False)
+    lines: list[str] = []
+    result = train(cfg, data, base / "run", threads=1, progress=False, log=lines.append)
     assert (result.epoch, result.step) == (SMOKE_EPOCHS, SMOKE_EPOCHS * 4)
-    return cfg, base / "run"
+    return cfg, base / "run", lines
 
 
 @pytest.mark.slow
 def test_smoke_training_learns_to_detect_its_training_chairs(data, smoke_run, tmp_path, capsys):
-    cfg, run = smoke_run
+    cfg, run, _ = smoke_run
     epochs = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
     assert epochs[-1]["loss_total"] < 0.5 * epochs[0]["loss_total"]
     assert len(list((run / "checkpoints").glob("epoch_*.pt"))) == SMOKE_EPOCHS
@@ -258,7 +307,7 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, smoke_run, tm
                                   recalibrate_bn_split="train", progress=False)
     assert metrics.num_gt["Chair"] == (29, 29, 29)  # every chair is "Easy" (untruncated, > 40 px tall)
     bev_easy = metrics.ap["Chair"]["bev"]["R40"][0]
-    assert bev_easy >= SMOKE_MIN_BEV_AP
+    assert bev_easy >= SMOKE_MIN_BEV_AP and not all_ap_zero(metrics)
     assert json.loads((out / "metrics.json").read_text())["Chair"]["bev"]["R40"][0] == bev_easy
 
     # One 16-column result file per frame; alpha and the 2D box agree with the 3D box through the frame's calib.
@@ -280,9 +329,11 @@ def test_smoke_training_learns_to_detect_its_training_chairs(data, smoke_run, tm
     assert total > 0
 
     # The same checkpoint through the CLI (`detector eval` checkpoint mode dispatches to evaluate_checkpoint).
-    code, out_text, _ = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint", run / "last.pt",
-                              "--split", "train", "--out", tmp_path / "cli_eval", "--threads", "1", "--json"], capsys)
+    code, out_text, err = _cli(["eval", "--config", cfg, "--data", data, "--checkpoint", run / "last.pt",
+                                "--split", "train", "--out", tmp_path / "cli_eval", "--threads", "1", "--json"], capsys)
     assert code == 0 and json.loads(out_text)["num_gt"]["Chair"] == [29, 29, 29]
+    # --json: the document alone on stdout, where the files went on stderr
+    assert f"wrote {tmp_path / 'cli_eval' / 'data'}/ (8 result files" in err
     assert len(list((tmp_path / "cli_eval" / "data").glob("*.txt"))) == 8
 
     # The reference's metric (Open3D-ML's mAP) on the same checkpoint goes to its own metrics file.
@@ -307,10 +358,26 @@ def _files(folder: Path) -> dict[str, bytes]:
 def test_periodic_validation_logs_the_eval_of_that_epochs_weights(data, smoke_run, tmp_path, capsys):
     """``train.eval_every`` (every shipped config uses it): after every N-th epoch the metrics log gets an ``eval``
     record and RUN/eval/epoch_NNN/ the result files and metrics.json, both equal to a separate ``detector eval`` of
-    that epoch's checkpoint on the same split."""
-    cfg, run = smoke_run
+    that epoch's checkpoint on the same split. The lines for a person: the plan with the validation in the estimate,
+    one per epoch and one per validation, with the logged numbers."""
+    cfg, run, reported = smoke_run
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     evals = [r for r in records if r["kind"] == "eval"]
+    assert reported[0] == "training 64 step(s): 16 epochs x 4 steps (global batch 2); timing the first steps..."
+    assert re.fullmatch(r"64 steps, ~\d+\.\d\d s/step measured -> ~.+ \(\+ validation on val every 8 epochs\)",
+                        reported[1]), reported[1]
+    epoch_lines = [ln for ln in reported[2:] if " validation on " not in ln]
+    epochs = [r for r in records if r["kind"] == "epoch"]
+    assert [ln.split(":")[0] for ln in epoch_lines] == [f"epoch {e}/16" for e in range(1, 17)]
+    assert all(f"loss {r['loss_total']:.4f} " in ln for ln, r in zip(epoch_lines, epochs))
+    validation = [ln for ln in reported[2:] if " validation on " in ln]
+    assert [ln.split(" validation")[0] for ln in validation] == ["epoch 8/16", "epoch 16/16"]
+    for ln, rec in zip(validation, evals):
+        ap = rec["Chair"]
+        assert ln.startswith(f"epoch {rec['epoch']}/16 validation on val: Chair BEV AP "
+                             f"{ap['bev']['overall']['R40']:.2f}, 3D AP {ap['3d']['overall']['R40']:.2f} (R40, "
+                             "Overall), "), ln
+        assert reported.index(ln) == reported.index(epoch_lines[rec["epoch"] - 1]) + 1  # right after its epoch
     expected_epochs = list(range(SMOKE_EVAL_EVERY, SMOKE_EPOCHS + 1, SMOKE_EVAL_EVERY))
     assert [r["epoch"] for r in evals] == expected_epochs == [8, 16]
     assert sorted(p.name for p in (run / "eval").iterdir()) == [f"epoch_{e:03d}" for e in expected_epochs]

@@ -65,14 +65,15 @@ def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, co
     Result files (any detector's):
       detector eval --labels DATA/training/label_2 --results runs/dense/data --split DATA/ImageSets/val.txt \\
                     --classes Car,Chair [--json]
-    A trained checkpoint (inference, result files, then the same evaluation):
+    A trained checkpoint (inference, result files, then the same evaluation; prints where it wrote them, and
+    what an all-zero AP means):
       detector eval --config CONFIG.yaml --data DATA --checkpoint runs/dense/last.pt [--split val]
     The reference's metric (Open3D-ML's mAP) on the same files: add --protocol open3d-ml.
 
     BEV and 3D overlaps use an exact float64 rotated IoU (identical boxes score 1; see docs/evaluation.md).
     Buckets with fewer than 41 valid GT cannot reach 100 and are flagged.
     """
-    from detector.eval import evaluate_folders, format_table, to_json
+    from detector.eval import all_ap_zero, evaluate_folders, format_table, to_json
 
     folder_mode = labels is not None or results is not None
     checkpoint_mode = config is not None or data is not None or checkpoint is not None
@@ -82,7 +83,7 @@ def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, co
         if classes is not None or min_overlap:
             raise InputError("--classes / --min-overlap apply to --labels/--results; a checkpoint is evaluated with "
                              "its config's eval classes and thresholds")
-        result = _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol)
+        result, written = _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol)
     elif folder_mode:
         if labels is None or results is None:
             raise InputError("--labels and --results go together")
@@ -97,21 +98,43 @@ def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, co
         click.echo(to_json(result))
     else:
         click.echo(format_table(result))
-    if as_json:
-        for w in result.warnings:
-            click.echo(f"warning: {w}", err=True)
+    notes = [f"warning: {w}" for w in result.warnings] if as_json else []  # the table lists them itself
+    if checkpoint_mode:
+        notes.append(f"wrote {written[0]}/ ({result.num_frames} result files, one per frame of the split) and "
+                     f"{written[1]}")
+        if all_ap_zero(result):
+            notes.append(_zero_ap_note(checkpoint))
+    for line in notes:  # beside --json's document on stdout, not in it
+        click.echo(line, err=as_json)
+
+
+def _zero_ap_note(checkpoint: Path) -> str:
+    """What an all-zero AP means, with the checkpoint's training length (most often: trained too briefly)."""
+    from detector.checkpoint import load_checkpoint
+
+    state = load_checkpoint(checkpoint)
+    step, epoch = state.get("step"), state.get("epoch")
+    trained = (f"{checkpoint} holds {step} optimiser step(s) ({epoch} completed epoch(s))" if step is not None
+               else f"{checkpoint} records no step count")
+    return (f"note: every AP is 0. That is expected of an under-trained model: {trained}, and a briefly trained "
+            "model scores few or no boxes above the config's score threshold. Train longer (the config's "
+            "train.epochs) before reading AP; if it was trained that long, check the data and the config.")
 
 
 def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol):
-    """Extension point: inference + evaluation live in :func:`detector.infer.evaluate_checkpoint`."""
+    """Inference + evaluation (:func:`detector.infer.evaluate_checkpoint`); returns the result and the paths written
+    (the result folder and the metrics file)."""
     if config is None or data is None or checkpoint is None:
         raise InputError("checkpoint mode needs --config, --data and --checkpoint")
     try:
-        from detector.infer import evaluate_checkpoint
+        from detector.infer import METRICS_FILES, RESULTS_SUBDIR, default_results_dir, evaluate_checkpoint
     except ImportError as e:
         if e.name == "detector.infer":  # the module or the function is missing (not one of its own imports)
             raise InputError("checkpoint evaluation is not available in this build (detector.infer."
                              "evaluate_checkpoint is missing); evaluate result files with --labels/--results") from None
         raise
-    return evaluate_checkpoint(config, data, checkpoint, split=split or "val", out_dir=out, device=device,
-                               threads=threads, protocol=protocol)
+    split = split or "val"
+    out = out if out is not None else default_results_dir(checkpoint, split)
+    result = evaluate_checkpoint(config, data, checkpoint, split=split, out_dir=out, device=device, threads=threads,
+                                 protocol=protocol)
+    return result, (out / RESULTS_SUBDIR, out / METRICS_FILES[protocol])

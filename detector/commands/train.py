@@ -7,6 +7,15 @@ import sys
 import click
 
 
+def _say(line: str) -> None:
+    """One line on stdout, above any progress bar, flushed at once (a parent such as tools/reproduce.py passes it
+    through as it comes, even when stdout is a pipe or a file)."""
+    from tqdm import tqdm
+
+    tqdm.write(line, file=sys.stdout)
+    sys.stdout.flush()
+
+
 @click.command("train")
 @click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
               help="Experiment YAML (configs/models/*.yaml).")
@@ -25,15 +34,18 @@ import click
 @click.option("--split", default="train", show_default=True, help="ImageSets split to train on.")
 @click.option("--eval-split", default="val", show_default=True,
               help="Split evaluated every train.eval_every epochs (skipped if the dataset lacks it).")
-@click.option("--no-progress", is_flag=True, help="No progress bars.")
+@click.option("--no-progress", is_flag=True,
+              help="No progress bars (the plan, the duration estimate and one line per epoch are still printed).")
 def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, precision: str | None, resume: bool,
           max_steps: int | None, device: str, threads: int | None, split: str, eval_split: str,
           no_progress: bool) -> None:
     """Train dense or sparse PointPillars on a KITTI-format dataset.
 
     \b
-    Metrics go to OUT/metrics.jsonl (one JSON object per line), checkpoints to OUT/checkpoints/epoch_NNN.pt and
-    OUT/last.pt (written atomically). Same seed, same data → same weights; --resume continues exactly.
+    Prints the plan, the expected duration after the first few steps (steps x measured seconds per step), one line
+    per epoch (mean loss, time) and per validation (AP). Metrics go to OUT/metrics.jsonl (one JSON object per line),
+    checkpoints to OUT/checkpoints/epoch_NNN.pt and OUT/last.pt (written atomically). Same seed, same data → same
+    weights; --resume continues exactly.
     Distributed (DDP, gloo on CPU / nccl on CUDA; train.batch_size is per process):
       torchrun --standalone --nproc-per-node=2 -m detector train --config CFG --data DIR --out RUN
     """
@@ -45,7 +57,7 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
     try:
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
                               max_steps=max_steps, device=device, threads=threads, split=split,
-                              eval_split=eval_split, progress=not no_progress)
+                              eval_split=eval_split, progress=not no_progress, log=_say)
     except TrainingError as e:
         if main_rank:  # the failing loss / gradient norm is all-reduced: every rank stops at the same step
             click.echo(f"error: {e}", err=True)

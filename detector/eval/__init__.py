@@ -20,7 +20,7 @@ from detector.eval.kitti import (
 )
 from detector.eval.open3d_ml import Open3DMLResult, evaluate_open3d_ml
 from detector.eval.protocols import PROTOCOLS, evaluate_protocol
-from detector.eval.report import format_table, to_json
+from detector.eval.report import all_ap_zero, format_table, to_json
 
 __all__ = [
     "DEFAULT_MIN_OVERLAPS",
@@ -31,6 +31,7 @@ __all__ = [
     "VARIANTS",
     "EvalResult",
     "Open3DMLResult",
+    "all_ap_zero",
     "evaluate",
     "evaluate_folders",
     "evaluate_open3d_ml",

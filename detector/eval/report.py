@@ -57,6 +57,16 @@ def _format_open3d_ml(result: Open3DMLResult) -> str:
     return "\n".join(lines)
 
 
+def all_ap_zero(result: EvalResult | Open3DMLResult) -> bool:
+    """Whether every AP of the result is 0 (every class, metric, recall variant and level): nothing was found."""
+    if isinstance(result, Open3DMLResult):
+        values = [v for cls in result.classes for v in result.ap[cls].values()]
+    else:
+        values = [x for cls in result.classes for m in result.ap[cls].values() for v in m.values() for x in v]
+        values += [x for cls in result.classes for m in result.overall[cls].values() for x in m.values()]
+    return all(v == 0 for v in values)
+
+
 def to_json(result: EvalResult | Open3DMLResult) -> str:
     """The result's ``to_json_dict()``, indented. KITTI: ``{"<Class>": {"bbox"|"bev"|"3d"|"aos": {"R11": [e, m, h],
     "R40": [e, m, h], "overall": {"R11": x, "R40": y}}}, "num_gt": {...}, "num_gt_overall": {...}}`` (``aos`` null
