@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from detector.device import use_device
 from detector.models import ExperimentConfig, PointPillars, build_model, load_experiment
@@ -75,10 +76,12 @@ class EvalFrame:
 
 
 def load_eval_frames(
-    cfg: ExperimentConfig, data_dir: str | Path, split: str, limit: int | None = None, start: int = 0
+    cfg: ExperimentConfig, data_dir: str | Path, split: str, limit: int | None = None, start: int = 0, *,
+    progress: bool = False,
 ) -> list[EvalFrame]:
     """Frames ``start .. start+limit`` of ``split`` of a KITTI-format folder, transformed as at inference
-    (:func:`detector.data.pipeline.make_eval_sample`: range filter, ``in_channels`` columns)."""
+    (:func:`detector.data.pipeline.make_eval_sample`: range filter, ``in_channels`` columns); ``progress``: a bar on
+    stderr when it is a terminal."""
     from detector.data.pipeline import make_eval_sample
     from detector.train import augment_options, open_split
 
@@ -87,7 +90,8 @@ def load_eval_frames(
     if not ids:
         raise InputError(f"split {split!r} has no frame at index {start} (it has {len(frames.ids)})", data_dir)
     options = augment_options(cfg)
-    return [EvalFrame(fid, make_eval_sample(frames.load(fid), options).points) for fid in ids]
+    bar = tqdm(ids, desc="loading frames", unit="frame", disable=None if progress else True, leave=False)
+    return [EvalFrame(fid, make_eval_sample(frames.load(fid), options).points) for fid in bar]
 
 
 def frame_density(points: np.ndarray, cfg: ExperimentConfig) -> tuple[int, float]:
@@ -231,7 +235,8 @@ def run_bench(
     peer: str | None = None,
     progress: bool = False,
 ) -> dict:
-    """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result.
+    """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
+    bars on stderr (loading, warm-up and timed frames) when it is a terminal.
 
     ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "median_frame_ms",
     "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer"}], "density": {...},
@@ -256,7 +261,7 @@ def run_bench(
     if peer is not None and device != "cpu":
         raise InputError(f"--peer {peer} times the CPU only (open3d-cpu); drop --device {device}")
     nets = [build_bench_model(c, m.checkpoint, dev, seed) for c, m in zip(cfgs, models)]
-    data = [load_eval_frames(c, data_dir, split, frames) for c in cfgs]
+    data = [load_eval_frames(c, data_dir, split, frames, progress=progress) for c in cfgs]
     n = len(data[0])
     densities = [[frame_density(f.points, c)[1] for f in d] for c, d in zip(cfgs, data)]
     # one timing function per row: ours, then the peer on the first model's frames
@@ -269,9 +274,13 @@ def run_bench(
         data.append(data[0])
         densities.append(densities[0])
 
+    # one bar step = one frame through every model; stderr, so a table or Markdown on stdout stays clean
+    bar = tqdm(total=min(warmup, n) + trials * n, desc="bench warm-up", unit="frame",
+               disable=None if progress else True, leave=False)
     for i in range(min(warmup, n)):
         for run, d in zip(runs, data):
             run(d[i].points)
+        bar.update(1)
 
     k = len(runs)
     # per model, trial, component: the mean over frames
@@ -280,6 +289,7 @@ def run_bench(
     faults = np.zeros((k,), dtype=np.int64)
     dets = np.zeros((k,), dtype=np.int64)
     for t in range(trials):
+        bar.set_description(f"bench trial {t + 1}/{trials}")
         for i in range(n):
             order = range(k) if (t * n + i) % 2 == 0 else reversed(range(k))  # alternate who goes first
             for j in order:
@@ -288,11 +298,9 @@ def run_bench(
                 faults[j] += _faults() - f0
                 dets[j] += nd
                 per_frame[j, t, i] = [ms[c] for c in COMPONENTS]
-            if progress:
-                print(f"\rtrial {t + 1}/{trials} frame {i + 1}/{n}", end="", flush=True)
+            bar.update(1)
         trial_means[:, t] = per_frame[:, t].mean(axis=1)
-    if progress:
-        print()
+    bar.close()
 
     weights = [str(m.checkpoint) if m.checkpoint else f"random (seed {seed}; untrained, timing only)" for m in models]
     rows = [(names[j], m, c, weights[j], None) for j, (m, c) in enumerate(zip(models, cfgs))]

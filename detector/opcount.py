@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from detector.models import ExperimentConfig, ModelConfig, build_model, load_experiment
 from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d
@@ -323,9 +324,11 @@ def frame_counts(
 
 
 def count_frames(
-    cfg: ExperimentConfig, points_list: Sequence[np.ndarray], frame_ids: Sequence[str] | None = None
+    cfg: ExperimentConfig, points_list: Sequence[np.ndarray], frame_ids: Sequence[str] | None = None, *,
+    progress: bool = False,
 ) -> dict:
-    """Op counts of every frame (points (N, C) float32, sensor frame, already range-filtered) and their summary.
+    """Op counts of every frame (points (N, C) float32, sensor frame, already range-filtered) and their summary
+    (``progress``: a bar on stderr when it is a terminal).
 
     The sparse counts come from ``cfg.model`` if it is a sparse variant, else from the same config with
     ``backbone: sparse``; the dense counts from the same config with ``backbone: dense``.
@@ -337,6 +340,7 @@ def count_frames(
         model = build_model(sparse_cfg).eval()
     frames = []
     ids = list(frame_ids) if frame_ids is not None else [str(i) for i in range(len(points_list))]
+    bar = tqdm(total=len(ids), desc="counting ops", unit="frame", disable=None if progress else True, leave=False)
     for fid, pts in zip(ids, points_list):
         voxels = model.voxelize([torch.from_numpy(np.ascontiguousarray(pts, dtype=np.float32))])
         coords = voxels.coords
@@ -347,6 +351,8 @@ def count_frames(
         fc["frame_id"] = fid
         fc["layers"] = [asdict(lc) for lc in layers]
         frames.append(fc)
+        bar.update(1)
+    bar.close()
     return {
         "config": {"dense": dense_cfg.backbone, "sparse": sparse_cfg.backbone,
                    "output_shape": list(sparse_cfg.output_shape), "pfn_channels": sparse_cfg.pfn_channels,
@@ -399,14 +405,16 @@ def summarize(frames: Sequence[dict], cfg: ModelConfig) -> dict:
 
 
 def count_dataset(
-    config_path: str | Path, data_dir: str | Path, split: str = "test", frames: int | None = 20, start: int = 0
+    config_path: str | Path, data_dir: str | Path, split: str = "test", frames: int | None = 20, start: int = 0, *,
+    progress: bool = False,
 ) -> dict:
-    """``detector ops``: load the config and ``frames`` frames of ``split``, count every frame."""
+    """``detector ops``: load the config and ``frames`` frames of ``split``, count every frame (``progress``: bars on
+    stderr when it is a terminal)."""
     from detector.bench import load_eval_frames
 
     cfg = load_experiment(config_path)
-    data = load_eval_frames(cfg, data_dir, split, frames, start)
-    result = count_frames(cfg, [f.points for f in data], [f.frame_id for f in data])
+    data = load_eval_frames(cfg, data_dir, split, frames, start, progress=progress)
+    result = count_frames(cfg, [f.points for f in data], [f.frame_id for f in data], progress=progress)
     result["config"]["path"] = str(config_path)
     result["data"] = {"root": str(data_dir), "split": split}
     return result

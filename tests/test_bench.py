@@ -1,8 +1,11 @@
-"""``detector bench``: every component timed (positive), the JSON schema, the ratio row, the CLI's error path."""
+"""``detector bench``: every component timed (positive), the JSON schema, the ratio row, the CLI's error path; the
+progress bars of ``bench`` and ``ops`` (on a terminal only)."""
 
 from __future__ import annotations
 
+import io
 import json
+import sys
 
 import click.testing
 import pytest
@@ -10,7 +13,7 @@ import torch
 from helpers_detector import make_tiny_dataset
 
 from detector.bench import COMPONENTS, format_table, frame_density, load_eval_frames, ratio_rows
-from detector.cli import cli
+from detector.cli import cli, main
 from detector.infer import load_model_from_checkpoint
 from detector.models import build_model, load_experiment
 from detector.train import save_checkpoint
@@ -98,3 +101,46 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
         "--json", str(tmp_path / "no.json")])
     assert res.exit_code != 0 and "checkpoint does not fit the config's model" in str(res.exception)
     assert not (tmp_path / "no.json").exists()
+
+
+class _Terminal(io.StringIO):
+    """An interactive stderr as tqdm sees it: a stream that says it is a TTY (bars are drawn only on one)."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def _run(args: list[str], capsys, monkeypatch, *, terminal: bool) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of ``detector ARGS``, stderr a terminal or (capsys) a pipe."""
+    term = _Terminal()
+    with monkeypatch.context() as m:
+        if terminal:
+            m.setattr(sys, "stderr", term)
+        with pytest.raises(SystemExit) as e:
+            main(args)
+    out, err = capsys.readouterr()
+    return e.value.code, out, term.getvalue() if terminal else err
+
+
+def test_bench_and_ops_show_progress_on_a_terminal_unless_told_not_to(data, capsys, monkeypatch) -> None:
+    """Both take minutes on real data: on a terminal they draw bars on stderr by default (loading, then bench's
+    warm-up and trials or ops' counting); never with --no-progress, on a pipe, or with ops --json; stdout is the
+    same table either way."""
+    bench = ["bench", "--config", DENSE, "--data", str(data), "--frames", "2", "--trials", "2", "--warmup", "1",
+             "--threads", "1"]
+    ops = ["ops", "--config", SPARSE, "--data", str(data), "--frames", "2"]
+    for args, bars in ((bench, ("loading frames", "bench warm-up", "bench trial 1/2", "bench trial 2/2")),
+                       (ops, ("loading frames", "counting ops"))):
+        code, shown, err = _run(args, capsys, monkeypatch, terminal=True)
+        assert code == 0 and all(b in err for b in bars), (bars, err)
+        code, quiet, err = _run([*args, "--no-progress"], capsys, monkeypatch, terminal=True)
+        assert code == 0 and err == ""
+        code, piped, err = _run(args, capsys, monkeypatch, terminal=False)
+        assert code == 0 and err == ""
+        if args is ops:
+            assert shown == quiet == piped
+        else:  # the timings (and so the column widths) differ, the table's columns and rows do not
+            heads = [[ln.split()[0] for ln in text.splitlines() if ln.strip()] for text in (shown, quiet, piped)]
+            assert heads[0] == heads[1] == heads[2] and shown.split()[:3] == ["model", "To", "Device"]
+    code, out, err = _run([*ops, "--json"], capsys, monkeypatch, terminal=True)
+    assert code == 0 and err == "" and json.loads(out)["data"]["split"] == "test"

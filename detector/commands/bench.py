@@ -28,10 +28,11 @@ import click
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Also write the full result as JSON to this file.")
 @click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
-@click.option("--progress", is_flag=True, help="Show the frame counter.")
+@click.option("--no-progress", is_flag=True,
+              help="No progress bars (shown on stderr by default when it is a terminal, between the timed frames).")
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
           warmup: int, device: str, threads: int | None, seed: int, peer: str | None, json_out: str | None,
-          markdown: bool, progress: bool) -> None:
+          markdown: bool, no_progress: bool) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
@@ -56,7 +57,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
     models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
     result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
-                       threads=threads, seed=seed, peer=peer, progress=progress)
+                       threads=threads, seed=seed, peer=peer, progress=not no_progress)
     if json_out:
         write_text(json_out, json.dumps(result, indent=2) + "\n")
     click.echo(format_table(result, markdown=markdown))

@@ -18,8 +18,10 @@ import click
 @click.option("--json", "as_json", is_flag=True, help="Print the full JSON (per frame, per layer) instead of tables.")
 @click.option("--out", "json_out", type=click.Path(dir_okay=False), default=None, help="Also write the JSON here.")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown.")
+@click.option("--no-progress", is_flag=True,
+              help="No progress bars (shown on stderr by default when it is a terminal and --json is not given).")
 def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as_json: bool, json_out: str | None,
-        markdown: bool) -> None:
+        markdown: bool, no_progress: bool) -> None:
     """Exact multiply-accumulate counts of the dense and sparse backbone + neck per frame, beside Table I's bound.
 
     \b
@@ -35,7 +37,7 @@ def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as
 
     if frames < 1 or start < 0:
         raise InputError(f"need --frames >= 1 and --start >= 0 (got {frames}, {start})")
-    result = count_dataset(config_path, data_dir, split, frames, start)
+    result = count_dataset(config_path, data_dir, split, frames, start, progress=not (no_progress or as_json))
     text = json.dumps(result, indent=2)
     if json_out:
         write_text(json_out, text + "\n")
