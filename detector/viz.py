@@ -24,9 +24,11 @@ import torch
 from torch import nn
 
 from detector.bench import build_bench_model, load_eval_frames
+from detector.experiment import open_split
 from detector.models import ExperimentConfig, PointPillars, load_experiment
 from mpchair.atomic import write_bytes
 from mpchair.errors import InputError
+from mpchair.kitti import imageset_path
 
 STAGES: tuple[str, ...] = ("input", "block1", "block2", "block3")
 TITLES: dict[str, str] = {"input": "Input pseudoimage", "block1": "After Conv block 1", "block2": "After Conv block 2",
@@ -119,24 +121,43 @@ def panel_png(images: dict[str, list[np.ndarray]], fractions: dict[str, list[flo
     return buf.getvalue()
 
 
+def split_position(cfg: ExperimentConfig, data_dir: str | Path, split: str, *, frame_id: str | None = None,
+                   index: int | None = None) -> int:
+    """Position in ``split`` of the frame named by exactly one of ``frame_id`` (``"000123"``; it must be listed in the
+    split) or ``index`` (0 = the split's first frame); an :class:`InputError` naming the split file otherwise."""
+    if (frame_id is None) == (index is None):
+        raise InputError("give either --frame ID (a frame id) or --index N (a position in the split)")
+    ids = open_split(cfg, data_dir, split).ids
+    listing = imageset_path(data_dir, split)
+    if frame_id is not None:
+        if frame_id not in ids:
+            raise InputError(f"frame {frame_id} is not in split {split!r} ({len(ids)} frames, {ids[0]} ... "
+                             f"{ids[-1]}); pick one of its ids, or --split another split", listing)
+        return ids.index(frame_id)
+    if not 0 <= index < len(ids):
+        raise InputError(f"--index {index} is outside split {split!r} (positions 0 to {len(ids) - 1})", listing)
+    return index
+
+
 def viz_sparsity(
     config_path: str | Path,
     data_dir: str | Path,
-    frame: int,
     out_dir: str | Path,
     *,
+    frame_id: str | None = None,
+    index: int | None = None,
     split: str = "test",
     dense_checkpoint: str | Path | None = None,
     sparse_checkpoint: str | Path | None = None,
     seed: int = 0,
 ) -> dict:
-    """Write ``OUT/{dense,sparse}_{input,block1,block2,block3}.png`` and ``OUT/panel.png`` for frame index ``frame``
-    of ``split``; returns ``{"frame_id", "files", "nonzero_fraction": {model: [4 fractions]},
-    "nonzero_cells": {model: [4 counts]}}`` (fractions and counts at each stage's own resolution)."""
+    """Write ``OUT/{dense,sparse}_{input,block1,block2,block3}.png`` and ``OUT/panel.png`` for one frame of ``split``:
+    the frame id ``frame_id`` (``"000123"``) or the ``index``-th frame of the split (give exactly one). Returns
+    ``{"frame_id", "files", "nonzero_fraction": {model: [4 fractions]}, "nonzero_cells": {model: [4 counts]}}``
+    (fractions and counts at each stage's own resolution)."""
     cfg: ExperimentConfig = load_experiment(config_path)
-    if frame < 0:
-        raise InputError(f"--frame must be >= 0, got {frame}")
-    data = load_eval_frames(cfg, data_dir, split, 1, frame)[0]
+    position = split_position(cfg, data_dir, split, frame_id=frame_id, index=index)
+    data = load_eval_frames(cfg, data_dir, split, 1, position)[0]
     dense_model_cfg = replace(cfg.model, backbone="dense", head="dense")
     sparse_model_cfg = cfg.model if cfg.model.backbone != "dense" else replace(cfg.model, backbone="sparse")
     dev = torch.device("cpu")

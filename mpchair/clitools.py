@@ -43,6 +43,25 @@ class LazyGroup(click.Group):
         return super().get_command(ctx, cmd_name)
 
 
+class FrameIdType(click.ParamType):
+    """A KITTI frame id typed as up to 6 digits (``3`` or ``000003``), converted to its file name form ``000003``.
+
+    ``--frame`` means the frame id in every command (``mpchair view``, ``detector viz-sparsity``), never a position in
+    a split."""
+
+    name = "ID"
+
+    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        text = str(value).strip()
+        if not text.isdigit() or len(text) > 6:
+            self.fail(f"{value!r} is not a frame id (up to 6 digits)", param, ctx)
+        return f"{int(text):06d}"
+
+
+#: The ``type=`` of every ``--frame ID`` option.
+FRAME_ID = FrameIdType()
+
+
 def os_error_line(e: OSError) -> str:
     """``PATH: reason`` of an OS error (``reason`` alone when the error names no file)."""
     reason = e.strerror or str(e)

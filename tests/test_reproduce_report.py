@@ -234,7 +234,7 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         stdout=res / "bench_default.md")
     run("detector", "ops", "--config", cfg["sparse"], "--data", data, "--split", "test", "--frames", "2", "--out",
         res / "ops.json", "--markdown", stdout=res / "ops.md")
-    run("detector", "viz-sparsity", "--config", cfg["sparse"], "--data", data, "--frame", "0", "--split", "test",
+    run("detector", "viz-sparsity", "--config", cfg["sparse"], "--data", data, "--index", "0", "--split", "test",
         "--out", res / "viz", "--json", stdout=res / "viz.json")
 
     sc = reproduce.Scale(houses=1, frames_per_house=4, epochs=2, bench_frames=1, bench_trials=1, ops_frames=2)

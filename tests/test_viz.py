@@ -1,5 +1,6 @@
 """``detector viz-sparsity``: the PNGs exist, have the pseudo-image size, are not blank, and sparse block 1 is no
-whiter than dense block 1."""
+whiter than dense block 1; ``--frame`` is the frame id (as ``mpchair view --frame``), ``--index`` the position in the
+split."""
 
 from __future__ import annotations
 
@@ -18,9 +19,10 @@ SPARSE = "configs/models/mpchair_sparse_smoke.yaml"  # 96 x 64 pseudo-image
 
 
 def test_viz_sparsity_pictures(tmp_path, capsys) -> None:
-    data = make_tiny_dataset(tmp_path / "ds", n_frames=2)
+    # the test split lists frames 000001 and 000002: a frame's id and its position in the split differ
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=3, splits={"train": [0], "val": [0], "test": [1, 2]})
     out = tmp_path / "viz"
-    result = viz_sparsity(SPARSE, data, 1, out, split="test")
+    result = viz_sparsity(SPARSE, data, out, frame_id="000001", split="test")
     assert result["frame_id"] == "000001"
     white = {}
     for model in ("dense", "sparse"):
@@ -59,6 +61,27 @@ def test_viz_sparsity_pictures(tmp_path, capsys) -> None:
     frac = result["nonzero_fraction"]["sparse"]
     assert lines[2] == "  sparse " + "  ".join(f"{s} {100 * f:.3f}%" for s, f in zip(STAGES, frac))
     assert lines[3:] == [str(f) for f in printed["files"]]
-    with pytest.raises(SystemExit) as e:
-        main(["viz-sparsity", "--config", SPARSE, "--data", str(data), "--frame", "-1", "--out", str(tmp_path / "x")])
-    assert e.value.code == 2 and "--frame must be >= 0" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+    # --frame 2 is frame 000002 (the split's second), --index 0 the split's first (000001)
+    for args, fid in ((["--frame", "2"], "000002"), (["--frame", "000002"], "000002"), (["--index", "0"], "000001"),
+                      (["--index", "1"], "000002")):
+        with pytest.raises(SystemExit) as e:
+            main(["viz-sparsity", "--config", SPARSE, "--data", str(data), *args, "--out", str(tmp_path / "pick"),
+                  "--json"])
+        assert e.value.code == 0 and json.loads(capsys.readouterr().out)["frame_id"] == fid, args
+
+    split_file = data / "ImageSets" / "test.txt"
+    for args, message in (
+        (["--frame", "0"], f"error: {split_file}: frame 000000 is not in split 'test' (2 frames, 000001 ... 000002)"),
+        (["--frame", "-1"], "error: Invalid value for '--frame': '-1' is not a frame id (up to 6 digits)"),
+        (["--frame", "1234567"], "'1234567' is not a frame id"),
+        (["--index", "2"], f"error: {split_file}: --index 2 is outside split 'test' (positions 0 to 1)"),
+        (["--index", "-1"], "Invalid value for '--index'"),
+        (["--frame", "1", "--index", "0"], "give either --frame ID (a frame id) or --index N"),
+        ([], "give either --frame ID (a frame id) or --index N"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(["viz-sparsity", "--config", SPARSE, "--data", str(data), *args, "--out", str(tmp_path / "x")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and len(err.splitlines()) == 1, (args, err)
+        assert not (tmp_path / "x").exists()

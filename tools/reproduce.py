@@ -268,7 +268,8 @@ def main(argv: list[str] | None = None) -> int:
         r.run([det, "ops", "--config", paper_cfg["sparse"], "--data", str(data), "--split", "test", "--frames",
                str(sc.ops_frames), "--out", str(res / "ops.json"), "--markdown"], stdout=res / "ops.md")
     if todo("viz", res / "viz" / "panel.png"):
-        cmd = [det, "viz-sparsity", "--config", paper_cfg["sparse"], "--data", str(data), "--frame", "0", "--split",
+        # the test split's first frame (its ids are a seeded sample, so frame 000000 need not be in it)
+        cmd = [det, "viz-sparsity", "--config", paper_cfg["sparse"], "--data", str(data), "--index", "0", "--split",
                "test", "--out", str(res / "viz"), "--json"]
         if all(Path(c).exists() for c in ckpts):
             cmd += ["--dense-checkpoint", ckpts[0], "--sparse-checkpoint", ckpts[1]]

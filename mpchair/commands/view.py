@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.clitools import FRAME_ID
 from mpchair.errors import InputError
 
 _CTX = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
@@ -20,7 +21,7 @@ def _png(path: Path, option: str) -> Path:
 
 @click.command(context_settings=_CTX)
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("--frame", "frame", help="Frame id (123 or 000123).")
+@click.option("--frame", "frame", type=FRAME_ID, help="Frame id (123 or 000123).")
 @click.option("--out", type=click.Path(path_type=Path), help="Bird's-eye view PNG.")
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Instead of a picture: write DATASET (a stream or a dataset) as a Rerun recording (.rrd): per frame "
@@ -57,9 +58,7 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
 
     if frame is None or out is None:
         raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd")
-    if not frame.isdigit() or len(frame) > 6:
-        raise click.BadParameter(f"{frame!r} is not a frame id (up to 6 digits)", param_hint="--frame")
-    fid = f"{int(frame):06d}"
+    fid = frame
     _png(out, "--out")
     if min(size) < 64:
         raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
