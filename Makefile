@@ -17,7 +17,8 @@ test: venv
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-# The paper's experiment on synthetic houses (~3 h on 2 cores); `make reproduce SCALE=small` is a 3-minute check.
+# The paper's experiment on synthetic houses (~3 h on 2 cores); `make reproduce SCALE=small` is a quick check (~3 min
+# on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared with other jobs).
 SCALE ?= full
 reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)

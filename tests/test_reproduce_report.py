@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import shlex
 import sys
 import time
@@ -86,6 +87,35 @@ def test_quick_scale_report_stays_in_its_work_folder(tmp_path: Path, capsys) -> 
     assert report.startswith("# Results") and "`tools/reproduce.py --scale small`" in report
     assert f"wrote {tmp_path.resolve() / 'small' / 'results.md'}" in capsys.readouterr().out
     assert (ROOT / "docs" / "results.md").read_bytes() == committed
+
+
+@pytest.mark.slow
+def test_train_step_shows_each_epoch_as_it_runs(tmp_path: Path, capfd, monkeypatch) -> None:
+    """The train step runs ``detector train --no-progress`` as a child process, and its plan, estimate and per-epoch
+    lines reach the terminal (it was silent for minutes). Here the sparse model's training only (the dense one is
+    marked done), with the slim test model on a tiny dataset, renamed as the recipe's CPU config."""
+    reproduce = _reproduce()
+    configs = tmp_path / "configs"
+    configs.mkdir()
+    write_test_config(configs / "mpchair_sparse_cpu.yaml", model=dict(backbone="sparse"), train=dict(batch_size=2))
+    monkeypatch.setattr(reproduce, "CONFIGS", configs)
+    out = tmp_path / "reproduce-small"
+    make_tiny_dataset(out / "dataset", n_frames=6, seed=1)  # 3 steps per epoch
+    (out / "runs" / "dense").mkdir(parents=True)
+    (out / "runs" / "dense" / "done").write_text("trained\n")
+    assert reproduce.main(["--scale", "small", "--steps", "train", "--epochs", "1", "--threads", "1", "--out",
+                           str(out)]) == 0
+    lines = capfd.readouterr().out.splitlines()
+    # the sparse model trains ceil(1.25 x 1) = 2 epochs; its lines follow its command line, as they come
+    (start,) = [i for i, ln in enumerate(lines) if ln.startswith("$ ") and " train " in ln]
+    assert "sparse_cpu" in lines[start] and "--no-progress" in lines[start]
+    child = lines[start + 1 :]
+    assert child[0] == "training 6 step(s): 2 epochs x 3 steps (global batch 2); timing the first steps..."
+    assert child[1].startswith("epoch 1/2: loss ")
+    # the estimate comes after step 4, here inside epoch 2
+    assert re.fullmatch(r"6 steps, ~\d+\.\d\d s/step measured -> ~.+", child[2]), child[2]
+    assert child[3].startswith("epoch 2/2: loss ")
+    assert child[4].startswith("trained 2 epoch(s), 6 step(s)") and (out / "runs" / "sparse" / "done").is_file()
 
 
 def test_auto_precision_reads_the_cpu_flags(tmp_path: Path) -> None:

@@ -20,8 +20,13 @@ A step whose outputs exist is skipped (``--force`` redoes it); ``detector train 
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
 1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
 CPU has native bf16 (AVX512-BF16 / AMX: about 3.5 hours on 2 cores) and fp32 elsewhere (about 8 hours on 2 AVX2
-cores). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames, 2 epochs); ``--scale medium`` 8 houses,
-2,000 frames, 10 epochs.
+cores). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames, 2 epochs: ~3 min on 2 idle cores,
+several times longer on a loaded machine: 14.5 min was seen on 2 cores shared with other jobs); ``--scale medium``
+8 houses, 2,000 frames, 10 epochs.
+
+Every command is printed before it runs and its own output passes through as it comes: the train step's ``detector
+train`` runs without progress bars but prints its plan, the duration it measured on its first steps and one line per
+epoch (and per validation).
 
 Figures referenced by the report are copied next to it (``<results dir>/img/results-<scale>/``), so that the report
 stays valid when ``out/`` is deleted.
@@ -142,7 +147,8 @@ def house_ids(houses_dir: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default="full",
-                   help="full (default): the issue's experiment, ~3 h on 2 cores; small: 3-minute check")
+                   help="full (default): the issue's experiment, ~3 h on 2 cores; small: a quick check, ~3 min on "
+                        "2 idle cores and several times longer on a loaded machine")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/reproduce-<scale>)")
     p.add_argument("--results", type=Path, default=None,
@@ -223,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     for m in ("dense", "sparse"):
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly
         if todo("train", runs / m / "done"):
+            # no bars (they would fill a log), but detector train still prints its estimate and one line per epoch,
+            # which pass through (the Runner leaves the child's stdout alone)
             cmd = [det, "train", "--config", cpu[m], "--data", str(data), "--out", str(runs / m), *threads,
                    "--no-progress"]
             if sc.epochs is not None:
