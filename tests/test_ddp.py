@@ -4,8 +4,8 @@ The equivalence holds because every BatchNorm uses global-batch statistics acros
 normalised by the global number of positive anchors (see ``detector/train.py``). Compared per step: the total loss and
 the gradient norm (both before the optimiser step, so they check the forward statistics and the all-reduced
 gradients directly), the learning rate and beta1 of the one-cycle schedule (whose length counts global steps); after
-the run: every weight's and BatchNorm buffer's change from the shared initial state. The job's output: one summary
-(rank 0's) and no deprecation warning.
+the run: every weight's and BatchNorm buffer's change from the shared initial state. The job's output: one plan, epoch
+line and summary (rank 0's) and no deprecation warning.
 
 This is the suite's one torchrun launch (about 10 s of process start-up), so it checks all of that at once.
 """
@@ -60,6 +60,8 @@ def test_two_processes_equal_one_process_with_the_same_global_batch(tmp_path):
     # Rank 0 speaks for the job (the summary once, not once per rank), and no rank warns about a deprecated call
     # (torch.distributed.nn.functional.all_reduce did, once per call site and rank).
     assert proc.stdout.count("trained 1 epoch(s), 3 step(s)") == 1, proc.stdout
+    assert proc.stdout.count("training 3 step(s): 2 epochs x 2 steps (global batch 2)") == 1, proc.stdout
+    assert proc.stdout.count("epoch 1/2: loss ") == 1, proc.stdout
     assert "FutureWarning" not in proc.stderr and "DeprecationWarning" not in proc.stderr, proc.stderr[-3000:]
 
     train(single, data, tmp_path / "one", max_steps=STEPS, threads=1, progress=False)
