@@ -458,11 +458,16 @@ def _status(scale: str, out: Path, sc: Scale) -> list[str]:
         lines += [f"This is the `--scale {scale}` run: fewer frames and epochs than the issue's full scale (3,000 "
                   f"train / 1,000 val frames, {_epochs_text(SCALES['full'])} epochs), so the AP target is not "
                   "expected to be met; the runtime and op-count results do not depend on the training length.", ""]
-    elif sc.epochs is not None and sc.epochs < SCALES["full"].epochs:
-        lines += [f"**This run is shorter than the recipe:** it trained {_epochs_text(sc)} epochs instead of "
-                  f"{_epochs_text(SCALES['full'])} (`make reproduce`), so both models are far from converged and "
-                  "their AP (and the sparse - dense gap) is not the recipe's; the runtime and op-count results do not "
-                  "depend on the training length.", ""]
+    else:
+        t, recipe = _trained(out), model_epochs(SCALES["full"].epochs)
+        short = {m: e * n for m, v in t.items() if v for e, n in [v]}
+        n_train = _trained_split_size(out)
+        if n_train and any(short.get(m, 0) < recipe[m] * n_train for m in short):
+            lines += [f"**This run is shorter than the recipe:** it trained {_trained_text(out, sc)} instead of "
+                      f"dense {recipe['dense']} / sparse {recipe['sparse']} epochs x {n_train:,} samples "
+                      "(`make reproduce`), so both models are far from converged and their AP (and the sparse - "
+                      "dense gap) is not the recipe's; the runtime and op-count results do not depend on the "
+                      "training length.", ""]
     rows = []
     for m in ("dense", "sparse"):
         path = out / "runs" / m / "metrics.jsonl"
@@ -478,6 +483,14 @@ def _status(scale: str, out: Path, sc: Scale) -> list[str]:
                   "| model | epoch | BEV AP Overall | 3D AP Overall | BEV AP Moderate | 3D AP Moderate |",
                   "|---|---|---|---|---|---|", *rows, ""]
     return lines
+
+
+def _trained_split_size(out: Path) -> int | None:
+    """Frames in the dataset's train split (None without one)."""
+    from mpchair.kitti import imageset_path, read_imageset
+
+    split = imageset_path(out / "dataset", "train")
+    return len(read_imageset(split)) if split.is_file() else None
 
 
 def _precision(out: Path) -> str:
@@ -551,6 +564,27 @@ def _run_config(out: Path, model: str) -> dict:
     return (yaml.safe_load(text) or {}) if text else {}
 
 
+def _trained(out: Path) -> dict[str, tuple[int, int] | None]:
+    """{model: (epochs, samples per epoch)} as each run was trained (its config.yaml; an epoch without
+    ``train.samples_per_epoch`` is one pass over the train split), None for a model not trained."""
+    n_train = _trained_split_size(out)
+    found: dict[str, tuple[int, int] | None] = {}
+    for m in ("dense", "sparse"):
+        t = _run_config(out, m).get("train") or {}
+        spe = t.get("samples_per_epoch") or n_train
+        found[m] = (t["epochs"], spe) if t.get("epochs") and spe else None
+    return found
+
+
+def _trained_text(out: Path, sc: Scale | None = None) -> str:
+    """"dense 16 epochs x 3,000 samples / sparse 20 epochs x 3,000 samples" from the runs (before training: the
+    scale's epochs)."""
+    t = _trained(out)
+    if all(t.values()):
+        return " / ".join(f"{m} {e} epoch{'s' * (e != 1)} x {n:,} samples" for m, (e, n) in t.items())
+    return f"epochs {_epochs_text(sc)}" if sc else "n/a"
+
+
 def _count(n: int | None) -> str:
     return "n/a" if n is None else f"{n:,}"
 
@@ -569,7 +603,6 @@ def _differences(out: Path) -> list[str]:
     grid = dense_m.get("output_shape")
     rng = dense_m.get("point_cloud_range")
     ep = {m: cfg[m].get("train", {}).get("epochs") for m in ("dense", "sparse")}
-    spe = dense_t.get("samples_per_epoch")
     sched = dense_t.get("schedule")
     sched_text = (f"{sched}, peak lr {dense_t.get('lr')}" if sched == "onecycle" else
                   f"{sched}, lr {dense_t.get('lr')}") if sched else "n/a"
@@ -588,10 +621,9 @@ def _differences(out: Path) -> list[str]:
          "within the 7 m distance filter" if grid and rng else "n/a",
          "CPU budget (10x less area per step); the runtime tables use the paper's 768 x 512 with the same weights"),
         ("schedule", "dense 200 / sparse 250 epochs of 5,000 samples, batch 6, AdamW lr 1e-3 constant",
-         f"dense {ep['dense']} / sparse {ep['sparse']} epochs"
-         + (f" of {spe} samples" if spe else " (one pass over the train split each)")
+         (_trained_text(out) if all(_trained(out).values()) else f"dense {ep['dense']} / sparse {ep['sparse']} epochs")
          + f", batch {dense_t.get('batch_size', 'n/a')}, AdamW {sched_text}",
-         _schedule_why(ep)),
+         _schedule_why(_trained(out), splits.get("train"))),
         ("precision", "fp32 (GPU)", f"{dense_t.get('precision', 'fp32')} (dense) / "
          f"{sparse_t.get('precision', 'fp32')} (sparse)", "bf16 only where the CPU computes it natively"),
         ("evaluation", "Open3D-ML's mAP (41 thresholds, every box difficulty 0), BEV and 3D at IoU 0.5",
@@ -609,19 +641,20 @@ def _differences(out: Path) -> list[str]:
     return lines + [""]
 
 
-def _schedule_why(ep: dict[str, int | None]) -> str:
-    """Why this run's schedule differs from the paper's, with the sparse/dense epoch ratio it actually had."""
+def _schedule_why(trained: dict[str, tuple[int, int] | None], n_train: int | None) -> str:
+    """Why this run's schedule differs from the paper's, with the sparse/dense ratio of samples it actually had."""
     full = model_epochs(SCALES["full"].epochs)
+    seen = {m: v[0] * v[1] for m, v in trained.items() if v}
     why = "CPU budget"
-    if ep["dense"] is not None and full["dense"] is not None and ep["dense"] < full["dense"]:
+    if n_train and "dense" in seen and seen["dense"] < full["dense"] * n_train:
         why += (f"; cut below the recipe's dense {full['dense']} / sparse {full['sparse']} epochs to fit the session "
                 "it ran in, so the models are not converged")
     else:
         why += "; the one-cycle schedule converges in few epochs (docs/training.md)"
-    if ep["dense"] and ep["sparse"]:
-        ratio = ep["sparse"] / ep["dense"]
-        why += (f"; sparse/dense epoch ratio {ratio:.2f} (the paper's 1.25, rounded up to whole epochs)"
-                if abs(ratio - SPARSE_EPOCH_RATIO) > 1e-9 else "; the paper's 1.25 sparse/dense epoch ratio is kept")
+    if seen.get("dense") and seen.get("sparse"):
+        ratio = seen["sparse"] / seen["dense"]
+        why += (f"; sparse/dense ratio of training samples {ratio:.2f} (the paper's 1.25, rounded up to whole epochs)"
+                if abs(ratio - SPARSE_EPOCH_RATIO) > 1e-9 else "; the paper's 1.25 sparse/dense ratio is kept")
     return why
 
 
@@ -651,7 +684,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, epochs {_epochs_text(sc)}, training precision {_precision(out)}, bench "
+        f"frames, training {_trained_text(out, sc)}, precision {_precision(out)}, bench "
         f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
         "all on this machine (each command's wall time is listed; training took "
         + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
