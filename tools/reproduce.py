@@ -408,7 +408,10 @@ def _detection(res: Path) -> list[str]:
     lines = ["## Detection (val split, Chair, IoU 0.5)", "",
              "The paper has one level (every chair counts): **Overall** is the KITTI protocol without its 2D-height, "
              "occlusion and truncation limits; **Open3D-ML mAP** is the reference's own metric (`detector eval "
-             "--protocol open3d-ml`, docs/evaluation.md: 41 sampled thresholds, AP averaged over the recall reached).",
+             "--protocol open3d-ml`, docs/evaluation.md: 41 sampled thresholds, AP averaged over the recall reached). "
+             "Recall a model never reaches costs nothing in Open3D-ML's mAP and counts as precision 0 in KITTI's, so "
+             "the two part most for a model of low recall (finding half of the chairs perfectly scores 100 there and "
+             "R40 10 on the KITTI level).",
              "",
              "| model | BEV AP Overall R40 | 3D AP Overall R40 | BEV AP Overall R11 | 3D AP Overall R11 | "
              "BEV AP Open3D-ML mAP | 3D AP Open3D-ML mAP |",
@@ -694,9 +697,9 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*."
         + "".join(" " + n.strip() for n in notes or []),
         "",
+        *_status(scale, out, sc),
         *_summary(res),
         *_differences(out),
-        *_status(scale, out, sc),
         *_detection(res),
     ]
     lines += ["## Density (test split, 768 x 512 canvas, 5 cm pillars)", ""]
