@@ -206,6 +206,45 @@ def test_report_reads_metrics_without_overall_or_open3d_ml(tmp_path: Path) -> No
     assert "| dense | 63.00 / 64.00 / 65.00 |" in text and "Valid GT chairs: Easy 50, Moderate 56, Hard 60." in text
 
 
+def test_a_full_scale_run_cut_short_says_so(tmp_path: Path) -> None:
+    """A full-scale report of fewer training samples than the recipe says that it is short, gives each model's epochs x
+    samples and the sparse/dense ratio it actually trained, and carries the operator's notes; the recipe's own
+    schedule keeps the plain wording."""
+    import yaml
+
+    reproduce = _reproduce()
+    out = tmp_path / "reproduce-full"
+    (out / "dataset" / "ImageSets").mkdir(parents=True)
+    (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
+
+    def runs(*schedules: tuple[int, int | None]) -> str:
+        for m, (epochs, spe) in zip(("dense", "sparse"), schedules):
+            (out / "runs" / m).mkdir(parents=True, exist_ok=True)
+            (out / "runs" / m / "config.yaml").write_text(yaml.safe_dump(
+                {"train": {"epochs": epochs, "samples_per_epoch": spe, "batch_size": 2}}))
+        sc = reproduce.dataclasses.replace(reproduce.SCALES["full"], epochs=1)
+        reproduce.write_report(tmp_path / "results.md", out, out / "results", "full", sc,
+                               notes=["The two trainings ran one after the other."])
+        return (tmp_path / "results.md").read_text()
+
+    text = runs((1, 4), (1, 5))
+    assert "**This run is shorter than the recipe:** it trained dense 1 epoch x 4 samples / sparse 1 epoch x 5 " \
+           "samples instead of dense 16 / sparse 20 epochs x 10 samples" in text
+    assert "training dense 1 epoch x 4 samples / sparse 1 epoch x 5 samples, precision" in text.splitlines()[2]
+    schedule = next(ln for ln in text.splitlines() if ln.startswith("| schedule |"))
+    assert "not converged" in schedule and "1.25 sparse/dense ratio is kept" in schedule
+    assert text.splitlines()[2].endswith("The two trainings ran one after the other.")
+
+    schedule = next(ln for ln in runs((1, None), (2, None)).splitlines() if ln.startswith("| schedule |"))
+    assert "dense 1 epoch x 10 samples / sparse 2 epochs x 10 samples" in schedule
+    assert "ratio of training samples 2.00" in schedule
+
+    text = runs((16, None), (20, None))
+    schedule = next(ln for ln in text.splitlines() if ln.startswith("| schedule |"))
+    assert "shorter than the recipe" not in text and "not converged" not in schedule
+    assert "1.25 sparse/dense ratio is kept" in schedule
+
+
 def test_eval_step_also_runs_the_reference_metric_on_the_same_result_files(tmp_path: Path, capsys) -> None:
     reproduce = _reproduce()
     out = tmp_path / "small"

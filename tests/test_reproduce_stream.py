@@ -80,3 +80,16 @@ def test_dry_run_lists_the_commands(tool, tmp_path, capsys):
     oracle = [ln for ln in lines if "--oracle" in ln]
     assert len(oracle) == 4 and all("v0.5-f10" in ln and "median latency>" in ln for ln in oracle)
     assert sum("--mode raw" in ln for ln in lines) == sum("--mode ego" in ln for ln in lines) == 12
+
+
+def test_repeats_flag_overrides_the_scale(tool, tmp_path, capsys):
+    """--repeats sets the measured runs per processed frame of every measuring command; below 1 is refused."""
+    args = ["--dry-run", "--out", str(tmp_path), "--house", "H1", "--houses", str(tmp_path / "houses")]
+    assert tool.main(args) == 0
+    measure = [ln for ln in capsys.readouterr().out.splitlines() if "--latency-log" in ln]
+    assert len(measure) == 10 and all("--repeats 2 " in ln for ln in measure)  # the full scale's
+    assert tool.main([*args, "--repeats", "1"]) == 0
+    measure = [ln for ln in capsys.readouterr().out.splitlines() if "--latency-log" in ln]
+    assert len(measure) == 10 and all("--repeats 1 " in ln for ln in measure)
+    assert tool.main([*args, "--repeats", "0"]) == 2
+    assert "--repeats must be >= 1" in capsys.readouterr().err

@@ -229,6 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rates", default="5,10,20", help="sensor rates of the rate sweep, Hz (at 0.5 m/s)")
     p.add_argument("--episodes", type=int, default=None, help="episodes per house instead of the scale's")
     p.add_argument("--duration", type=float, default=None, help="episode cap, seconds, instead of the scale's")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="measured latency: median of this many runs per processed frame instead of the scale's "
+                        "(full: 2); 1 halves the measuring time")
     p.add_argument("--threads", type=int, default=2, help="torch threads of the measured detectors")
     p.add_argument("--allocator", choices=["reuse", "default"], default="reuse",
                    help="glibc allocator setting while measuring (docs/benchmarks.md; reuse = what a deployment sets)")
@@ -244,7 +247,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown step(s) in {args.steps!r}; choose from {list(STEPS)}", file=sys.stderr)
         return 2
     sc = SCALES[args.scale]
-    sc = dataclasses.replace(sc, episodes=args.episodes or sc.episodes, duration=args.duration or sc.duration)
+    sc = dataclasses.replace(sc, episodes=args.episodes or sc.episodes, duration=args.duration or sc.duration,
+                             repeats=sc.repeats if args.repeats is None else args.repeats)
+    if sc.repeats < 1:
+        print("error: --repeats must be >= 1", file=sys.stderr)
+        return 2
     speeds, rates = _floats(args.speeds), _floats(args.rates)
     out = (args.out or ROOT / "out" / f"reproduce-stream-{args.scale}").resolve()
     out.mkdir(parents=True, exist_ok=True)
