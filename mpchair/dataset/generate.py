@@ -97,16 +97,24 @@ class GenerateRequest:
 
 @dataclasses.dataclass(frozen=True)
 class GenerateSummary:
-    """What a run did: ``frames`` in the dataset, ``made`` by this run, ``resumed`` (already present), ``complete``
-    (manifest written), boxes ``kept`` and ``rejected`` by reason (frames made now), mean ``points`` per frame,
-    ``rays`` cast, ``seconds`` wall time and ``frames_per_second``."""
+    """What a run did and what the folder holds: ``frames`` in the dataset, ``made`` by this run, ``resumed``
+    (already present), ``complete`` (manifest written), ``nothing_to_make`` (every frame of this run was already
+    there), ``seconds`` wall time and ``frames_per_second`` of the frames made now.
+
+    ``scope`` says what the counts describe: ``"dataset"`` (complete: every frame, as the manifest lists them) or
+    ``"shard"`` (other shards pending: this shard's frames, made now or before). Counts: boxes ``kept`` (and
+    ``kept_by_class``, mpcat40 name), ``rejected`` by reason, mean ``points`` per frame, ``rays`` cast, ``splits``
+    sizes (complete only)."""
 
     out: str
     frames: int
     made: int
     resumed: int
     complete: bool
+    nothing_to_make: bool
+    scope: str
     kept: int
+    kept_by_class: dict[str, int]
     rejected: dict[str, int]
     points: float
     rays: int
@@ -117,11 +125,29 @@ class GenerateSummary:
     def line(self) -> str:
         """One-line human summary."""
         rej = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "none"
-        state = "complete" if self.complete else "incomplete (other shards pending)"
-        return (f"{self.out}: {self.frames} frames ({state}); this run made {self.made} in {self.seconds:.1f} s "
-                f"({self.frames_per_second:.1f} frames/s), resumed {self.resumed}; boxes kept {self.kept}, "
-                f"rejected: {rej}; {self.points:.0f} points/frame; splits "
-                + " ".join(f"{k} {v}" for k, v in self.splits.items()))
+        classes = ", ".join(f"{k} {v}" for k, v in sorted(self.kept_by_class.items()))
+        state = "complete" if self.complete else "incomplete: other shards pending"
+        if self.nothing_to_make:
+            run = f"nothing needed to be made ({self.resumed} frames already there)"
+        else:
+            run = (f"this run made {self.made} in {self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s), "
+                   f"resumed {self.resumed}")
+        scope = "" if self.scope == "dataset" else "this shard's frames: "
+        splits = ("; splits " + " ".join(f"{k} {v}" for k, v in self.splits.items())) if self.splits else ""
+        return (f"{self.out}: {self.frames} frames ({state}); {run}; {scope}boxes kept {self.kept}"
+                + (f" ({classes})" if classes else "") + f", rejected: {rej}; {self.points:.0f} points/frame{splits}")
+
+
+def describe_records(records: list[dict]) -> dict:
+    """Counts over frame records (``.frames/*.json``, the manifest's ``frames``): ``kept``, ``kept_by_class``,
+    ``rejected`` (by reason, sorted), ``points`` (mean per frame), ``rays`` (sum)."""
+    return {
+        "kept": sum(len(r["kept"]) for r in records),
+        "kept_by_class": dict(sorted(Counter(k["class"] for r in records for k in r["kept"]).items())),
+        "rejected": dict(sorted(Counter(k["reason"] for r in records for k in r["rejected"]).items())),
+        "points": float(np.mean([r["points"] for r in records])) if records else 0.0,
+        "rays": int(sum(r["rays"] for r in records)),
+    }
 
 
 def sha256_of(source: HouseSource, suffix: str) -> str:
@@ -368,10 +394,7 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
     _remove_stale_temps(out, {f"{t[0]:06d}" for t in pending})
     resumed = len(mine) - len(pending)
 
-    kept = 0
-    rejected: Counter[str] = Counter()
-    points: list[int] = []
-    rays = 0
+    kept = rejected = 0  # shown on the progress bar (the summary counts come from the records afterwards)
     if pending:
         warm_up(fs.sensor)  # before forking: the workers inherit the loaded kernels
     t_frames = time.perf_counter()
@@ -381,13 +404,11 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
                dynamic_ncols=True, desc="generate")
 
     def account(rec: dict) -> None:
-        nonlocal kept, rays
+        nonlocal kept, rejected
         kept += len(rec["kept"])
-        rejected.update(r["reason"] for r in rec["rejected"])
-        points.append(rec["points"])
-        rays += rec["rays"]
+        rejected += len(rec["rejected"])
         bar.update(1)
-        bar.set_postfix(kept=kept, rejected=sum(rejected.values()), refresh=False)
+        bar.set_postfix(kept=kept, rejected=rejected, refresh=False)
 
     resume = "the frames written so far are kept: run the same command again to resume"
     try:
@@ -424,15 +445,17 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
         try:
             # Shards finishing together take turns (assembly removes temp files a killed assembly left).
             with wait_lock(out / ".generate-assemble.lock") if sn > 1 else contextlib.nullcontext():
-                splits_count = _assemble(out, req, settings, hashes, houses, cats, n_total)
+                splits_count, records = _assemble(out, req, settings, hashes, houses, cats, n_total)
         except OSError as e:
             raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
                                 "manifest") from None
+    else:  # this shard's frames, made now or by an earlier run
+        records = [json.loads(record_path(out, f"{t[0]:06d}").read_text(encoding="utf-8")) for t in mine]
     seconds = time.perf_counter() - t0
     made = len(pending)
     return GenerateSummary(
-        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, kept=kept,
-        rejected=dict(rejected), points=float(np.mean(points)) if points else 0.0, rays=rays, seconds=seconds,
+        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, nothing_to_make=not made,
+        scope="dataset" if complete else "shard", **describe_records(records), seconds=seconds,
         frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
     )  # fmt: skip
 
@@ -447,8 +470,9 @@ _FRAMES_SLOT = "@@frame records@@"
 
 
 def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, houses: dict[str, House],
-              cats: list[str], n_total: int) -> dict[str, int]:
-    """Write ImageSets and then ``manifest.json`` (last) from the frame records."""
+              cats: list[str], n_total: int) -> tuple[dict[str, int], list[dict]]:
+    """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the split sizes and the
+    manifest's frame records."""
     for p in [out, out / "ImageSets"]:  # temps a killed assembly left behind
         if p.is_dir():
             for q in p.iterdir():
@@ -459,7 +483,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
     splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
     for name, ids in splits.items():
         write_imageset(out / "ImageSets" / f"{name}.txt", ids)
-    reasons: Counter[str] = Counter(r["reason"] for rec in records for r in rec["rejected"])
+    counts = describe_records(records)
     command = ["mpchair", "generate", "--root", Path(req.root).name]
     for h in req.houses:
         command += ["--house", h]
@@ -494,8 +518,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
             "misses": "rays without a hit (or outside the range limits) are dropped",
         },
         "splits": {k: len(v) for k, v in splits.items()},
-        "totals": {"frames": n_total, "boxes_kept": sum(len(r["kept"]) for r in records),
-                   "boxes_rejected": dict(sorted(reasons.items())),
+        "totals": {"frames": n_total, "boxes_kept": counts["kept"], "boxes_rejected": counts["rejected"],
                    "points": int(sum(r["points"] for r in records))},
         "frames": _FRAMES_SLOT,
     }
@@ -508,7 +531,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
     else:  # the placeholder also occurs in a user-given value: encode the slow way
         text = json.dumps({**manifest, "frames": records}, sort_keys=True, indent=1)
     write_text(out / "manifest.json", text + "\n")
-    return manifest["splits"]
+    return manifest["splits"], records
 
 
 def default_workers() -> int:
