@@ -232,13 +232,9 @@ YAW_BINS = 12
 TRUNCATION_EDGES: tuple[float, ...] = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0)
 
 
-def read_manifest_rejections(root: str | Path) -> dict | None:
-    """Rejected-box reasons of ``<root>/manifest.json`` as ``{reason: count}`` (sorted by count, descending), or
-    ``None`` when the dataset has no manifest (real KITTI).
-
-    The manifest holds per-frame kept and rejected boxes; every rejected box carries a ``reason`` (or ``reasons``, a
-    list: the first failed filter is counted). A manifest that is not valid JSON is an :class:`InputError`.
-    """
+def read_manifest(root: str | Path) -> dict | None:
+    """``<root>/manifest.json`` (an mpchair dataset's) parsed, or ``None`` when the folder has none (real KITTI). A
+    manifest that is not a valid JSON object is an :class:`InputError` naming the file (and line)."""
     path = Path(root) / "manifest.json"
     if not path.is_file():
         return None
@@ -246,7 +242,23 @@ def read_manifest_rejections(root: str | Path) -> dict | None:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"invalid JSON: {e}", path, getattr(e, "lineno", None)) from None
-    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(data, dict):
+        raise InputError("expected a JSON object", path)
+    return data
+
+
+def read_manifest_rejections(root: str | Path) -> dict | None:
+    """Rejected-box reasons of ``<root>/manifest.json`` as ``{reason: count}`` (sorted by count, descending), or
+    ``None`` when the dataset has no manifest (real KITTI).
+
+    The manifest holds per-frame kept and rejected boxes; every rejected box carries a ``reason`` (or ``reasons``, a
+    list: the first failed filter is counted). A manifest that is not valid JSON is an :class:`InputError`.
+    """
+    data = read_manifest(root)
+    if data is None:
+        return None
+    path = Path(root) / "manifest.json"
+    frames = data.get("frames")
     if not isinstance(frames, list):
         raise InputError("expected a 'frames' list", path)
     counts: Counter[str] = Counter()
