@@ -11,8 +11,9 @@ Layout written under ``out``::
 Determinism: frame ``g`` (global id = house position * frames + index) depends only on ``(seed, house, index)`` and
 the settings, never on ``workers`` or ``shard``; every file is written atomically; the manifest holds no times and no
 absolute paths. So an interrupted run (even SIGKILL) re-run with the same arguments resumes and ends byte-identical to
-an uninterrupted one, and ``--shard i/N`` jobs (frames with ``g % N == i``) can fill one folder in any order: the job
-that finds every frame present writes ImageSets and the manifest.
+an uninterrupted one, and ``--shard i/N`` jobs (the contiguous block of frames :func:`shard_frames`, so that a job
+touches few houses and builds few raycast scenes) can fill one folder in any order: the job that finds every frame
+present writes ImageSets and the manifest.
 """
 
 from __future__ import annotations
@@ -386,10 +387,10 @@ def generate(req: GenerateRequest) -> GenerateSummary:
 def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict, fs: FrameSettings, settings: dict,
          cats: list[str], cat_idx: frozenset[int], t0: float, fresh: bool, existed: bool) -> GenerateSummary:
     """Make this shard's missing frames, then (when every frame exists) ImageSets and the manifest."""
-    si, sn = req.shard
+    sn = req.shard[1]
     n_total = len(req.houses) * req.frames
     tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
-    mine = [t for t in tasks if t[0] % sn == si]
+    mine = [tasks[g] for g in shard_frames(n_total, req.shard)]
     pending = [t for t in mine if not record_path(out, f"{t[0]:06d}").is_file()]
     _remove_stale_temps(out, {f"{t[0]:06d}" for t in pending})
     resumed = len(mine) - len(pending)
@@ -458,6 +459,16 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
         scope="dataset" if complete else "shard", **describe_records(records), seconds=seconds,
         frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
     )  # fmt: skip
+
+
+def shard_frames(n_total: int, shard: tuple[int, int]) -> range:
+    """Global frame ids that shard ``(i, N)`` of an ``n_total``-frame dataset makes: the contiguous block
+    ``[i * n_total // N, (i + 1) * n_total // N)``. The N blocks partition the frames and differ in size by at most
+    one. Contiguous rather than strided because frame ids run house by house: a shard then holds the frames of about
+    ``houses / N + 1`` houses and builds only their raycast scenes (seconds each for real meshes), where every strided
+    shard would build every house's. Which shard makes a frame never changes its bytes."""
+    i, n = shard
+    return range(i * n_total // n, (i + 1) * n_total // n)
 
 
 def _with_hint(e: OSError, hint: str) -> OSError:
