@@ -4,12 +4,11 @@ write."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from helpers_tools import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "stats.md"
@@ -17,11 +16,7 @@ DOC = ROOT / "docs" / "stats.md"
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("doc_pictures", ROOT / "tools" / "doc_pictures.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("doc_pictures")
 
 
 @pytest.fixture(scope="module")
