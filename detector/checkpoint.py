@@ -18,10 +18,10 @@ import torch
 from torch import nn
 
 from detector.models import ExperimentConfig
-from detector.models.config import experiment_from_dict
 from mpchair.atomic import write_bytes
 from mpchair.config import to_dict
 from mpchair.errors import InputError
+from mpchair.experiment_config import experiment_from_dict
 
 CHECKPOINT_FORMAT = 1
 

@@ -45,8 +45,8 @@ from torch import nn
 
 from detector.bench import COMPONENTS
 from detector.models import PointPillars
-from detector.models.config import ModelConfig
 from mpchair.errors import InputError
+from mpchair.experiment_config import ModelConfig
 
 #: Open3D-ML's multiclass_nms hard-codes this BEV IoU threshold.
 OPEN3D_ML_NMS_IOU = 0.01

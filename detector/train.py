@@ -58,10 +58,10 @@ from detector.data import GTDatabase, KittiDataset, TrainingSet, build_gt_databa
 from detector.experiment import augment_options, open_split
 from detector.infer import evaluate_model
 from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
-from detector.models.config import Precision, experiment_from_dict
 from mpchair.atomic import write_text
 from mpchair.config import to_dict
 from mpchair.errors import InputError
+from mpchair.experiment_config import Precision, experiment_from_dict
 from mpchair.kitti import imageset_path
 from mpchair.lock import folder_lock
 

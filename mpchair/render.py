@@ -15,7 +15,6 @@ h, yaw]`` geometric centre, yaw CCW about +z); houses and viewpoints in the Matt
 from __future__ import annotations
 
 import io
-import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -494,15 +493,14 @@ def house_viewpoints(dataset: str | Path, house_id: str) -> np.ndarray:
     taken in house ``house_id``: frames from ``manifest.json`` (its ``house`` ids), poses from
     ``training/pose/<id>.txt`` (3x4 row-major sensor → world; yaw = heading of the sensor's +x). A dataset
     without a manifest is an :class:`InputError` (the house of a frame is known only there)."""
+    from mpchair.stats import read_manifest
+
     dataset = Path(dataset)
     path = dataset / "manifest.json"
-    if not path.is_file():
+    manifest = read_manifest(dataset)
+    if manifest is None:
         raise InputError("no manifest.json (needed for the house of each frame)", dataset)
-    try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"invalid JSON: {e}", path, getattr(e, "lineno", None)) from None
-    frames = manifest.get("frames") if isinstance(manifest, dict) else None
+    frames = manifest.get("frames")
     if not isinstance(frames, list):
         raise InputError("expected a 'frames' list", path)
     ids = [str(f.get("frame")) for f in frames if isinstance(f, dict) and f.get("house") == house_id]
@@ -529,6 +527,32 @@ def house_viewpoints(dataset: str | Path, house_id: str) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------ whole pictures
 
+#: ``mpchair view``'s default ceiling cut on an mpchair dataset: drop points this high above the floor (metres) or
+#: higher. Chairs (backs up to ~1.2 m), tables and sofas stay; ceilings (synthetic houses 2.6-2.8 m, Matterport3D
+#: homes ~2.4 m and up) and the top of the walls go, so the bird's-eye view shows the room instead of its ceiling.
+CEILING_CUT = 2.0
+
+
+def default_zmax(dataset: str | Path) -> float | None:
+    """``mpchair view``'s default ``zmax`` for ``dataset`` (sensor frame, metres): on an mpchair dataset
+    :data:`CEILING_CUT` above the floor, i.e. ``CEILING_CUT - height`` with the sensor height above the floor of the
+    manifest's ``config.viewpoints.height`` (1.0 m, so z = 1.0, at generate's default ``--height 1.0``). ``None``
+    (keep every point) for a folder without a manifest or whose manifest has no ``config`` (real KITTI: outdoors, no
+    ceiling to cut). A ``config`` without a positive sensor height is an :class:`InputError`."""
+    from mpchair.stats import read_manifest
+
+    manifest = read_manifest(dataset)
+    if manifest is None or "config" not in manifest:
+        return None
+    config = manifest["config"]
+    viewpoints = config.get("viewpoints") if isinstance(config, dict) else None
+    height = viewpoints.get("height") if isinstance(viewpoints, dict) else None
+    if isinstance(height, bool) or not isinstance(height, (int, float)) or not 0 < height < float("inf"):
+        raise InputError(f"config.viewpoints.height: expected the sensor height above the floor in metres, got "
+                         f"{height!r}", Path(dataset) / "manifest.json")
+    return CEILING_CUT - float(height)
+
+
 
 def frame_picture(
     dataset: str | Path,
@@ -544,14 +568,16 @@ def frame_picture(
     """The pictures of one frame of a KITTI-layout dataset: the bird's-eye view at ``out`` (:func:`render_bev`) and,
     when ``out_3d`` is given, the 3D view there (:func:`render_frame_3d`, rendered first so that a machine without
     off-screen OpenGL fails before anything is written). ``results`` is a folder of KITTI result files (16 columns)
-    whose detections are drawn in red. ``zmax`` (sensor frame, metres) drops higher points from both views, e.g. the
-    ceiling of an indoor scan that would otherwise cover the floor in the bird's-eye view. Returns ``{frame, points,
-    boxes, detections, out, out_3d}``.
+    whose detections are drawn in red. ``zmax`` (sensor frame, metres) drops points at or above it from both views,
+    e.g. the ceiling of an indoor scan that would otherwise cover the floor in the bird's-eye view (``mpchair view``
+    passes :func:`default_zmax` unless told otherwise); ``None`` keeps every point. Returns ``{frame, points (drawn),
+    zmax, above_zmax (points left out), boxes, detections, out, out_3d}``.
     """
     from mpchair.stats import load_points
 
     paths = frame_paths(dataset, frame_id)
     points = load_points(dataset, frame_id, fov_crop)
+    n_loaded = len(points)
     if zmax is not None:
         points = points[points[:, 2] < zmax]
     boxes, names = frame_boxes(dataset, frame_id)
@@ -560,10 +586,12 @@ def frame_picture(
         dets, scores, _ = result_boxes(results, frame_id, read_calib(paths.calib))
     if out_3d is not None:
         render_frame_3d(points, boxes, out_3d, det_boxes=dets, size=size)
-    title = f"{Path(dataset).name} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
+    title = (f"{Path(dataset).name} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
+             + ("" if zmax is None else f", z < {zmax:g} m"))
     render_bev(points, boxes, out, names=names, det_boxes=dets, det_scores=scores, extent=extent, size=size,
                title=title)
-    return {"frame": frame_id, "points": int(len(points)), "boxes": int(len(boxes)),
+    return {"frame": frame_id, "points": int(len(points)), "zmax": zmax, "above_zmax": n_loaded - len(points),
+            "boxes": int(len(boxes)),
             "detections": None if dets is None else int(len(dets)), "out": str(out),
             "out_3d": None if out_3d is None else str(out_3d)}
 

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.config import load_yaml
 from mpchair.errors import InputError
+from mpchair.experiment_config import load_experiment
 from mpchair.geometry import fov_mask, grid_size, labels_to_boxes, pillar_coords, points_in_boxes
 from mpchair.kitti import (
     frame_paths,
@@ -98,42 +98,15 @@ KITTI_GEOMETRY = PseudoimageGeometry((0.0, -39.68, -3.0, 69.12, 39.68, 1.0), (0.
 PRESETS: dict[str, PseudoimageGeometry] = {"matterport": MATTERPORT_GEOMETRY, "kitti": KITTI_GEOMETRY}
 
 
-#: Top-level sections of a detector experiment YAML (docs/model.md).
-EXPERIMENT_SECTIONS = ("data", "eval", "model", "train")
-
-
 def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
-    """Read ``model.point_cloud_range``, ``model.voxel_size`` (first two used) and ``model.output_shape``
-    (``[ny, nx]``) from a detector experiment YAML. A top-level key other than the experiment's sections is an
-    :class:`InputError`; the other keys inside the sections are the detector's to check (mpchair never imports
-    ``detector``).
+    """The pseudoimage geometry of a detector experiment YAML: ``model.point_cloud_range``, ``model.voxel_size``
+    (first two used) and ``model.output_shape`` (``[ny, nx]``). The whole file is validated first, exactly as
+    ``detector train`` / ``eval`` do (:func:`mpchair.experiment_config.load_experiment`): an unknown key, a wrong type
+    or an inconsistent value anywhere is an :class:`InputError` naming the file and the key.
     """
-    data = load_yaml(path)
-    unknown = sorted(set(data) - set(EXPERIMENT_SECTIONS))
-    if unknown:
-        raise InputError(f"unknown key {unknown[0]!r} (allowed: {', '.join(EXPERIMENT_SECTIONS)})", path)
-    model = data.get("model")
-    if not isinstance(model, dict):
-        raise InputError("expected a 'model:' mapping", path)
-
-    def numbers(key: str, n: int | tuple[int, ...]) -> list[float]:
-        value = model.get(key)
-        ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        sizes = (n,) if isinstance(n, int) else n
-        if not ok or len(value) not in sizes:
-            raise InputError(f"model.{key}: expected a list of {' or '.join(map(str, sizes))} numbers, got {value!r}",
-                             path)
-        return [float(v) for v in value]
-
-    pc_range = numbers("point_cloud_range", 6)
-    voxel = numbers("voxel_size", (2, 3))
-    shape = numbers("output_shape", 2)
-    if any(v != int(v) or v < 1 for v in shape):
-        raise InputError(f"model.output_shape: expected two positive integers [ny, nx], got {shape!r}", path)
-    try:
-        return PseudoimageGeometry(tuple(pc_range), (voxel[0], voxel[1]), (int(shape[1]), int(shape[0])))
-    except InputError as e:
-        raise InputError(e.message, path) from None
+    model = load_experiment(path).model
+    ny, nx = model.output_shape  # load_experiment checked it against the range's grid
+    return PseudoimageGeometry(model.point_cloud_range, model.voxel_size[:2], (nx, ny))
 
 
 # ----------------------------------------------------------------------------------------------------------- frames
@@ -259,13 +232,9 @@ YAW_BINS = 12
 TRUNCATION_EDGES: tuple[float, ...] = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0)
 
 
-def read_manifest_rejections(root: str | Path) -> dict | None:
-    """Rejected-box reasons of ``<root>/manifest.json`` as ``{reason: count}`` (sorted by count, descending), or
-    ``None`` when the dataset has no manifest (real KITTI).
-
-    The manifest holds per-frame kept and rejected boxes; every rejected box carries a ``reason`` (or ``reasons``, a
-    list: the first failed filter is counted). A manifest that is not valid JSON is an :class:`InputError`.
-    """
+def read_manifest(root: str | Path) -> dict | None:
+    """``<root>/manifest.json`` (an mpchair dataset's) parsed, or ``None`` when the folder has none (real KITTI). A
+    manifest that is not a valid JSON object is an :class:`InputError` naming the file (and line)."""
     path = Path(root) / "manifest.json"
     if not path.is_file():
         return None
@@ -273,7 +242,23 @@ def read_manifest_rejections(root: str | Path) -> dict | None:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"invalid JSON: {e}", path, getattr(e, "lineno", None)) from None
-    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(data, dict):
+        raise InputError("expected a JSON object", path)
+    return data
+
+
+def read_manifest_rejections(root: str | Path) -> dict | None:
+    """Rejected-box reasons of ``<root>/manifest.json`` as ``{reason: count}`` (sorted by count, descending), or
+    ``None`` when the dataset has no manifest (real KITTI).
+
+    The manifest holds per-frame kept and rejected boxes; every rejected box carries a ``reason`` (or ``reasons``, a
+    list: the first failed filter is counted). A manifest that is not valid JSON is an :class:`InputError`.
+    """
+    data = read_manifest(root)
+    if data is None:
+        return None
+    path = Path(root) / "manifest.json"
+    frames = data.get("frames")
     if not isinstance(frames, list):
         raise InputError("expected a 'frames' list", path)
     counts: Counter[str] = Counter()

@@ -43,8 +43,13 @@ def test_demo_leaves_a_dataset_and_prints_where(tmp_path: Path) -> None:
 
     again = _demo("--out", out, "--frames", "3", "--workers", "1")
     assert again.returncode == 0, again.stderr
-    assert again.stdout.splitlines()[0] == str(dataset) and "this run made 0 in " in again.stdout
-    assert "resumed 3;" in again.stdout
+    first, second = lines[1], again.stdout.splitlines()[1]
+    assert again.stdout.splitlines()[0] == str(dataset)
+    assert second.startswith(f"{dataset}: 3 frames (complete); nothing needed to be made (3 frames already there); ")
+    # the dataset is described from its manifest: the same boxes, rejections, points and splits as the first run
+    kept = sum(len(r["kept"]) for r in manifest["frames"])
+    assert f"; boxes kept {kept} (chair {kept}), rejected: " in first and kept > 0
+    assert second.split("; boxes kept ")[1] == first.split("; boxes kept ")[1]
     assert {p: p.read_bytes() for p in sorted(dataset.rglob("*")) if p.is_file()} == before
 
     bad = _demo("--out", tmp_path / "bad", "--frames", "0")

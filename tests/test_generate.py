@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpchair.dataset.generate import GenerateRequest, generate
+from mpchair.dataset.generate import GenerateRequest, generate, shard_frames
 from mpchair.dataset.splits import split_frames
 from mpchair.errors import InputError
 from mpchair.geometry import (
@@ -159,14 +159,62 @@ def test_sigkill_then_resume_is_byte_identical(dataset, house_root, tmp_path):
     assert _tree(dest) == _tree(out)
 
 
+#: The summary fields that describe the dataset (not the run).
+DESCRIBES = ("frames", "complete", "scope", "kept", "kept_by_class", "rejected", "points", "rays", "splits")
+
+
 def test_shards_fill_one_folder(dataset, house_root, tmp_path):
-    out, _ = dataset
+    out, whole = dataset
     root, house = house_root
     s0 = generate(_req(root, house, tmp_path / "sh", shard=(0, 2)))
-    assert not s0.complete and s0.made == (FRAMES + 1) // 2 and not (tmp_path / "sh" / "manifest.json").exists()
+    # shard 0 of 2 makes the first contiguous block, frames [0, FRAMES // 2)
+    made = sorted(p.stem for p in (tmp_path / "sh" / ".frames").glob("*.json"))
+    assert made == [f"{g:06d}" for g in range(FRAMES // 2)] and s0.made == FRAMES // 2
+    assert not s0.complete and not (tmp_path / "sh" / "manifest.json").exists()
     s1 = generate(_req(root, house, tmp_path / "sh", shard=(1, 2)))
-    assert s1.complete
+    assert s1.complete and s1.made == FRAMES - FRAMES // 2
     assert _tree(tmp_path / "sh") == _tree(out)
+    # the first shard described its own frames, the last one (which wrote the manifest) the whole dataset
+    records = json.loads((out / "manifest.json").read_text())["frames"]
+    assert s0.scope == "shard" and s0.kept == sum(len(r["kept"]) for r in records[: FRAMES // 2]) and not s0.splits
+    assert "incomplete: other shards pending" in s0.line() and "this shard's frames: boxes kept" in s0.line()
+    assert {k: getattr(s1, k) for k in DESCRIBES} == {k: getattr(whole, k) for k in DESCRIBES}
+
+
+def test_shard_blocks_partition_the_frames_house_by_house():
+    for n_total in (1, 3, 7, 200):
+        for n in (1, 2, 3, 8, 250):
+            blocks = [shard_frames(n_total, (i, n)) for i in range(n)]
+            assert [g for b in blocks for g in b] == list(range(n_total))  # every frame once, in order
+            assert max(map(len, blocks)) - min(map(len, blocks)) <= 1
+    # 4 houses of 50 frames in 4 shards: one house each (a strided split would give every shard all 4 houses)
+    assert [shard_frames(200, (i, 4)) for i in range(4)] == [range(0, 50), range(50, 100), range(100, 150),
+                                                             range(150, 200)]
+
+
+def test_a_complete_dataset_is_described_from_its_manifest(dataset, house_root, capsys):
+    """Run twice: the second run makes nothing, says so, and reports the same dataset numbers as the first."""
+    out, first = dataset
+    root, house = house_root
+    manifest = json.loads((out / "manifest.json").read_text())
+    totals = manifest["totals"]
+    assert first.made == FRAMES and not first.nothing_to_make and first.scope == "dataset"
+    assert first.kept == totals["boxes_kept"] > 0 and first.kept_by_class == {"chair": first.kept}
+    assert first.rejected == totals["boxes_rejected"] and first.points == totals["points"] / FRAMES > 0
+    assert first.rays == sum(r["rays"] for r in manifest["frames"]) > 0
+    before = _files(out)
+    args = ["generate", "--root", root, "--house", house.id, "--frames", FRAMES, "--out", out, "--seed", 11, "--quiet"]
+    code, text = _cli(capsys, *args, "--json")
+    assert code == 0, text
+    again = json.loads(text)
+    assert again["made"] == 0 and again["resumed"] == FRAMES and again["nothing_to_make"]
+    assert {k: again[k] for k in DESCRIBES} == {k: getattr(first, k) for k in DESCRIBES}
+    code, line = _cli(capsys, *args)
+    assert code == 0, line
+    assert line.startswith(f"{out}: {FRAMES} frames (complete); nothing needed to be made ({FRAMES} frames already "
+                           f"there); boxes kept {first.kept} (chair {first.kept}), rejected: ")
+    assert line.split("; boxes kept ")[1] == first.line().split("; boxes kept ")[1] + "\n"  # same numbers as run 1
+    assert _files(out) == before
 
 
 def _files(path: Path) -> dict[str, bytes]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,42 @@ def test_view_bad_inputs(small, tmp_path, capsys):
     assert not (tmp_path / "x.png").exists()
 
 
+def test_view_cuts_the_ceiling_by_default(small, tmp_path):
+    """On an mpchair dataset the default --zmax is 2.0 m above the floor (2.0 - the manifest's sensor height): the
+    points at or above it are left out of the picture; --zmax none keeps them; a folder without a manifest (real
+    KITTI) keeps every point by default."""
+    ds = tmp_path / "ds"
+    shutil.copytree(small, ds)
+    manifest = json.loads((ds / "manifest.json").read_text())
+    manifest["config"] = {"viewpoints": {"height": 1.25}}  # as generate --height 1.25 records it
+    (ds / "manifest.json").write_text(json.dumps(manifest))
+    z = read_velodyne(ds / "training" / "velodyne" / "000000.bin")[:, 2]
+    below = int((z < 0.75).sum())
+    assert 0 < below < len(z)
+
+    def view(*args) -> dict:
+        code, out = run("view", ds, "--frame", "0", "--size", "320", "240", "--json", *args)
+        assert code == 0, out
+        return json.loads(out)
+
+    cut = view("--out", tmp_path / "default.png")
+    assert (cut["zmax"], cut["points"], cut["above_zmax"]) == (0.75, below, len(z) - below)
+    everything = view("--out", tmp_path / "none.png", "--zmax", "none")
+    assert (everything["zmax"], everything["points"], everything["above_zmax"]) == (None, len(z), 0)
+    view("--out", tmp_path / "explicit.png", "--zmax", "0.75")
+    # what is drawn: the default picture is the explicit cut's, and the ceiling's points change it
+    assert (tmp_path / "default.png").read_bytes() == (tmp_path / "explicit.png").read_bytes()
+    assert not np.array_equal(rgb(tmp_path / "default.png"), rgb(tmp_path / "none.png"))
+    code, text = run("view", ds, "--frame", "0", "--out", tmp_path / "t.png", "--size", "320", "240")
+    assert code == 0 and f"{below} points ({len(z) - below} at z >= 0.75 m left out; --zmax none draws them)" in text
+    code, out = run("view", KITTI, "--frame", "0", "--out", tmp_path / "k.png", "--size", "320", "240", "--json")
+    kitti = json.loads(out)
+    assert code == 0 and kitti["zmax"] is None and kitti["above_zmax"] == 0
+    assert kitti["points"] == len(read_velodyne(KITTI / "training" / "velodyne" / "000000.bin"))
+    code, out = run("view", ds, "--frame", "0", "--out", tmp_path / "bad.png", "--zmax", "ceiling")
+    assert code == 2 and "'ceiling' is not a number, auto or none" in out and not (tmp_path / "bad.png").exists()
+
+
 def test_view_3d_on_kitti(tmp_path):
     out = tmp_path / "k.png"
     code, text = run("view", KITTI, "--frame", "1", "--out", out, "--3d", "--size", "400", "300")
@@ -151,8 +188,11 @@ def test_generated_dataset_stats_and_pictures(generated, tmp_path, capsys):
         for r in fr["rejected"]:
             expected_rej[r["reason"]] = expected_rej.get(r["reason"], 0) + 1
     assert (boxes["rejected"] or {}) == expected_rej
-    code, out = run("view", ds, "--frame", "0", "--out", tmp_path / "f.png", "--size", "500", "500", "--zmax", "1")
+    code, out = run("view", ds, "--frame", "0", "--out", tmp_path / "f.png", "--size", "500", "500", "--json")
     assert code == 0, out
+    info = json.loads(out)  # the default cut, 2 m above the floor, leaves the synthetic house's ceiling out
+    scan = read_velodyne(ds / "training" / "velodyne" / "000000.bin")
+    assert info["zmax"] == 1.0 and info["above_zmax"] == int((scan[:, 2] >= 1.0).sum()) > 0
     assert_picture(tmp_path / "f.png", (500, 500))
     code, out = run("view-house", "--root", houses, "--house", house_id, "--dataset", ds, "--out",
                     tmp_path / "h.png", "--size", "900", "500", "--json")

@@ -4,16 +4,15 @@ the report written from the outputs of real (tiny) runs of those commands."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
 import shlex
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_tools import load_tool
 
 from mpchair.kitti import read_imageset
 
@@ -21,11 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _reproduce():
-    spec = importlib.util.spec_from_file_location("reproduce", ROOT / "tools" / "reproduce.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("reproduce")
 
 
 def _metrics(run: Path, epoch_seconds: list[float]) -> None:

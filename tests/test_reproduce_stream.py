@@ -3,22 +3,13 @@ the markers of docs/streaming.md without touching the rest."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from helpers_tools import load_tool
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("reproduce_stream", ROOT / "tools" / "reproduce_stream.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("reproduce_stream")
 
 
 def _summary(sap: float, offline: float | None = None, latency: float = 100.0) -> dict:

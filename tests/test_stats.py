@@ -201,17 +201,49 @@ def test_fov_crop_uses_calib_and_image_size(small):
         assert (fb["pillars"], fb["density"]) == independent_density(points[inside], MATTERPORT_GEOMETRY)
 
 
+GOOD_MODEL = ("model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: [0.5, 0.5, 2]\n"
+              "  output_shape: [16, 16]\n")
+
+
 def test_config_yaml_picks_model_geometry(tmp_path):
     assert geometry_from_model_yaml(REPO / "configs" / "models" / "mpchair_dense.yaml") == MATTERPORT_GEOMETRY
     assert geometry_from_model_yaml(REPO / "configs" / "models" / "kitti_car_sparse.yaml") == KITTI_GEOMETRY
     cfg = tmp_path / "m.yaml"
-    write_text(cfg, "model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: [0.5, 0.5, 2]\n"
-                    "  output_shape: [16, 16]\n  other: ignored\n")
+    write_text(cfg, GOOD_MODEL)
     assert geometry_from_model_yaml(cfg) == PseudoimageGeometry((0, -4, -1, 8, 4, 1), (0.5, 0.5), (16, 16))
-    write_text(cfg, "model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: [0.5, 0.5, 2]\n"
-                    "  output_shape: [16, 16]\nmodle: {}\n")
-    with pytest.raises(InputError, match="unknown key 'modle' \\(allowed: data, eval, model, train\\)"):
-        geometry_from_model_yaml(cfg)
+
+
+#: Experiment YAMLs that ``detector train`` / ``eval`` refuse, and the message (after the file name) of the refusal.
+BAD_CONFIGS = {
+    "unknown section": (GOOD_MODEL + "modle: {}\n", "unknown key 'modle' (allowed: data, eval, model, train)"),
+    "unknown key in model": (GOOD_MODEL + "  pilars: 3\n", "unknown key 'model.pilars' (allowed: anchor_range"),
+    "unknown key in train": (GOOD_MODEL + "train:\n  learning_rate: 0.1\n", "unknown key 'train.learning_rate'"),
+    "wrong type": (GOOD_MODEL + "train:\n  epochs: many\n", "train.epochs: expected an integer, got 'many'"),
+    "value out of range": (GOOD_MODEL + "train:\n  lr: -1\n", "train.lr: must be > 0, got -1.0"),
+    "classes vs num_classes": (GOOD_MODEL + "data:\n  classes: [Chair, Table]\n",
+                               "data.classes has 2 names but model.num_classes is 1"),
+    "canvas smaller than the grid": (GOOD_MODEL.replace("[16, 16]", "[8, 16]"),
+                                     "model.output_shape: [8, 16] is smaller than the real grid [16, 16]"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CONFIGS))
+def test_stats_config_is_validated_as_the_detector_does(small, tmp_path, capsys, case):
+    """``stats --config`` refuses every experiment file that ``detector train`` refuses (the same loader,
+    ``mpchair.experiment_config.load_experiment``), with one ``error:`` line naming the file and the key."""
+    from mpchair.experiment_config import load_experiment
+
+    text, message = BAD_CONFIGS[case]
+    cfg = tmp_path / "exp.yaml"
+    write_text(cfg, text)
+    with pytest.raises(InputError) as detector_error:  # what the detector's commands are told
+        load_experiment(cfg)
+    assert message in str(detector_error.value)
+    plot = tmp_path / "p.png"
+    code, out = run_main(capsys, "stats", "--density", small, "--config", cfg, "--plot", plot)
+    assert code == 2, out
+    assert out.splitlines() == [f"error: {detector_error.value}"] and out.startswith(f"error: {cfg}: {message}")
+    assert not plot.exists()
 
 
 def test_density_plot_png(small, tmp_path):

@@ -10,11 +10,11 @@ Stages in the order of the paper's timers: ``voxelizer`` (points → pillars, th
 
 from detector.models.assign import Targets, assign_targets
 from detector.models.build import build_model
-from detector.models.config import ExperimentConfig, ModelConfig, load_experiment
 from detector.models.head import HeadOutput
 from detector.models.losses import compute_loss
 from detector.models.pointpillars import PointPillars
 from detector.models.postprocess import Detections
+from mpchair.experiment_config import ExperimentConfig, ModelConfig, load_experiment
 
 __all__ = [
     "Detections",

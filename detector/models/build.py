@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from detector.models.anchors import generate_anchors
 from detector.models.backbone import SecondBackbone
-from detector.models.config import ModelConfig, check_model_config
 from detector.models.head import AnchorHead, SparseExactHead
 from detector.models.neck import SecondFPN
 from detector.models.pillar_net import PillarFeatureNet
 from detector.models.pointpillars import PointPillars
 from detector.models.sparse_backbone import SparseBackboneNeck
+from mpchair.experiment_config import ModelConfig, check_model_config
 
 
 def head_feature_size(cfg: ModelConfig) -> tuple[int, int]:

@@ -42,7 +42,8 @@ def _parse_shard(value: str) -> tuple[int, int]:
               help="Raycasting backend.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Worker processes.")
 @click.option("--shard", default="0/1", show_default=True,
-              help="Make only frames g with g % N == i (cluster array jobs); the last shard writes the manifest.")
+              help="Make only block i of N contiguous blocks of frames (cluster array jobs, one process per shard, "
+                   "all into one --out); the shard that finds every frame made writes ImageSets and the manifest.")
 @click.option("--viewpoints", type=click.Choice(["auto", "regions", "navmesh"]), default="auto", show_default=True,
               help="Where robot positions are drawn: regions = inside the .house region floor polygons; navmesh = on "
                    "habitat's <id>.navmesh islands of radius >= 1.5 m (as habitat's PointNav episodes); auto = navmesh "

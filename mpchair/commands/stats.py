@@ -15,7 +15,8 @@ from mpchair.errors import InputError
 @click.option("--density", "mode", flag_value="density", help="Pseudoimage density D per frame.")
 @click.option("--boxes", "mode", flag_value="boxes", help="Box statistics (label_2 + scans [+ manifest.json]).")
 @click.option("--config", "config", type=click.Path(path_type=Path), default=None,
-              help="Detector model YAML: model.point_cloud_range, model.voxel_size, model.output_shape [ny, nx].")
+              help="Detector experiment YAML (validated whole, as detector train does): model.point_cloud_range, "
+                   "model.voxel_size, model.output_shape [ny, nx].")
 @click.option("--preset", type=click.Choice(["matterport", "kitti"]), default=None,
               help="Paper geometry: matterport (default; 0.05 m, 512 x 768) or kitti (0.16 m, 440 x 504 padded).")
 @click.option("--range", "pc_range", type=float, nargs=6, default=None,

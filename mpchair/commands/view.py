@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
@@ -36,11 +37,14 @@ def _png(path: Path, option: str) -> Path:
               help="Picture size in pixels.")
 @click.option("--extent", type=float, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
               help="BEV window (sensor frame, metres); default: fit the points and boxes.")
-@click.option("--zmax", type=float, default=None,
-              help="Drop points at or above this z (sensor frame, metres), e.g. an indoor ceiling.")
+@click.option("--zmax", default="auto", show_default=True, metavar="Z|auto|none",
+              help="Drop points at or above this z (sensor frame, metres). auto: on an mpchair dataset 2.0 m above the "
+                   "floor (2.0 - the sensor height in its manifest: z = 1.0 at generate's default --height 1.0), so "
+                   "the ceiling does not cover the room; nothing on other folders (real KITTI). none: keep every "
+                   "point.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
 def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | None, limit: int | None,
-         results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int], extent, zmax: float | None,
+         results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int], extent, zmax: str,
          as_json: bool) -> None:
     """Picture of one frame of DATASET: bird's-eye view of the scan (coloured by z) with its labelled boxes (green,
     class names) and, with --results, detections (red, dashed, scores). Headless; PNG output. With --rerun, a Rerun
@@ -49,12 +53,13 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
     \b
     Examples:
       mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
+      mpchair view dataset/ --frame 3 --out all.png --zmax none # the ceiling too
       mpchair view stream/ --rerun stream.rrd && rerun stream.rrd
     """
     if rerun_out is not None:
         _rerun(dataset, rerun_out, limit, as_json, other=frame is not None or out is not None)
         return
-    from mpchair.render import RenderError, frame_picture
+    from mpchair.render import RenderError, default_zmax, frame_picture
 
     if frame is None or out is None:
         raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd")
@@ -65,17 +70,33 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
     if not (Path(dataset) / "training" / "velodyne" / f"{fid}.bin").is_file():
         raise InputError(f"frame {fid} not found (no training/velodyne/{fid}.bin)", dataset)
     out_3d = out.with_name(out.stem + "-3d.png") if three_d else None
+    cut = default_zmax(dataset) if zmax.strip().lower() == "auto" else _zmax(zmax)
     try:
         info = frame_picture(dataset, fid, out, results=results, out_3d=out_3d, fov_crop=fov_crop, size=tuple(size),
-                             extent=tuple(extent) if extent else None, zmax=zmax)
+                             extent=tuple(extent) if extent else None, zmax=cut)
     except RenderError as e:
         raise click.ClickException(str(e)) from None
     if as_json:
         click.echo(json.dumps(info, indent=1))
     else:
-        click.echo(f"wrote {out}" + (f" and {out_3d}" if out_3d else "") + f": frame {fid}, {info['points']} points, "
-                   f"{info['boxes']} boxes" + ("" if info["detections"] is None else f", {info['detections']} "
-                                               "detections"))
+        left_out = ("" if cut is None else f" ({info['above_zmax']} at z >= {cut:g} m left out; --zmax none draws "
+                    "them)")
+        click.echo(f"wrote {out}" + (f" and {out_3d}" if out_3d else "") + f": frame {fid}, {info['points']} points"
+                   f"{left_out}, {info['boxes']} boxes" + ("" if info["detections"] is None else
+                                                            f", {info['detections']} detections"))
+
+
+def _zmax(value: str) -> float | None:
+    """``--zmax`` other than ``auto``: ``none`` (no cut) or a finite number (sensor frame, metres)."""
+    if value.strip().lower() == "none":
+        return None
+    try:
+        z = float(value)
+    except ValueError:
+        z = math.nan
+    if not math.isfinite(z):
+        raise click.BadParameter(f"{value!r} is not a number, auto or none", param_hint="--zmax")
+    return z
 
 
 def _rerun(dataset: Path, out: Path, limit: int | None, as_json: bool, other: bool) -> None:

@@ -11,8 +11,9 @@ Layout written under ``out``::
 Determinism: frame ``g`` (global id = house position * frames + index) depends only on ``(seed, house, index)`` and
 the settings, never on ``workers`` or ``shard``; every file is written atomically; the manifest holds no times and no
 absolute paths. So an interrupted run (even SIGKILL) re-run with the same arguments resumes and ends byte-identical to
-an uninterrupted one, and ``--shard i/N`` jobs (frames with ``g % N == i``) can fill one folder in any order: the job
-that finds every frame present writes ImageSets and the manifest.
+an uninterrupted one, and ``--shard i/N`` jobs (the contiguous block of frames :func:`shard_frames`, so that a job
+touches few houses and builds few raycast scenes) can fill one folder in any order: the job that finds every frame
+present writes ImageSets and the manifest.
 """
 
 from __future__ import annotations
@@ -97,16 +98,24 @@ class GenerateRequest:
 
 @dataclasses.dataclass(frozen=True)
 class GenerateSummary:
-    """What a run did: ``frames`` in the dataset, ``made`` by this run, ``resumed`` (already present), ``complete``
-    (manifest written), boxes ``kept`` and ``rejected`` by reason (frames made now), mean ``points`` per frame,
-    ``rays`` cast, ``seconds`` wall time and ``frames_per_second``."""
+    """What a run did and what the folder holds: ``frames`` in the dataset, ``made`` by this run, ``resumed``
+    (already present), ``complete`` (manifest written), ``nothing_to_make`` (every frame of this run was already
+    there), ``seconds`` wall time and ``frames_per_second`` of the frames made now.
+
+    ``scope`` says what the counts describe: ``"dataset"`` (complete: every frame, as the manifest lists them) or
+    ``"shard"`` (other shards pending: this shard's frames, made now or before). Counts: boxes ``kept`` (and
+    ``kept_by_class``, mpcat40 name), ``rejected`` by reason, mean ``points`` per frame, ``rays`` cast, ``splits``
+    sizes (complete only)."""
 
     out: str
     frames: int
     made: int
     resumed: int
     complete: bool
+    nothing_to_make: bool
+    scope: str
     kept: int
+    kept_by_class: dict[str, int]
     rejected: dict[str, int]
     points: float
     rays: int
@@ -117,11 +126,29 @@ class GenerateSummary:
     def line(self) -> str:
         """One-line human summary."""
         rej = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "none"
-        state = "complete" if self.complete else "incomplete (other shards pending)"
-        return (f"{self.out}: {self.frames} frames ({state}); this run made {self.made} in {self.seconds:.1f} s "
-                f"({self.frames_per_second:.1f} frames/s), resumed {self.resumed}; boxes kept {self.kept}, "
-                f"rejected: {rej}; {self.points:.0f} points/frame; splits "
-                + " ".join(f"{k} {v}" for k, v in self.splits.items()))
+        classes = ", ".join(f"{k} {v}" for k, v in sorted(self.kept_by_class.items()))
+        state = "complete" if self.complete else "incomplete: other shards pending"
+        if self.nothing_to_make:
+            run = f"nothing needed to be made ({self.resumed} frames already there)"
+        else:
+            run = (f"this run made {self.made} in {self.seconds:.1f} s ({self.frames_per_second:.1f} frames/s), "
+                   f"resumed {self.resumed}")
+        scope = "" if self.scope == "dataset" else "this shard's frames: "
+        splits = ("; splits " + " ".join(f"{k} {v}" for k, v in self.splits.items())) if self.splits else ""
+        return (f"{self.out}: {self.frames} frames ({state}); {run}; {scope}boxes kept {self.kept}"
+                + (f" ({classes})" if classes else "") + f", rejected: {rej}; {self.points:.0f} points/frame{splits}")
+
+
+def describe_records(records: list[dict]) -> dict:
+    """Counts over frame records (``.frames/*.json``, the manifest's ``frames``): ``kept``, ``kept_by_class``,
+    ``rejected`` (by reason, sorted), ``points`` (mean per frame), ``rays`` (sum)."""
+    return {
+        "kept": sum(len(r["kept"]) for r in records),
+        "kept_by_class": dict(sorted(Counter(k["class"] for r in records for k in r["kept"]).items())),
+        "rejected": dict(sorted(Counter(k["reason"] for r in records for k in r["rejected"]).items())),
+        "points": float(np.mean([r["points"] for r in records])) if records else 0.0,
+        "rays": int(sum(r["rays"] for r in records)),
+    }
 
 
 def sha256_of(source: HouseSource, suffix: str) -> str:
@@ -360,18 +387,15 @@ def generate(req: GenerateRequest) -> GenerateSummary:
 def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict, fs: FrameSettings, settings: dict,
          cats: list[str], cat_idx: frozenset[int], t0: float, fresh: bool, existed: bool) -> GenerateSummary:
     """Make this shard's missing frames, then (when every frame exists) ImageSets and the manifest."""
-    si, sn = req.shard
+    sn = req.shard[1]
     n_total = len(req.houses) * req.frames
     tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
-    mine = [t for t in tasks if t[0] % sn == si]
+    mine = [tasks[g] for g in shard_frames(n_total, req.shard)]
     pending = [t for t in mine if not record_path(out, f"{t[0]:06d}").is_file()]
     _remove_stale_temps(out, {f"{t[0]:06d}" for t in pending})
     resumed = len(mine) - len(pending)
 
-    kept = 0
-    rejected: Counter[str] = Counter()
-    points: list[int] = []
-    rays = 0
+    kept = rejected = 0  # shown on the progress bar (the summary counts come from the records afterwards)
     if pending:
         warm_up(fs.sensor)  # before forking: the workers inherit the loaded kernels
     t_frames = time.perf_counter()
@@ -381,13 +405,11 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
                dynamic_ncols=True, desc="generate")
 
     def account(rec: dict) -> None:
-        nonlocal kept, rays
+        nonlocal kept, rejected
         kept += len(rec["kept"])
-        rejected.update(r["reason"] for r in rec["rejected"])
-        points.append(rec["points"])
-        rays += rec["rays"]
+        rejected += len(rec["rejected"])
         bar.update(1)
-        bar.set_postfix(kept=kept, rejected=sum(rejected.values()), refresh=False)
+        bar.set_postfix(kept=kept, rejected=rejected, refresh=False)
 
     resume = "the frames written so far are kept: run the same command again to resume"
     try:
@@ -424,17 +446,29 @@ def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict
         try:
             # Shards finishing together take turns (assembly removes temp files a killed assembly left).
             with wait_lock(out / ".generate-assemble.lock") if sn > 1 else contextlib.nullcontext():
-                splits_count = _assemble(out, req, settings, hashes, houses, cats, n_total)
+                splits_count, records = _assemble(out, req, settings, hashes, houses, cats, n_total)
         except OSError as e:
             raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
                                 "manifest") from None
+    else:  # this shard's frames, made now or by an earlier run
+        records = [json.loads(record_path(out, f"{t[0]:06d}").read_text(encoding="utf-8")) for t in mine]
     seconds = time.perf_counter() - t0
     made = len(pending)
     return GenerateSummary(
-        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, kept=kept,
-        rejected=dict(rejected), points=float(np.mean(points)) if points else 0.0, rays=rays, seconds=seconds,
+        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, nothing_to_make=not made,
+        scope="dataset" if complete else "shard", **describe_records(records), seconds=seconds,
         frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
     )  # fmt: skip
+
+
+def shard_frames(n_total: int, shard: tuple[int, int]) -> range:
+    """Global frame ids that shard ``(i, N)`` of an ``n_total``-frame dataset makes: the contiguous block
+    ``[i * n_total // N, (i + 1) * n_total // N)``. The N blocks partition the frames and differ in size by at most
+    one. Contiguous rather than strided because frame ids run house by house: a shard then holds the frames of about
+    ``houses / N + 1`` houses and builds only their raycast scenes (seconds each for real meshes), where every strided
+    shard would build every house's. Which shard makes a frame never changes its bytes."""
+    i, n = shard
+    return range(i * n_total // n, (i + 1) * n_total // n)
 
 
 def _with_hint(e: OSError, hint: str) -> OSError:
@@ -447,8 +481,9 @@ _FRAMES_SLOT = "@@frame records@@"
 
 
 def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, houses: dict[str, House],
-              cats: list[str], n_total: int) -> dict[str, int]:
-    """Write ImageSets and then ``manifest.json`` (last) from the frame records."""
+              cats: list[str], n_total: int) -> tuple[dict[str, int], list[dict]]:
+    """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the split sizes and the
+    manifest's frame records."""
     for p in [out, out / "ImageSets"]:  # temps a killed assembly left behind
         if p.is_dir():
             for q in p.iterdir():
@@ -459,7 +494,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
     splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
     for name, ids in splits.items():
         write_imageset(out / "ImageSets" / f"{name}.txt", ids)
-    reasons: Counter[str] = Counter(r["reason"] for rec in records for r in rec["rejected"])
+    counts = describe_records(records)
     command = ["mpchair", "generate", "--root", Path(req.root).name]
     for h in req.houses:
         command += ["--house", h]
@@ -494,8 +529,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
             "misses": "rays without a hit (or outside the range limits) are dropped",
         },
         "splits": {k: len(v) for k, v in splits.items()},
-        "totals": {"frames": n_total, "boxes_kept": sum(len(r["kept"]) for r in records),
-                   "boxes_rejected": dict(sorted(reasons.items())),
+        "totals": {"frames": n_total, "boxes_kept": counts["kept"], "boxes_rejected": counts["rejected"],
                    "points": int(sum(r["points"] for r in records))},
         "frames": _FRAMES_SLOT,
     }
@@ -508,7 +542,7 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
     else:  # the placeholder also occurs in a user-given value: encode the slow way
         text = json.dumps({**manifest, "frames": records}, sort_keys=True, indent=1)
     write_text(out / "manifest.json", text + "\n")
-    return manifest["splits"]
+    return manifest["splits"], records
 
 
 def default_workers() -> int:

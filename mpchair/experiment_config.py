@@ -1,10 +1,15 @@
 """Experiment configuration: one YAML file per experiment, loaded into frozen dataclasses.
 
+The schema of ``configs/models/*.yaml``, on the shared floor (it imports only ``mpchair.config``, ``errors`` and
+``geometry``) because both stacks read these files: ``detector train/eval/...`` (through ``detector.models``) and
+``mpchair stats --density --config``, so both validate a file the same way.
+
 The file reads top to bottom like OpenPCDet's ``pointpillar.yaml``: ``model`` (voxelizer → pillar net → backbone →
-neck → anchors → head → losses → post-processing), ``data`` (classes and augmentation switches), ``train``
-(optimiser and schedule) and ``eval`` (classes and IoU thresholds). Only :func:`detector.models.build.build_model`
-reads ``model``; modules take explicit keyword arguments. Every length is in metres, every angle in radians, and all
-boxes are ``[x, y, z_centre, l, w, h, yaw]`` in the sensor frame (x forward, y left, z up), yaw CCW from +x.
+neck → anchors → head → losses → post-processing), ``data`` (classes and augmentation switches), ``train`` (optimiser
+and schedule) and ``eval`` (classes and IoU thresholds). In the detector only
+:func:`detector.models.build.build_model` reads ``model``; modules take explicit keyword arguments. Every length is
+in metres, every angle in radians, and all boxes are ``[x, y, z_centre, l, w, h, yaw]`` in the sensor frame (x
+forward, y left, z up), yaw CCW from +x.
 
 Reference values (section 6 of ``pointpillars-reference.md``) are the defaults, so a config only has to name the
 geometry; see ``docs/model.md`` for every key.
