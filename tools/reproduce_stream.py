@@ -96,6 +96,13 @@ def _ap(summary: dict, key: str = "sAP", metric: str = "3d") -> float | None:
     return None if block is None else block["Chair"][metric]["R40"]
 
 
+def _logged(log: Path) -> str:
+    """"N commands, M min in all" from the runner's commands.log (every finished command with its wall time)."""
+    lines = [ln for ln in (log.read_text().splitlines() if log.exists() else []) if ln.strip()]
+    seconds = sum(float(ln.split()[0]) for ln in lines)
+    return f"{len(lines)} commands in commands.log, {seconds / 60:.1f} min in all"
+
+
 def results_section(runs: dict, speeds: list[float], rates: list[float], figures: dict[str, str], note: str) -> str:
     """The markdown between the markers: ``runs[(model, speed, rate, mode)]`` = stream-eval summaries."""
     v0, f0 = HEADLINE
@@ -239,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--docs", type=Path, default=None,
                    help="report file (default: docs/streaming.md for --scale full, <work folder>/streaming.md else)")
+    p.add_argument("--note", action="append", default=[],
+                   help="a sentence for the report's opening line, e.g. how the run deviated (repeatable)")
     p.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     args = p.parse_args(argv)
@@ -339,8 +348,9 @@ def main(argv: list[str] | None = None) -> int:
         frames = {k: json.loads(p.read_text())["totals"]["frames"] for k, p in metas.items() if p.exists()}
         note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(houses)} house(s) x "
                 f"{sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
-                + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {len(r.commands)} commands this run, "
-                f"{(time.perf_counter() - t0) / 60:.1f} min).")
+                + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {_logged(out / 'commands.log')}; "
+                "latencies are this machine's under its load at the time, see the machine line)."
+                + "".join(" " + n.strip() for n in args.note))
         write_report(doc, results_section(runs, speeds, rates, rel, note))
         print(f"wrote {doc}")
     print(f"total time {(time.perf_counter() - t0) / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
