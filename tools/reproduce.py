@@ -19,10 +19,10 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run.
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
 1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
-CPU has native bf16 (AVX512-BF16 / AMX: about 3.5 hours on 2 cores) and fp32 elsewhere (about 8 hours on 2 AVX2
-cores). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames, 2 epochs: ~3 min on 2 idle cores,
-several times longer on a loaded machine: 14.5 min was seen on 2 cores shared with other jobs); ``--scale medium``
-8 houses, 2,000 frames, 10 epochs.
+CPU has native bf16 (AVX512-BF16 / AMX: about 3.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
+AVX2-only cores, measured 2026-12-02). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames,
+2 epochs: ~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
+with other jobs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
 
 Every command is printed before it runs and its own output passes through as it comes: the train step's ``detector
 train`` runs without progress bars but prints its plan, the duration it measured on its first steps and one line per
@@ -83,7 +83,7 @@ SCALES = {
     # about 2 h on 2 idle cores: the full pipeline on 8 houses with fewer frames and epochs than the issue's targets
     "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100),
     # the issue's targets: dense 16 / sparse 20 bf16 epochs (24,000 / 30,000 steps; 15 epochs each reached dense
-    # 80.77 / sparse 79.32 3D AP Moderate in 184 min on 2 cores); the CPU configs' own 20 / 25 fp32 epochs take ~6 h
+    # 80.77 / sparse 79.32 3D AP Moderate, pre-issue-15 labels, in 184 min on 2 AVX512-BF16 cores)
     "full": Scale(houses=8, frames_per_house=625, epochs=16, bench_frames=10, bench_trials=3, ops_frames=200,
                   precision="auto"),
 }
@@ -147,8 +147,9 @@ def house_ids(houses_dir: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default="full",
-                   help="full (default): the issue's experiment, ~3 h on 2 cores; small: a quick check, ~3 min on "
-                        "2 idle cores and several times longer on a loaded machine")
+                   help="full (default): the issue's experiment, ~3.5 h on 2 native-bf16 cores, ~16 h on 2 "
+                        "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
+                        "loaded machine")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/reproduce-<scale>)")
     p.add_argument("--results", type=Path, default=None,
