@@ -316,7 +316,9 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         return report.split(f"\n## {title}", 1)[1].split("\n", 1)[1].split("\n## ", 1)[0]
 
     assert report.startswith("# Results") and "1 synthetic houses x 4 frames" in report
-    assert "epochs dense 2 / sparse 3" in report and "training precision fp32" in report
+    ntr = len(read_imageset(data / "ImageSets" / "train.txt"))
+    trained = f"dense 2 epochs x {ntr:,} samples / sparse 3 epochs x {ntr:,} samples"
+    assert f"training {trained}, precision fp32" in report
     # AP: the eval outputs' Overall level in the targets; Overall and then Easy / Moderate / Hard in the detection
     # section, one row per model in each table
     ev = {m: json.loads((res / f"eval_{m}" / "metrics.json").read_text())["Chair"] for m in ("dense", "sparse")}
@@ -342,7 +344,7 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
     diff = section("Differences from the paper's experiment")
     n = {k: len(read_imageset(data / "ImageSets" / f"{k}.txt")) for k in ("train", "val", "test")}
     assert f"train {n['train']:,} / val {n['val']:,} / test {n['test']:,}" in diff
-    assert "dense 2 / sparse 3 epochs" in diff and "| precision | fp32 (GPU) | fp32 (dense) / fp32 (sparse) |" in diff
+    assert trained in diff and "| precision | fp32 (GPU) | fp32 (dense) / fp32 (sparse) |" in diff
     table = diff.strip().split("\n\n")[0].splitlines()
     assert len(table) == 2 + 7 and all(len(ln.split(" | ")) == 4 for ln in table[2:])  # 4 cells, no stray "|"
     # density: the stats summary, and the plot copied next to the report
