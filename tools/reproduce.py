@@ -464,23 +464,20 @@ def _detection(res: Path) -> list[str]:
     return lines
 
 
-def _status(scale: str, out: Path, sc: Scale) -> list[str]:
+def _status(scale: str, out: Path, trained: dict[str, tuple[int, int] | None], sc: Scale) -> list[str]:
     """What this scale leaves out, and the validation AP logged during training (the learning curve)."""
     lines = []
     if scale != "full":
         lines += [f"This is the `--scale {scale}` run: fewer frames and epochs than the issue's full scale (3,000 "
                   f"train / 1,000 val frames, {_epochs_text(SCALES['full'])} epochs), so the AP target is not "
                   "expected to be met; the runtime and op-count results do not depend on the training length.", ""]
-    else:
-        t, recipe = _trained(out), model_epochs(SCALES["full"].epochs)
-        short = {m: e * n for m, v in t.items() if v for e, n in [v]}
-        n_train = _trained_split_size(out)
-        if n_train and any(short.get(m, 0) < recipe[m] * n_train for m in short):
-            lines += [f"**This run is shorter than the recipe:** it trained {_trained_text(out, sc)} instead of "
-                      f"dense {recipe['dense']} / sparse {recipe['sparse']} epochs x {n_train:,} samples "
-                      "(`make reproduce`), so both models are far from converged and their AP (and the sparse - "
-                      "dense gap) is not the recipe's; the runtime and op-count results do not depend on the "
-                      "training length.", ""]
+    elif _short_of_recipe(trained, n_train := _trained_split_size(out)):
+        recipe = model_epochs(SCALES["full"].epochs)
+        lines += [f"**This run is shorter than the recipe:** it trained {_trained_text(trained, sc)} instead of "
+                  f"dense {recipe['dense']} / sparse {recipe['sparse']} epochs x {n_train:,} samples "
+                  "(`make reproduce`), so both models are far from converged and their AP (and the sparse - "
+                  "dense gap) is not the recipe's; the runtime and op-count results do not depend on the "
+                  "training length.", ""]
     rows = []
     for m in ("dense", "sparse"):
         path = out / "runs" / m / "metrics.jsonl"
@@ -589,20 +586,25 @@ def _trained(out: Path) -> dict[str, tuple[int, int] | None]:
     return found
 
 
-def _trained_text(out: Path, sc: Scale | None = None) -> str:
-    """"dense 16 epochs x 3,000 samples / sparse 20 epochs x 3,000 samples" from the runs (before training: the
-    scale's epochs)."""
-    t = _trained(out)
-    if all(t.values()):
-        return " / ".join(f"{m} {e} epoch{'s' * (e != 1)} x {n:,} samples" for m, (e, n) in t.items())
+def _trained_text(trained: dict[str, tuple[int, int] | None], sc: Scale | None = None) -> str:
+    """"dense 16 epochs x 3,000 samples / sparse 20 epochs x 3,000 samples" from :func:`_trained` (before training:
+    the scale's epochs)."""
+    if all(trained.values()):
+        return " / ".join(f"{m} {e} epoch{'s' * (e != 1)} x {n:,} samples" for m, (e, n) in trained.items())
     return f"epochs {_epochs_text(sc)}" if sc else "n/a"
+
+
+def _short_of_recipe(trained: dict[str, tuple[int, int] | None], n_train: int | None) -> bool:
+    """Whether a trained model saw fewer samples than the full recipe's epochs over the train split."""
+    recipe = model_epochs(SCALES["full"].epochs)
+    return bool(n_train) and any(v[0] * v[1] < recipe[m] * n_train for m, v in trained.items() if v)
 
 
 def _count(n: int | None) -> str:
     return "n/a" if n is None else f"{n:,}"
 
 
-def _differences(out: Path) -> list[str]:
+def _differences(out: Path, trained: dict[str, tuple[int, int] | None]) -> list[str]:
     """The table "differences from the paper's experiment", from this run's manifest and run configs."""
     from mpchair.kitti import imageset_path, read_imageset
 
@@ -634,9 +636,9 @@ def _differences(out: Path) -> list[str]:
          "within the 7 m distance filter" if grid and rng else "n/a",
          "CPU budget (10x less area per step); the runtime tables use the paper's 768 x 512 with the same weights"),
         ("schedule", "dense 200 / sparse 250 epochs of 5,000 samples, batch 6, AdamW lr 1e-3 constant",
-         (_trained_text(out) if all(_trained(out).values()) else f"dense {ep['dense']} / sparse {ep['sparse']} epochs")
+         (_trained_text(trained) if all(trained.values()) else f"dense {ep['dense']} / sparse {ep['sparse']} epochs")
          + f", batch {dense_t.get('batch_size', 'n/a')}, AdamW {sched_text}",
-         _schedule_why(_trained(out), splits.get("train"))),
+         _schedule_why(trained, splits.get("train"))),
         ("precision", "fp32 (GPU)", f"{dense_t.get('precision', 'fp32')} (dense) / "
          f"{sparse_t.get('precision', 'fp32')} (sparse)", "bf16 only where the CPU computes it natively"),
         ("evaluation", "Open3D-ML's mAP (41 thresholds, every box difficulty 0), BEV and 3D at IoU 0.5",
@@ -659,7 +661,7 @@ def _schedule_why(trained: dict[str, tuple[int, int] | None], n_train: int | Non
     full = model_epochs(SCALES["full"].epochs)
     seen = {m: v[0] * v[1] for m, v in trained.items() if v}
     why = "CPU budget"
-    if n_train and "dense" in seen and seen["dense"] < full["dense"] * n_train:
+    if _short_of_recipe(trained, n_train):
         why += (f"; cut below the recipe's dense {full['dense']} / sparse {full['sparse']} epochs to fit the session "
                 "it ran in, so the models are not converged")
     else:
@@ -693,11 +695,12 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
 
     log = _read(out / "commands.log") or ""
     steps_s, train_s = _elapsed(log, out / "runs")
+    trained = _trained(out)
     lines = [
         "# Results: Sparse PointPillars on synthetic Matterport-Chair (CPU-sized reproduction)",
         "",
         f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, training {_trained_text(out, sc)}, precision {_precision(out)}, bench "
+        f"frames, training {_trained_text(trained, sc)}, precision {_precision(out)}, bench "
         f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
         "all on this machine (each command's wall time is listed; training took "
         + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
@@ -707,9 +710,9 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*."
         + "".join(" " + n.strip() for n in notes or []),
         "",
-        *_status(scale, out, sc),
+        *_status(scale, out, trained, sc),
         *_summary(res),
-        *_differences(out),
+        *_differences(out, trained),
         *_detection(res),
     ]
     lines += ["## Density (test split, 768 x 512 canvas, 5 cm pillars)", ""]
