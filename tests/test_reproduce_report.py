@@ -372,6 +372,20 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         assert line in commands
 
 
+def test_shared_components_show_the_ratio_of_per_frame_medians_beside_the_means(tmp_path: Path) -> None:
+    """A few-ms shared component is judged by two numbers: the ratio of means (which one hiccup moves) and the ratio of
+    the per-frame medians, from the bench JSON's ``median_frame_ms``."""
+    reproduce = _reproduce()
+    dense, sparse = _bench_row("dense", 1000.0, 50.0), _bench_row("sparse", 250.0, 55.0)
+    dense["median_frame_ms"] = {**{k: 1.0 for k in dense["components"]}, "head": 50.0, "bbox_extract": 8.0}
+    sparse["median_frame_ms"] = {**{k: 1.0 for k in sparse["components"]}, "head": 47.5, "bbox_extract": 6.0}
+    (tmp_path / "bench_reuse.json").write_text(json.dumps({"models": [dense, sparse]}))
+    rows = reproduce._summary(tmp_path)
+    assert "| sparse / dense, head time (same code), allocator reuse | 0.9 - 1.1 | 1.10x (median 0.95x) |" in rows
+    bbox = "| sparse / dense, bbox_extract time (same code), allocator reuse | 0.9 - 1.1 |"
+    assert bbox + " 1.00x (median 0.75x) |" in rows
+
+
 def _bench_row(name: str, total: float, head: float, peer: str | None = None) -> dict:
     comps = {k: {"mean_ms": 1.0, "std_ms": 0.0} for k in ("to_device", "feature_extract", "feature_net", "backbone",
                                                           "bbox_extract")}

@@ -35,7 +35,7 @@ for p in (ROOT, ROOT / "tools"):
     if str(p) not in sys.path:  # run as a script from a fresh checkout
         sys.path.insert(0, str(p))
 
-from reproduce import BIN, CONFIGS, REUSE_ENV, Runner, house_ids  # noqa: E402
+from reproduce import BIN, CONFIGS, REUSE_ENV, Runner, house_ids, logged_commands  # noqa: E402
 
 STEPS = ("streams", "measure", "score", "report")
 MODELS = ("dense", "sparse")
@@ -98,9 +98,8 @@ def _ap(summary: dict, key: str = "sAP", metric: str = "3d") -> float | None:
 
 def _logged(log: Path) -> str:
     """"N commands, M min in all" from the runner's commands.log (every finished command with its wall time)."""
-    lines = [ln for ln in (log.read_text().splitlines() if log.exists() else []) if ln.strip()]
-    seconds = sum(float(ln.split()[0]) for ln in lines)
-    return f"{len(lines)} commands in commands.log, {seconds / 60:.1f} min in all"
+    cmds = logged_commands(log.read_text() if log.exists() else "")
+    return f"{len(cmds)} commands in commands.log, {sum(s for s, _ in cmds) / 60:.1f} min in all"
 
 
 def results_section(runs: dict, speeds: list[float], rates: list[float], figures: dict[str, str], note: str) -> str:
