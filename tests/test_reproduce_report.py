@@ -48,6 +48,58 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
     assert total == 60.0 + 1000.0 + 600.0 + 30.0
 
 
+def _started_run(out: Path, model: str, steps: int, precision: str = "fp32") -> Path:
+    """A work folder's run of ``model`` stopped after ``steps`` steps of 1.5 s (2 epochs of 10 frames, batch 2)."""
+    run = out / "runs" / model
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(json.dumps({"train": {"epochs": 2, "batch_size": 2, "samples_per_epoch": None,
+                                                           "precision": precision}}))
+    records = [{"kind": "step", "epoch": 1 + (i - 1) // 5, "step": i, "time_s": 1.5} for i in range(1, steps + 1)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    (run / "last.pt").write_bytes(b"")
+    return run
+
+
+def test_status_shows_each_step_and_where_training_stands(tmp_path: Path, capsys) -> None:
+    """--status: done steps, a model's step of its total with the time left at its pace, and whether a process holds
+    its run folder's lock right now."""
+    from mpchair.lock import folder_lock
+
+    reproduce = _reproduce()
+    out = tmp_path / "w"
+    (out / "dataset" / "ImageSets").mkdir(parents=True)
+    (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
+    (out / "dataset" / "manifest.json").write_text("{}")
+    run = _started_run(out, "dense", steps=6)
+    assert reproduce.main(["--status", "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"{out}:" and "  synth     0 of 1 outputs" in lines and "  generate  done" in lines
+    assert "  train     0 of 2 outputs" in lines
+    assert "    dense: step 6 / 10 (epoch 2 of 2), 1.50 s/step lately -> ~6 s left; stopped (the same command " \
+           "resumes it)" in lines
+    assert "    sparse: not started" in lines
+    with folder_lock(run / ".train.lock", "detector train"):
+        text = "\n".join(reproduce.status_lines(out))
+    assert "dense: step 6 / 10 (epoch 2 of 2), 1.50 s/step lately -> ~6 s left; running now" in text
+    (run / "done").write_text("trained\n")
+    assert "    dense: trained" in reproduce.status_lines(out)
+    assert reproduce.status_lines(tmp_path / "none") == [f"{tmp_path / 'none'}: no reproduction here yet"]
+
+
+def test_a_run_resumes_in_the_precision_it_started_with(tmp_path: Path, capsys) -> None:
+    """A session on a CPU where ``auto`` resolves otherwise must not hand the resumed run another precision (detector
+    train would refuse the changed config); a run not yet started takes the scale's."""
+    out = tmp_path / "w"
+    _started_run(out, "dense", steps=3, precision="fp32")
+    assert _reproduce().main(["--dry-run", "--scale", "small", "--steps", "train", "--precision", "bf16", "--out",
+                              str(out)]) == 0
+    printed = capsys.readouterr().out
+    train = [ln for ln in printed.splitlines() if " train " in ln and ln.startswith("$ ")]
+    assert "--resume" in train[0] and train[0].endswith("--precision fp32") and "/runs/dense " in train[0]
+    assert "dense: resuming in fp32, the precision this run started with (not bf16)" in printed
+    assert "--resume" not in train[1] and train[1].endswith("--precision bf16")
+
+
 def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
     """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, dense 16 epochs and sparse 20
     (the paper's 250 / 200 ratio), bf16 where the CPU computes it natively, else fp32."""

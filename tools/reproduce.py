@@ -16,7 +16,8 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
 
-A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run.
+A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
+the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
 1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
 CPU has native bf16 (AVX512-BF16 / AMX: about 3.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
@@ -170,6 +171,9 @@ def main(argv: list[str] | None = None) -> int:
                         "AVX512-BF16 / AMX, slower on CPUs without")
     p.add_argument("--note", action="append", default=[],
                    help="a sentence for the report's opening paragraph, e.g. how this run deviated (repeatable)")
+    p.add_argument("--status", action="store_true",
+                   help="print where the work folder's reproduction stands (each step; each model's training step, "
+                        "pace and time left; whether a training runs now) and exit")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 30, medium: 20)")
     args = p.parse_args(argv)
@@ -179,6 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown step(s) {bad}; choose from {list(STEPS)}", file=sys.stderr)
         return 2
     sc = SCALES[args.scale]
+    out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
+    if args.status:
+        print("\n".join(status_lines(out)))
+        return 0
     if args.epochs is not None:
         if args.epochs < 1:
             print("error: --epochs must be >= 1", file=sys.stderr)
@@ -197,7 +205,6 @@ def main(argv: list[str] | None = None) -> int:
             print("error: --bench-frames must be >= 1", file=sys.stderr)
             return 2
         sc = dataclasses.replace(sc, bench_frames=args.bench_frames)
-    out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     r = Runner(args.dry_run, out / "commands.log")
     mp, det = str(BIN / "mpchair"), str(BIN / "detector")
@@ -239,10 +246,17 @@ def main(argv: list[str] | None = None) -> int:
                    "--no-progress"]
             if sc.epochs is not None:
                 cmd += ["--epochs", str(model_epochs(sc.epochs)[m])]
-            if sc.precision is not None:
-                cmd += ["--precision", sc.precision]
+            precision = sc.precision
             if (runs / m / "last.pt").exists() and not args.force:
                 cmd.append("--resume")
+                # a run resumes in the precision it started with (a session on another CPU may resolve "auto" to
+                # the other one, and detector train refuses a changed config)
+                started = (_run_config(out, m).get("train") or {}).get("precision")
+                if started and precision and started != precision:
+                    print(f"[train] {m}: resuming in {started}, the precision this run started with (not {precision})")
+                    precision = started
+            if precision is not None:
+                cmd += ["--precision", precision]
             # glibc otherwise returns every large freed tensor to the OS and page-faults it back in on the next step
             # (measured 0.45 -> 0.33 s per CPU step of mpchair_dense_cpu.yaml); results are unaffected.
             r.run(cmd, env=REUSE_ENV)
@@ -580,6 +594,53 @@ def _run_config(out: Path, model: str) -> dict:
 
     text = _read(out / "runs" / model / "config.yaml")
     return (yaml.safe_load(text) or {}) if text else {}
+
+
+def _train_status(out: Path, model: str) -> str:
+    """One line on a model's training in work folder ``out``: trained, not started, or at step s of N with its recent
+    pace and the time left, and whether a process is training it right now (its run folder's lock is held)."""
+    from detector.train import format_duration
+    from mpchair.lock import held
+
+    run = out / "runs" / model
+    if (run / "done").exists():
+        return f"{model}: trained"
+    t = _run_config(out, model).get("train") or {}
+    steps = [r for r in map(json.loads, (_read(run / "metrics.jsonl") or "").splitlines()) if r["kind"] == "step"]
+    n_train = _trained_split_size(out)
+    if not t or not steps or not n_train:
+        return f"{model}: not started"
+    total = t["epochs"] * ((t.get("samples_per_epoch") or n_train) // t["batch_size"])
+    pace = sorted(r["time_s"] for r in steps[-200:])[len(steps[-200:]) // 2]  # median of the recent steps
+    now = steps[-1]
+    running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"
+    return (f"{model}: step {now['step']:,} / {total:,} (epoch {now['epoch']} of {t['epochs']}), {pace:.2f} s/step "
+            f"lately -> ~{format_duration(pace * (total - now['step']))} left; {running}")
+
+
+def status_lines(out: Path) -> list[str]:
+    """Where the reproduction in work folder ``out`` stands: each step's outputs (the ones the runner checks before
+    skipping a step) and each model's training progress."""
+    res, runs = out / "results", out / "runs"
+    outputs = {
+        "synth": [out / "houses" / "v1" / "scans"],
+        "generate": [out / "dataset" / "manifest.json"],
+        "stats": [res / "density.json"],
+        "train": [runs / m / "done" for m in ("dense", "sparse")],
+        "eval": [res / f"eval_{m}" / name for m in ("dense", "sparse") for name in ("metrics.json", OPEN3D_ML_JSON)],
+        "bench": [res / f"bench_{alloc}.json" for alloc in ("default", "reuse")],
+        "ops": [res / "ops.json"],
+        "viz": [res / "viz" / "panel.png"],
+    }
+    if not out.is_dir():
+        return [f"{out}: no reproduction here yet"]
+    lines = [f"{out}:"]
+    for step, paths in outputs.items():
+        have = sum(p.exists() for p in paths)
+        lines.append(f"  {step:<9} {'done' if have == len(paths) else f'{have} of {len(paths)} outputs'}")
+        if step == "train":
+            lines += [f"    {_train_status(out, m)}" for m in ("dense", "sparse")]
+    return lines
 
 
 def _trained(out: Path) -> dict[str, tuple[int, int] | None]:
