@@ -55,7 +55,8 @@ def _started_run(out: Path, model: str, steps: int, precision: str = "fp32") -> 
     (run / "config.yaml").write_text(json.dumps({"train": {"epochs": 2, "batch_size": 2, "samples_per_epoch": None,
                                                            "precision": precision}}))
     records = [{"kind": "step", "epoch": 1 + (i - 1) // 5, "step": i, "time_s": 1.5} for i in range(1, steps + 1)]
-    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    # the last line torn, as kill -9 may leave it
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records) + '{"kind": "st')
     (run / "last.pt").write_bytes(b"")
     return run
 

@@ -36,12 +36,14 @@ stays valid when ``out/`` is deleted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
 import os
 import shlex
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -606,12 +608,17 @@ def _train_status(out: Path, model: str) -> str:
     if (run / "done").exists():
         return f"{model}: trained"
     t = _run_config(out, model).get("train") or {}
-    steps = [r for r in map(json.loads, (_read(run / "metrics.jsonl") or "").splitlines()) if r["kind"] == "step"]
+    steps = []
+    for line in (_read(run / "metrics.jsonl") or "").splitlines():
+        with contextlib.suppress(ValueError):  # the torn last line of a killed run
+            record = json.loads(line)
+            if record.get("kind") == "step":
+                steps.append(record)
     n_train = _trained_split_size(out)
     if not t or not steps or not n_train:
         return f"{model}: not started"
     total = t["epochs"] * ((t.get("samples_per_epoch") or n_train) // t["batch_size"])
-    pace = sorted(r["time_s"] for r in steps[-200:])[len(steps[-200:]) // 2]  # median of the recent steps
+    pace = statistics.median(r["time_s"] for r in steps[-200:])
     now = steps[-1]
     running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"
     return (f"{model}: step {now['step']:,} / {total:,} (epoch {now['epoch']} of {t['epochs']}), {pace:.2f} s/step "
