@@ -502,14 +502,11 @@ def _status(scale: str, out: Path, trained: dict[str, tuple[int, int] | None], s
                   "training length.", ""]
     rows = []
     for m in ("dense", "sparse"):
-        path = out / "runs" / m / "metrics.jsonl"
-        for line in (_read(path) or "").splitlines():
-            rec = json.loads(line)
-            if rec.get("kind") == "eval":
-                ap = rec["Chair"]
-                rows.append(f"| {m} | {rec['epoch']} | {_fmt(_overall(rec, 'bev', 'R40'))} | "
-                            f"{_fmt(_overall(rec, '3d', 'R40'))} | {ap['bev']['R40'][1]:.2f} | "
-                            f"{ap['3d']['R40'][1]:.2f} |")
+        for rec in _records(out / "runs" / m, "eval"):
+            ap = rec["Chair"]
+            rows.append(f"| {m} | {rec['epoch']} | {_fmt(_overall(rec, 'bev', 'R40'))} | "
+                        f"{_fmt(_overall(rec, '3d', 'R40'))} | {ap['bev']['R40'][1]:.2f} | "
+                        f"{ap['3d']['R40'][1]:.2f} |")
     if rows:
         lines += ["Validation AP logged during training (R40; n/a: logged before the Overall level existed):", "",
                   "| model | epoch | BEV AP Overall | 3D AP Overall | BEV AP Moderate | 3D AP Moderate |",
@@ -540,10 +537,21 @@ def _precision(out: Path) -> str:
     return ", ".join(f"{m} {v}" for m, v in found.items()) or "n/a"
 
 
+def _records(run: Path, kind: str) -> list[dict]:
+    """A run folder's metrics.jsonl records of one ``kind`` ("step", "epoch", "eval"), in order; none without the
+    file, and without the torn last line a killed run may leave."""
+    found = []
+    for line in (_read(run / "metrics.jsonl") or "").splitlines():
+        with contextlib.suppress(ValueError):
+            record = json.loads(line)
+            if record.get("kind") == kind:
+                found.append(record)
+    return found
+
+
 def _epoch_seconds(run: Path) -> float:
     """Training seconds of one run: the sum of its epochs' ``time_s`` in metrics.jsonl (0 if there is none)."""
-    text = _read(run / "metrics.jsonl") or ""
-    return sum(r["time_s"] for r in map(json.loads, text.splitlines()) if r["kind"] == "epoch")
+    return sum(r["time_s"] for r in _records(run, "epoch"))
 
 
 def logged_commands(log: str) -> list[tuple[float, str]]:
@@ -607,21 +615,16 @@ def _train_status(out: Path, model: str) -> str:
     run = out / "runs" / model
     if (run / "done").exists():
         return f"{model}: trained"
-    t = _run_config(out, model).get("train") or {}
-    steps = []
-    for line in (_read(run / "metrics.jsonl") or "").splitlines():
-        with contextlib.suppress(ValueError):  # the torn last line of a killed run
-            record = json.loads(line)
-            if record.get("kind") == "step":
-                steps.append(record)
-    n_train = _trained_split_size(out)
-    if not t or not steps or not n_train:
+    schedule = _trained(out)[model]  # (epochs, samples per epoch) of the run's config
+    steps = _records(run, "step")
+    if schedule is None or not steps:
         return f"{model}: not started"
-    total = t["epochs"] * ((t.get("samples_per_epoch") or n_train) // t["batch_size"])
+    epochs, samples = schedule
+    total = epochs * (samples // _run_config(out, model)["train"]["batch_size"])
     pace = statistics.median(r["time_s"] for r in steps[-200:])
     now = steps[-1]
     running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"
-    return (f"{model}: step {now['step']:,} / {total:,} (epoch {now['epoch']} of {t['epochs']}), {pace:.2f} s/step "
+    return (f"{model}: step {now['step']:,} / {total:,} (epoch {now['epoch']} of {epochs}), {pace:.2f} s/step "
             f"lately -> ~{format_duration(pace * (total - now['step']))} left; {running}")
 
 
