@@ -225,23 +225,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{step}]", flush=True)
         return True
 
-    if todo("synth", houses / "v1" / "scans"):
+    done = step_outputs(out)
+    if todo("synth", done["synth"]["houses"]):
         r.run([mp, "synth", "--out", str(houses), "--houses", str(sc.houses), "--seed", str(args.seed)])
-    if todo("generate", data / "manifest.json"):
+    if todo("generate", done["generate"]["dataset"]):
         ids = house_ids(houses) or [f"<house ids from {houses}>"]
         cmd = [mp, "generate", "--root", str(houses), "--frames", str(sc.frames_per_house), "--out", str(data),
                "--sensor", "mp3d-depth90", "--seed", str(args.seed), "--workers", str(args.workers), "--quiet"]
         for h in ids:
             cmd += ["--house", h]
         r.run(cmd)
-    if todo("stats", res / "density.json"):
+    if todo("stats", done["stats"]["density"]):
         r.run([mp, "stats", "--density", str(data), "--config", paper_cfg["dense"], "--split", "test", "--plot",
                str(res / "density.png")])
         r.run([mp, "stats", "--density", str(data), "--config", paper_cfg["dense"], "--split", "test", "--json"],
               stdout=res / "density.json")
     for m in ("dense", "sparse"):
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly
-        if todo("train", runs / m / "done"):
+        if todo("train", done["train"][m]):
             # no bars (they would fill a log), but detector train still prints its estimate and one line per epoch,
             # which pass through (the Runner leaves the child's stdout alone)
             cmd = [det, "train", "--config", cpu[m], "--data", str(data), "--out", str(runs / m), *threads,
@@ -263,22 +264,22 @@ def main(argv: list[str] | None = None) -> int:
             # (measured 0.45 -> 0.33 s per CPU step of mpchair_dense_cpu.yaml); results are unaffected.
             r.run(cmd, env=REUSE_ENV)
             if not args.dry_run:
-                (runs / m / "done").write_text("trained\n")
+                done["train"][m].write_text("trained\n")
     for m in ("dense", "sparse"):
         ev = res / f"eval_{m}"
-        kitti_ran = todo("eval", ev / "metrics.json")
+        kitti_ran = todo("eval", done["eval"][f"{m} kitti"])
         if kitti_ran:
             r.run([det, "eval", "--config", cpu[m], "--data", str(data), "--checkpoint", str(runs / m / "last.pt"),
                    "--split", "val", "--out", str(ev), *threads])
         # The paper's own metric (Open3D-ML's mAP, as its reference computed it) on the same result files.
-        if kitti_ran or todo("eval", ev / OPEN3D_ML_JSON):
+        if kitti_ran or todo("eval", done["eval"][f"{m} open3d-ml"]):
             r.run([det, "eval", "--labels", str(data / "training" / "label_2"), "--results", str(ev / "data"),
                    "--split", str(data / "ImageSets" / "val.txt"), "--classes", "Chair", "--protocol", "open3d-ml",
-                   "--json"], stdout=ev / OPEN3D_ML_JSON)
+                   "--json"], stdout=done["eval"][f"{m} open3d-ml"])
     ckpts = [str(runs / "dense" / "last.pt"), str(runs / "sparse" / "last.pt")]
     peer = None
     for alloc, env in (("default", {}), ("reuse", REUSE_ENV)):
-        if todo("bench", res / f"bench_{alloc}.json"):
+        if todo("bench", done["bench"][alloc]):
             # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
             cmd = [det, "bench", "--config", paper_cfg["dense"], "--config", paper_cfg["sparse"], "--config",
                    str(CONFIGS / "mpchair_sparse_exact.yaml"), "--data", str(data),
@@ -292,10 +293,10 @@ def main(argv: list[str] | None = None) -> int:
                 for c in (*ckpts, ckpts[1]):
                     cmd += ["--checkpoint", c]
             r.run(cmd, env=env or None, stdout=res / f"bench_{alloc}.md")
-    if todo("ops", res / "ops.json"):
+    if todo("ops", done["ops"]["ops"]):
         r.run([det, "ops", "--config", paper_cfg["sparse"], "--data", str(data), "--split", "test", "--frames",
                str(sc.ops_frames), "--out", str(res / "ops.json"), "--markdown"], stdout=res / "ops.md")
-    if todo("viz", res / "viz" / "panel.png"):
+    if todo("viz", done["viz"]["panel"]):
         # the test split's first frame (its ids are a seeded sample, so frame 000000 need not be in it)
         cmd = [det, "viz-sparsity", "--config", paper_cfg["sparse"], "--data", str(data), "--index", "0", "--split",
                "test", "--out", str(res / "viz"), "--json"]
@@ -628,24 +629,31 @@ def _train_status(out: Path, model: str) -> str:
             f"lately -> ~{format_duration(pace * (total - now['step']))} left; {running}")
 
 
-def status_lines(out: Path) -> list[str]:
-    """Where the reproduction in work folder ``out`` stands: each step's outputs (the ones the runner checks before
-    skipping a step) and each model's training progress."""
+def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
+    """The files that mark each step done in work folder ``out`` (the runner skips a step that has them, ``--status``
+    lists them), by step, then by what each file is for (a model, an allocator, a protocol)."""
     res, runs = out / "results", out / "runs"
-    outputs = {
-        "synth": [out / "houses" / "v1" / "scans"],
-        "generate": [out / "dataset" / "manifest.json"],
-        "stats": [res / "density.json"],
-        "train": [runs / m / "done" for m in ("dense", "sparse")],
-        "eval": [res / f"eval_{m}" / name for m in ("dense", "sparse") for name in ("metrics.json", OPEN3D_ML_JSON)],
-        "bench": [res / f"bench_{alloc}.json" for alloc in ("default", "reuse")],
-        "ops": [res / "ops.json"],
-        "viz": [res / "viz" / "panel.png"],
+    return {
+        "synth": {"houses": out / "houses" / "v1" / "scans"},
+        "generate": {"dataset": out / "dataset" / "manifest.json"},
+        "stats": {"density": res / "density.json"},
+        "train": {m: runs / m / "done" for m in ("dense", "sparse")},
+        "eval": {f"{m} {protocol}": res / f"eval_{m}" / name for m in ("dense", "sparse")
+                 for protocol, name in (("kitti", "metrics.json"), ("open3d-ml", OPEN3D_ML_JSON))},
+        "bench": {alloc: res / f"bench_{alloc}.json" for alloc in ("default", "reuse")},
+        "ops": {"ops": res / "ops.json"},
+        "viz": {"panel": res / "viz" / "panel.png"},
     }
+
+
+def status_lines(out: Path) -> list[str]:
+    """Where the reproduction in work folder ``out`` stands: each step's outputs (:func:`step_outputs`) and each
+    model's training progress."""
     if not out.is_dir():
         return [f"{out}: no reproduction here yet"]
     lines = [f"{out}:"]
-    for step, paths in outputs.items():
+    for step, files in step_outputs(out).items():
+        paths = list(files.values())
         have = sum(p.exists() for p in paths)
         lines.append(f"  {step:<9} {'done' if have == len(paths) else f'{have} of {len(paths)} outputs'}")
         if step == "train":
