@@ -17,7 +17,7 @@ test: venv
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-# The paper's experiment on synthetic houses (~3.5 h on 2 cores with native bf16, ~16 h on 2 AVX2-only ones); `make reproduce SCALE=small` is a quick check (~3 min
+# The paper's experiment on synthetic houses (~4.5 h on 2 cores with native bf16, ~16 h on 2 AVX2-only ones); `make reproduce SCALE=small` is a quick check (~3 min
 # on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared with other jobs).
 SCALE ?= full
 reproduce: venv

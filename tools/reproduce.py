@@ -20,7 +20,7 @@ A step whose outputs exist is skipped (``--force`` redoes it); ``detector train 
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
 1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
-CPU has native bf16 (AVX512-BF16 / AMX: about 3.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
+CPU has native bf16 (AVX512-BF16 / AMX: about 4.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
 AVX2-only cores, measured 2026-12-02). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames,
 2 epochs: ~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
 with other jobs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
@@ -151,7 +151,7 @@ def house_ids(houses_dir: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default="full",
-                   help="full (default): the issue's experiment, ~3.5 h on 2 native-bf16 cores, ~16 h on 2 "
+                   help="full (default): the issue's experiment, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
                         "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
                         "loaded machine")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
