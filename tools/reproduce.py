@@ -239,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         r.run([mp, "stats", "--density", str(data), "--config", paper_cfg["dense"], "--split", "test", "--plot",
                str(res / "density.png")])
         r.run([mp, "stats", "--density", str(data), "--config", paper_cfg["dense"], "--split", "test", "--json"],
-              stdout=res / "density.json")
+              stdout=done["stats"]["density"])
     for m in ("dense", "sparse"):
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly
         if todo("train", done["train"][m]):
@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
             cmd = [det, "bench", "--config", paper_cfg["dense"], "--config", paper_cfg["sparse"], "--config",
                    str(CONFIGS / "mpchair_sparse_exact.yaml"), "--data", str(data),
                    "--split", "test", "--frames", str(sc.bench_frames), "--trials", str(sc.bench_trials), *threads,
-                   "--json", str(res / f"bench_{alloc}.json"), "--markdown"]
+                   "--json", str(done["bench"][alloc]), "--markdown"]
             # the peer row: Open3D-ML's own PointPillars with the dense model's architecture, grid and weights
             peer = _peer_available(args.dry_run) if peer is None else peer
             if peer:
@@ -295,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
             r.run(cmd, env=env or None, stdout=res / f"bench_{alloc}.md")
     if todo("ops", done["ops"]["ops"]):
         r.run([det, "ops", "--config", paper_cfg["sparse"], "--data", str(data), "--split", "test", "--frames",
-               str(sc.ops_frames), "--out", str(res / "ops.json"), "--markdown"], stdout=res / "ops.md")
+               str(sc.ops_frames), "--out", str(done["ops"]["ops"]), "--markdown"], stdout=res / "ops.md")
     if todo("viz", done["viz"]["panel"]):
         # the test split's first frame (its ids are a seeded sample, so frame 000000 need not be in it)
         cmd = [det, "viz-sparsity", "--config", paper_cfg["sparse"], "--data", str(data), "--index", "0", "--split",
