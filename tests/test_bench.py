@@ -12,7 +12,7 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset
 
-from detector.bench import COMPONENTS, format_table, frame_density, load_eval_frames, ratio_rows
+from detector.bench import COMPONENTS, SHARED, format_table, frame_density, load_eval_frames, ratio_rows, time_shared
 from detector.cli import cli, main
 from detector.infer import load_model_from_checkpoint
 from detector.models import build_model, load_experiment
@@ -64,6 +64,32 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     assert "dense / sparse" in res.output and "Feature Extract" in res.output
     md = format_table(result, markdown=True)
     assert md.splitlines()[0].startswith("| model | To Device |") and md.count("\n| ") >= 3
+    # the shared components, timed back to back too: their own rows and ratio row, after the per-frame table
+    assert result["protocol"]["back_to_back"] == list(SHARED) == ["head", "bbox_extract"]
+    for m in result["models"]:
+        assert set(m["back_to_back"]) == set(SHARED)
+        assert all(v["mean_ms"] > 0 and v["std_ms"] >= 0 for v in m["back_to_back"].values())
+    (name, ratios), = ratio_rows(result, "back_to_back")
+    d, s = (m["back_to_back"]["bbox_extract"]["mean_ms"] for m in result["models"])
+    assert name == "dense / sparse" and set(ratios) == set(SHARED) and ratios["bbox_extract"] == pytest.approx(d / s)
+    text = format_table(result)
+    back = text[text.index("timed back to back"):].splitlines()
+    assert back[2].split() == ["model", "Head", "BBox", "Extract"] and back[5].startswith("dense / sparse")
+    assert f"{ratios['head']:.2f}x" in back[5] and "| model | Head | BBox Extract |" in md
+
+
+def test_shared_components_run_back_to_back_in_rotated_order(data) -> None:
+    """time_shared runs every model to its neck, then every Head, then every BBox Extract, starting at ``first``."""
+    cfgs = [load_experiment(c) for c in (DENSE, SPARSE, DENSE)]
+    models = [build_model(c.model).eval() for c in cfgs]
+    calls = []
+    for j, m in enumerate(models):  # record the call order of the real stages
+        m.head = lambda *a, j=j, f=m.head: calls.append(("head", j)) or f(*a)
+        m.postprocess = lambda *a, j=j, f=m.postprocess: calls.append(("bbox", j)) or f(*a)
+    points = [load_eval_frames(c, data, "test", 1)[0].points for c in cfgs]
+    ms = time_shared(models, points, torch.device("cpu"), first=2)
+    assert calls == [("head", 2), ("head", 0), ("head", 1), ("bbox", 2), ("bbox", 0), ("bbox", 1)]
+    assert ms.shape == (3, len(SHARED)) and (ms > 0).all()
 
 
 def test_bench_checkpoint_count_must_match(data) -> None:

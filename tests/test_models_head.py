@@ -5,12 +5,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from detector.models.anchors import generate_anchors
 from detector.models.backbone import SecondBackbone
 from detector.models.head import AnchorHead, SparseExactHead
-from detector.models.postprocess import postprocess
+from detector.models.postprocess import postprocess, select_candidates
 
 CHAIR = (0.96, 0.667, 0.884)
 
@@ -93,3 +94,24 @@ def test_postprocess_constructed_predictions() -> None:
     np.testing.assert_allclose(dets[0].scores.numpy(), sig, rtol=1e-6)
     assert dets[0].labels.tolist() == [0, 0, 0]
     assert dets[1].boxes.shape == (0, 7) and dets[1].scores.shape == (0,)
+
+
+@pytest.mark.parametrize("num_classes", [1, 3])
+def test_candidates_are_the_top_k_anchors_that_can_pass_the_score_threshold(num_classes: int) -> None:
+    """select_candidates scans only anchors above the score cut, yet keeps exactly what "top nms_pre by max class score,
+    then score > score_thr" keeps, on channel-planar and interleaved maps alike, highest score first."""
+    g = torch.Generator().manual_seed(0)
+    h, w, a = 12, 10, 2
+    planar = torch.randn(a * num_classes, h, w, generator=g) * 2 - 2  # (C, H, W) memory, like the head's output
+    for cls in (planar.permute(1, 2, 0), planar.permute(1, 2, 0).contiguous()):  # (H, W, A*K) views
+        scores = torch.sigmoid(cls.reshape(-1, num_classes))  # rows in anchor order (iy * W + ix) * A + a
+        best = scores.max(dim=1).values
+        for nms_pre, thr in ((5, 0.1), (40, 0.1), (1000, 0.1), (50, 0.3), (50, 0.0), (50, 1.0)):
+            idx, sc = select_candidates(cls, num_classes=num_classes, nms_pre=nms_pre, score_thr=thr)
+            top = torch.topk(best, min(nms_pre, len(best))).indices
+            expected = set(top[best[top] > thr].tolist())
+            assert set(idx[best[idx] > thr].tolist()) == expected, (nms_pre, thr)
+            assert len(idx) <= nms_pre and len(set(idx.tolist())) == len(idx)
+            torch.testing.assert_close(sc, scores[idx], atol=1e-7, rtol=0)
+            assert torch.all(best[idx][:-1] >= best[idx][1:])  # highest first
+        assert len(select_candidates(cls, num_classes=num_classes, nms_pre=1000, score_thr=0.1)[0]) > 40  # cut bites

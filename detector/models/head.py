@@ -1,7 +1,8 @@
 """Anchor head: three 1x1 convs on the neck map (the paper's "Head" timer), and its exact sparse twin.
 
 At inference the three convs run as one 1x1 conv of their stacked weights (:meth:`AnchorHead.fused`), the same code
-for the dense and the sparse model, which both hand it a channels-last map (see ``detector.models.scatter``).
+for the dense and the sparse model, which both hand it a channels-last map (see ``detector.models.scatter``), and
+write one channel-planar output (each map's channels in one block, which post-processing reads).
 
 Per cell and anchor a (A = n_sizes * n_rots): class logits at channels ``[a*K, (a+1)*K)``, 7 box residuals at
 ``[a*7, (a+1)*7)`` and 2 direction logits at ``[a*2, (a+1)*2)``. Init (reference): cls weights N(0, 0.01) with bias
@@ -10,8 +11,8 @@ Per cell and anchor a (A = n_sizes * n_rots): class logits at channels ``[a*K, (
 :class:`SparseExactHead` holds the same parameters (same ``state_dict``) but evaluates the fused 1x1 conv as one Linear
 layer on the *active* sites only and fills every other site with the bias. On a map that is exactly zero at inactive
 sites (the sparse backbone's todense output) this is the dense head's output: a 1x1 conv of a zero vector is its bias.
-The full (B, H, W, C) maps are still materialised, so post-processing (top-k over the whole map, including its tie
-order among the many equal bias scores) sees exactly what the dense head would give it.
+The full maps are still materialised, in the dense head's planar layout, so post-processing (top-k over the whole
+map, including its tie order among the many equal bias scores) sees exactly what the dense head would give it.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ CLS_PRIOR = 0.01  # initial foreground probability of every anchor (focal-loss p
 
 
 class HeadOutput(NamedTuple):
-    """Raw head maps, channels last: cls (B, H, W, A*K), reg (B, H, W, A*7), dir (B, H, W, A*2)."""
+    """Raw head maps, indexed channels last: cls (B, H, W, A*K), reg (B, H, W, A*7), dir (B, H, W, A*2). At inference
+    they are views of one channel-planar tensor (see :meth:`AnchorHead.forward`), in training contiguous maps."""
 
     cls: torch.Tensor
     reg: torch.Tensor
@@ -56,18 +58,22 @@ class AnchorHead(nn.Module):
         return weight, torch.cat([m.bias for m in convs])
 
     def split(self, out: torch.Tensor) -> HeadOutput:
-        """(B, H, W, O) output of :meth:`fused` → :class:`HeadOutput` (views of ``out``'s channel ranges)."""
+        """(B, H, W, O) output of :meth:`fused` (any strides) → :class:`HeadOutput` (views of its channel ranges)."""
         n_cls, n_reg = self.conv_cls.out_channels, self.conv_reg.out_channels
         return HeadOutput(out[..., :n_cls], out[..., n_cls : n_cls + n_reg], out[..., n_cls + n_reg :])
 
     def forward(self, x: torch.Tensor, active: torch.Tensor | None = None) -> HeadOutput:
-        """x (B, C, H, W) → :class:`HeadOutput` (channels-last views). ``active`` is accepted and unused.
+        """x (B, C, H, W) → :class:`HeadOutput` ((B, H, W, C) views). ``active`` is accepted and unused.
 
         Without autograd (inference) the three convs run as one 1x1 conv of the :meth:`fused` weight: the 384-channel
         map is read once instead of three times (measured 2x faster on a channels-last Matterport map). With autograd
         (training) they stay three convs, so training computes exactly what it computed before the fused path existed.
-        Either way a channels-last ``x`` (what both the dense and the sparse model give the head at inference) makes
-        the (B, H, W, C) outputs contiguous views, which post-processing reads without a copy.
+
+        The inference output is channel-planar: (B, H, W, C) views of one (B, O, H, W) tensor, so the class logits
+        are one contiguous 0.8 MB block on the Matterport map. Post-processing scans only that block; the interleaved
+        (B, H, W, O) output of a channels-last conv (~5 % faster to write) made it touch all 7.9 MB, and how long that
+        took depended on what the model ran before (the dense backbone's 100 MB maps left its BBox Extract ~0.4 ms
+        slower than the sparse model's on the same code: `tools/bench_bbox_extract.py`).
         """
         if torch.is_grad_enabled():
             return HeadOutput(
@@ -76,7 +82,11 @@ class AnchorHead(nn.Module):
                 self.conv_dir(x).permute(0, 2, 3, 1),
             )
         weight, bias = self.fused()
-        return self.split(F.conv2d(x, weight[:, :, None, None], bias).permute(0, 2, 3, 1))
+        b, _, h, w = x.shape
+        # (O, C) @ (C, H*W) per sample: the output is channel-planar, (B, O, H*W), so each map's channels lie in one
+        # contiguous block. x.flatten(2) is a view for channels-last and NCHW maps alike (BLAS reads it transposed).
+        out = torch.baddbmm(bias[None, :, None], weight.expand(b, -1, -1), x.flatten(2))
+        return self.split(out.unflatten(2, (h, w)).permute(0, 2, 3, 1))
 
 
 class SparseExactHead(AnchorHead):
@@ -92,6 +102,6 @@ class SparseExactHead(AnchorHead):
         # Gather the active sites' feature vectors: (N_active, C), rows in (b, y, x) order.
         bi, yi, xi = torch.nonzero(active, as_tuple=True)
         feats = x[bi, :, yi, xi]
-        out = bias.expand(b, h, w, bias.shape[0]).clone()
-        out[bi, yi, xi] = F.linear(feats, weight, bias)
-        return self.split(out)
+        out = bias[None, :, None, None].expand(b, -1, h, w).clone()  # (B, O, H, W), planar like the dense head's
+        out[bi, :, yi, xi] = F.linear(feats, weight, bias)
+        return self.split(out.permute(0, 2, 3, 1))
