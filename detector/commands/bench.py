@@ -39,6 +39,10 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     Columns: To Device, Feature Extract (voxelize + pillar net), Feature Net (scatter / sparse tensor), Backbone
     (backbone + neck, incl. todense), Head, BBox Extract (decode + NMS), Total; mean ± std over trials; a ratio row
     (first model / each other). Also records density D, machine, allocator env and page faults per frame.
+    With two or more --config, a second table times Head and BBox Extract back to back (every model to its neck,
+    then every model's Head, then every BBox Extract, order rotated per frame; --trials more passes): in the
+    per-frame pipeline they follow each model's own backbone and pay for the state it leaves, so compare these
+    identical components between models there (docs/benchmarks.md).
     --peer open3d-ml adds Open3D-ML's PointPillars (same architecture, grid and weights as the first --config) as a
     last row, and ratio rows open3d-ml / each of ours (> 1: ours is faster).
     Allocator: CPU timings depend on glibc's; compare with
