@@ -5,7 +5,9 @@ time each model's ``postprocess`` on both models' head outputs (same frames, int
 
 ``--work`` is a `tools/reproduce.py` work folder (its dataset and runs/{dense,sparse}/last.pt); the paper's 768 x 512
 configs are used, as in `detector bench`. If both postprocesses are slower on the same model's outputs, the gap is the
-input (more candidates above the score threshold reach rotated NMS), not the code.
+input (more candidates above the score threshold reach rotated NMS), not the code. If neither is, the gap in the
+per-frame pipeline is the state each model's backbone leaves behind: `detector bench`'s back-to-back table times the
+two models' post-processing after the same kind of stage (docs/benchmarks.md, "Shared components").
 """
 
 from __future__ import annotations
