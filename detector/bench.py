@@ -18,16 +18,16 @@ spikes of a shared machine hit all models alike. A trial's value of a component 
 per-instance runtime); the reported mean ± std is over trials (population std), as the paper's tables. On CUDA the
 device is synchronised before every stamp; stamps are ``time.perf_counter``.
 
-Back to back: a component runs at the speed of the state the stage before it left (caches, predictors, allocator).
-The paper calls the Head and BBox Extract identical in both models, yet in the per-frame pipeline each one follows a
-model-specific backbone: on a 2-core AMX Xeon the same post-processing took ~25 % longer after the dense backbone
-(400 ms of oneDNN convolutions) than after the sparse one, even for a single ``amax`` over the class map, and the
-gap vanished when a tiny dummy call warmed the code path first (the paper saw the same effect on GPUs and put it down
-to pipelining). So after the timed passes, ``trials`` more passes time these :data:`SHARED` components **back to
-back**: per frame every model runs to its neck (untimed), then every model's Head, then every model's BBox Extract,
-each on its own maps, in an order rotated from frame to frame, so each model's component follows the same kind of
-stage as the others'. The per-frame columns stay the paper's protocol (what a pipeline pays); the back-to-back
-columns are the components' own cost, the one to compare between models.
+Back to back: a component runs at the speed of the state the stage before it left (caches, predictors, allocator). The
+paper calls the Head and BBox Extract identical in both models, yet in the per-frame pipeline each one follows a
+model-specific backbone: on a 2-core AMX Xeon the same post-processing took 1.6x as long after the dense backbone
+(400 ms of oneDNN convolutions) as after the sparse one on identical work (random weights; 1.25-2.5x on trained ones),
+even a single ``amax`` over the class map did, and the gap vanished when a tiny dummy call warmed the code path first
+(the paper saw the same effect on GPUs and put it down to pipelining). So after the timed passes, ``trials`` more passes
+time these :data:`SHARED` components **back to back**: per frame every model runs to its neck (untimed), then every
+model's Head, then every model's BBox Extract, each on its own maps, in an order rotated from frame to frame, so each
+model's component follows the same kind of stage as the others'. The per-frame columns stay the paper's protocol (what a
+pipeline pays); the back-to-back columns are the components' own cost, the one to compare between models.
 
 The result records the data's pseudo-image density ``D`` (pillars indexed by :func:`mpchair.geometry.pillar_coords`,
 over the model's ``output_shape`` canvas) and the machine: CPU model, threads, torch version, GPU, load average, the
@@ -444,11 +444,10 @@ def format_table(result: dict, markdown: bool = False) -> str:
     """The paper-shaped table: one row per model (mean ± std ms), one ratio row per further model; then the shared
     components timed back to back (same shape), then notes."""
     lines = _table(result, "components", COMPONENTS, markdown)
-    shared = [k for k in SHARED if any(m.get("back_to_back") for m in result["models"])]
-    if shared:
-        title = (f"{' and '.join(TITLES[k] for k in shared)} timed back to back (every model's, on its own maps, order "
+    if any(m.get("back_to_back") for m in result["models"]):
+        title = (f"{' and '.join(TITLES[k] for k in SHARED)} timed back to back (every model's, on its own maps, order "
                  "rotated per frame; the components' own cost, to compare between models):")
-        lines += ["", title, ""] + _table(result, "back_to_back", shared, markdown)
+        lines += ["", title, ""] + _table(result, "back_to_back", SHARED, markdown)
     mach, dens, prot = result["machine"], result["density"], result["protocol"]
     env = ", ".join(f"{k}={v}" for k, v in mach["malloc_env"].items() if v is not None) or "unset"
     notes = [

@@ -70,10 +70,9 @@ class AnchorHead(nn.Module):
         (training) they stay three convs, so training computes exactly what it computed before the fused path existed.
 
         The inference output is channel-planar: (B, H, W, C) views of one (B, O, H, W) tensor, so the class logits
-        are one contiguous 0.8 MB block on the Matterport map. Post-processing scans only that block; the interleaved
-        (B, H, W, O) output of a channels-last conv (~5 % faster to write) made it touch all 7.9 MB, and how long that
-        took depended on what the model ran before (the dense backbone's 100 MB maps left its BBox Extract ~0.4 ms
-        slower than the sparse model's on the same code: `tools/bench_bbox_extract.py`).
+        are one contiguous 0.8 MB block on the Matterport map, which post-processing scans; the interleaved
+        (B, H, W, O) output of a channels-last conv is a little faster to write but made it touch all 7.9 MB
+        (docs/benchmarks.md, "Shared components").
         """
         if torch.is_grad_enabled():
             return HeadOutput(

@@ -54,7 +54,7 @@ def select_candidates(
     anchors at most on trained models; a sparse map's many equal bias scores reach the top-k only if they pass the
     cut, and then equal maps still select equal anchors.
     """
-    h, w, ak = cls.shape
+    _, w, ak = cls.shape
     per = cls.unflatten(-1, (ak // num_classes, num_classes))  # (H, W, A, K), a view
     best = per[..., 0] if num_classes == 1 else per.amax(dim=-1)  # (H, W, A) max class logit
     if score_thr <= 0:
@@ -73,11 +73,8 @@ def select_candidates(
     if idx.numel() > nms_pre:
         keep = torch.topk(logit, nms_pre).indices
         idx, logit = idx[keep], logit[keep]
-    order = torch.argsort(logit, descending=True, stable=True)
-    idx = idx[order]
-    cells = per.flatten(0, 1)  # (H*W, A, K), a view
-    a = per.shape[2]
-    return idx, torch.sigmoid(cells[torch.div(idx, a, rounding_mode="floor"), idx % a])
+    idx = idx[torch.argsort(logit, descending=True, stable=True)]
+    return idx, torch.sigmoid(anchor_rows(cls, idx, num_classes))
 
 
 @torch.no_grad()
@@ -100,11 +97,9 @@ def postprocess(
     ties included, so the dense head and the exact sparse head give the same detections. Runs without autograd.
     """
     b = cls.shape[0]
-    if cls.shape[1] * cls.shape[2] * cls.shape[3] != anchors.shape[0] * num_classes:
-        raise ValueError(
-            f"postprocess: {cls.shape[1] * cls.shape[2] * cls.shape[3] // num_classes} predicted anchors but "
-            f"{anchors.shape[0]} anchors"
-        )
+    predicted = math.prod(cls.shape[1:]) // num_classes
+    if predicted != anchors.shape[0]:
+        raise ValueError(f"postprocess: {predicted} predicted anchors but {anchors.shape[0]} anchors")
     out = []
     for i in range(b):
         top, scores = select_candidates(cls[i], num_classes=num_classes, nms_pre=nms_pre, score_thr=score_thr)
