@@ -50,10 +50,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from detector.config import pseudoimage_geometry
 from detector.device import use_device
 from detector.models import ExperimentConfig, PointPillars, build_model, load_experiment
-from mpchair.errors import InputError
-from mpchair.geometry import pillar_coords
+from mpchair.core.errors import InputError
+from mpchair.geometry import frame_density
 
 #: Peers ``run_bench(peer=...)`` knows, and the peer row's name (detector.peer imports Open3D-ML only when used).
 PEERS: tuple[str, ...] = ("open3d-ml",)
@@ -105,15 +106,6 @@ def load_eval_frames(
     options = augment_options(cfg)
     bar = tqdm(ids, desc="loading frames", unit="frame", disable=None if progress else True, leave=False)
     return [EvalFrame(fid, make_eval_sample(frames.load(fid), options).points) for fid in bar]
-
-
-def frame_density(points: np.ndarray, cfg: ExperimentConfig) -> tuple[int, float]:
-    """(non-empty pillars, D = pillars / (ny * nx)) of one frame under ``cfg.model``'s grid and padded canvas."""
-    m = cfg.model
-    coords, _ = pillar_coords(points, m.point_cloud_range, m.voxel_size)
-    n = int(np.unique(coords[:, 0] * (1 << 32) + coords[:, 1]).size) if len(coords) else 0
-    ny, nx = m.output_shape
-    return n, n / float(ny * nx)
 
 
 def density_summary(values: Sequence[float]) -> dict[str, float]:
@@ -307,7 +299,7 @@ def run_bench(
     nets = [build_bench_model(c, m.checkpoint, dev, seed) for c, m in zip(cfgs, models)]
     data = [load_eval_frames(c, data_dir, split, frames, progress=progress) for c in cfgs]
     n = len(data[0])
-    densities = [[frame_density(f.points, c)[1] for f in d] for c, d in zip(cfgs, data)]
+    densities = [[frame_density(f.points, pseudoimage_geometry(c.model))[2] for f in d] for c, d in zip(cfgs, data)]
     # one timing function per row: ours, then the peer on the first model's frames
     runs = [lambda pts, net=net: time_frame(net, pts, dev) for net in nets]
     if peer is not None:

@@ -4,8 +4,8 @@ A checkpoint is a ``torch.save`` dict of tensors and plain data only (numbers, s
 the model and optimiser state dicts, the LR scheduler's state, the epoch / step counters, the RNG states and the
 experiment config as a plain dict. It is read with ``torch.load(weights_only=True)``, which refuses any pickle that
 would import or call something else: a checkpoint from elsewhere cannot run code here. It is serialised in memory and
-written with :func:`mpchair.atomic.write_bytes` (temp file + rename), so a full disk is an ``OSError`` naming the file
-and a kill never leaves a half-written ``last.pt``.
+written with :func:`mpchair.core.atomic.write_bytes` (temp file + rename), so a full disk is an ``OSError`` naming
+the file and a kill never leaves a half-written ``last.pt``.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from detector.config import experiment_from_dict
 from detector.models import ExperimentConfig
-from mpchair.atomic import write_bytes
-from mpchair.config import to_dict
-from mpchair.errors import InputError
-from mpchair.experiment_config import experiment_from_dict
+from mpchair.core.atomic import write_bytes
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError
 
 CHECKPOINT_FORMAT = 1
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 def use_device(device: str, threads: int | None = None) -> torch.device:

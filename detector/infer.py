@@ -26,8 +26,8 @@ from detector.data.pipeline import make_eval_sample
 from detector.device import use_device
 from detector.experiment import augment_options, open_split
 from detector.models import Detections, ExperimentConfig, build_model, load_experiment
-from mpchair.atomic import write_text
-from mpchair.errors import InputError
+from mpchair.core.atomic import write_text
+from mpchair.core.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
 

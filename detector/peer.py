@@ -44,9 +44,9 @@ import torch
 from torch import nn
 
 from detector.bench import COMPONENTS
+from detector.config import ModelConfig
 from detector.models import PointPillars
-from mpchair.errors import InputError
-from mpchair.experiment_config import ModelConfig
+from mpchair.core.errors import InputError
 
 #: Open3D-ML's multiclass_nms hard-codes this BEV IoU threshold.
 OPEN3D_ML_NMS_IOU = 0.01

@@ -54,16 +54,16 @@ from torch import nn
 from tqdm import tqdm
 
 from detector.checkpoint import load_checkpoint, save_checkpoint
+from detector.config import Precision, experiment_from_dict
 from detector.data import GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
 from detector.experiment import augment_options, open_split
 from detector.infer import evaluate_model
 from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
-from mpchair.atomic import write_text
-from mpchair.config import to_dict
-from mpchair.errors import InputError
-from mpchair.experiment_config import Precision, experiment_from_dict
+from mpchair.core.atomic import write_text
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError
+from mpchair.core.lock import folder_lock
 from mpchair.kitti import imageset_path
-from mpchair.lock import folder_lock
 
 #: Seconds between mid-epoch ``last.pt`` saves (rank 0), so a long epoch interrupted late loses little work.
 SAVE_INTERVAL_S = 900.0

@@ -26,8 +26,8 @@ from torch import nn
 from detector.bench import build_bench_model, load_eval_frames
 from detector.experiment import open_split
 from detector.models import ExperimentConfig, PointPillars, load_experiment
-from mpchair.atomic import write_bytes
-from mpchair.errors import InputError
+from mpchair.core.atomic import write_bytes
+from mpchair.core.errors import InputError
 from mpchair.kitti import imageset_path
 
 STAGES: tuple[str, ...] = ("input", "block1", "block2", "block3")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from mpchair import __version__
-from mpchair.clitools import LazyGroup, run_cli
+from mpchair.core.clitools import LazyGroup, run_cli
 
 COMMANDS = {
     "synth": "mpchair.commands.synth:synth",

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from detector.data import bev_boxes_overlap
-from mpchair.atomic import write_bytes
+from mpchair.core.atomic import write_bytes
 from mpchair.geometry import boxes_to_kitti_camera, make_tr_velo_to_cam, project_boxes_to_image
 from mpchair.kitti import (
     Calib,

@@ -1,8 +1,8 @@
 """Fault injection for tests/test_faults.py: SIGKILL at a chosen file rename, a run in a forked child, folder trees.
 
-Every file the project writes is renamed into place by ``mpchair.atomic`` with ``os.replace``, so "SIGKILL just before
-rename N" (or before the rename onto a path ending in a given suffix) reaches every state a killed run can leave on
-disk: the renamed files before it, the temp file of this one. The hook replaces ``os.replace`` in the process that
+Every file the project writes is renamed into place by ``mpchair.core.atomic`` with ``os.replace``, so "SIGKILL just
+before rename N" (or before the rename onto a path ending in a given suffix) reaches every state a killed run can leave
+on disk: the renamed files before it, the temp file of this one. The hook replaces ``os.replace`` in the process that
 runs the command (a forked child, or ``python tests/helpers_faults.py SUFFIX -- detector ...``); production code is
 not changed.
 

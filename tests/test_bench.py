@@ -12,11 +12,13 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset
 
-from detector.bench import COMPONENTS, SHARED, format_table, frame_density, load_eval_frames, ratio_rows, time_shared
+from detector.bench import COMPONENTS, SHARED, format_table, load_eval_frames, ratio_rows, time_shared
 from detector.cli import cli, main
+from detector.config import pseudoimage_geometry
 from detector.infer import load_model_from_checkpoint
 from detector.models import build_model, load_experiment
 from detector.train import save_checkpoint
+from mpchair.geometry import frame_density
 
 DENSE = "configs/models/mpchair_dense_smoke.yaml"
 SPARSE = "configs/models/mpchair_sparse_smoke.yaml"
@@ -53,7 +55,7 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     # density: the same pillar rule as the voxelizer, over the 96 x 64 canvas
     cfg = load_experiment(DENSE)
     frames = load_eval_frames(cfg, data, "test", 2)
-    ds = sorted(frame_density(f.points, cfg)[1] for f in frames)
+    ds = sorted(frame_density(f.points, pseudoimage_geometry(cfg.model))[2] for f in frames)
     assert result["density"]["min"] == pytest.approx(ds[0]) and result["density"]["max"] == pytest.approx(ds[-1])
     assert 0 < ds[0] < 1 and result["density"]["geometry"]["output_shape"] == [96, 64]
     # ratio row: dense / sparse of the means, printed

@@ -17,8 +17,8 @@ from detector.cli import COMMANDS as DETECTOR_COMMANDS
 from detector.cli import cli as detector_cli
 from mpchair.cli import COMMANDS as MPCHAIR_COMMANDS
 from mpchair.cli import cli as mpchair_cli
-from mpchair.clitools import run_cli
-from mpchair.errors import InputError
+from mpchair.core.clitools import run_cli
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels, read_imageset, read_labels, write_labels
 
 #: What a command's help must tell beyond its options.

@@ -1,4 +1,5 @@
-"""mpchair.config (YAML → frozen dataclasses, errors named by file and key) and mpchair.atomic (no partial files)."""
+"""mpchair.core.config (YAML → frozen dataclasses, errors named by file and key) and mpchair.core.atomic (no partial
+files)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ from typing import Literal
 
 import pytest
 
-from mpchair.atomic import atomic_open, write_bytes, write_text
-from mpchair.config import from_dict, load_config, to_dict
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open, write_bytes, write_text
+from mpchair.core.config import from_dict, load_config, to_dict
+from mpchair.core.errors import InputError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,7 +23,7 @@ from detector.data import (
     sample_rng,
 )
 from detector.data.pipeline import TrainingSet
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import bev_polygons, points_in_boxes
 
 RANGE = (0.0, -6.4, -1.0, 12.8, 6.4, 2.0)

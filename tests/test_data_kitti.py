@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from detector.data import KittiDataset, load_frame
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import fov_mask, points_in_boxes
 from mpchair.kitti import frame_paths, read_calib, read_velodyne, write_velodyne
 

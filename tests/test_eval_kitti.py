@@ -11,7 +11,7 @@ import pytest
 
 from detector.cli import main
 from detector.eval import evaluate, evaluate_folders, format_table, get_thresholds
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels, read_labels, write_imageset, write_labels
 
 

@@ -13,7 +13,7 @@ from detector.cli import main
 from detector.eval import evaluate, evaluate_folders, evaluate_open3d_ml, format_table
 from detector.eval.open3d_ml import REFERENCE_SIMILAR_CLASSES
 from detector.infer import evaluate_checkpoint
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, labels_to_boxes, make_tr_velo_to_cam
 from mpchair.kitti import Calib, Labels, write_imageset, write_labels
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mpchair.core.errors import InputError
 from mpchair.dataset.generate import GenerateRequest, generate, shard_frames
 from mpchair.dataset.splits import split_frames
-from mpchair.errors import InputError
 from mpchair.geometry import (
     canonical_yaw,
     fov_mask,

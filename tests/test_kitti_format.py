@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from PIL import Image
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import (
     Calib,
     Labels,

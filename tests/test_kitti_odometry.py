@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import yaw_matrix
 from mpchair.kitti import format_times, read_poses, read_times, write_poses, write_times
 

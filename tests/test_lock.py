@@ -1,4 +1,4 @@
-"""mpchair.lock: a folder lock held by another process refuses a second holder, dies with its holder (SIGKILL), and
+"""mpchair.core.lock: a folder lock held by another process refuses a second holder, dies with its holder (SIGKILL), and
 leaves no file behind; probes find exactly the held locks."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from mpchair.errors import InputError
-from mpchair.lock import folder_lock, held
+from mpchair.core.errors import InputError
+from mpchair.core.lock import folder_lock, held
 
 
 def _holder(path) -> int:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from mpchair.cli import main
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import mp3d_to_habitat
 from mpchair.matterport import HouseWarning, find_houses, read_house
 from mpchair.matterport.house import habitat_object_ids

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mpchair.cli import main
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.matterport import read_house
 from mpchair.matterport.housefile import parse_house_text
 from mpchair.matterport.ply import encode_ply, read_ply

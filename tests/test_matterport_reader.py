@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.matterport import (
     CHAIR,
     HouseWarning,

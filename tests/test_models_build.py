@@ -1,4 +1,4 @@
-"""Experiment configs (mpchair.experiment_config), the builder, and a tiny dense training run (detector.models)."""
+"""Experiment configs (detector.config), the builder, and a tiny dense training run (detector.models)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import pytest
 import torch
 from test_sparse_backbone import dense_reference, randomise_norms
 
+from detector.config import ModelConfig, check_model_config
 from detector.models import build_model, load_experiment
 from detector.models.box_coder import decode_boxes
 from detector.models.sparse_backbone import SparseBackboneNeck
-from mpchair.config import to_dict
-from mpchair.errors import InputError
-from mpchair.experiment_config import ModelConfig, check_model_config
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs" / "models").glob("*.yaml"))
 

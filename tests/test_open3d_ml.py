@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mpchair.core.errors import InputError
 from mpchair.dataset.generate import GenerateRequest, generate
-from mpchair.errors import InputError
 from mpchair.geometry import box_corners, labels_to_boxes
 from mpchair.kitti import frame_paths, read_calib, read_imageset, read_labels, read_velodyne
 from mpchair.kitti.open3d_ml import open3d_ml_dataset

@@ -50,7 +50,7 @@ def test_second_process_loads_the_compiled_kernels(tmp_path: Path) -> None:
 
 MODULE = """
     import numpy as np
-    from mpchair.jit import njit_cached
+    from mpchair.core.jit import njit_cached
 
     @njit_cached
     def total(a):

@@ -20,7 +20,7 @@ import detector.peer as peer_mod
 from detector.bench import COMPONENTS, build_bench_model, load_eval_frames, ratio_rows
 from detector.cli import main
 from detector.models import load_experiment
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 pytest.importorskip("open3d.ml.torch", reason="Open3D-ML (the project's open3d extra) is not installed")
 

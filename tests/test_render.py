@@ -14,12 +14,12 @@ from click.testing import CliRunner
 from PIL import Image
 from test_stats import KITTI, build_small_dataset, independent_density, run_main, small_calib
 
+from mpchair.analysis.render import render_house
+from mpchair.analysis.stats import MATTERPORT_GEOMETRY
 from mpchair.cli import cli
 from mpchair.dataset.generate import GenerateRequest, generate
 from mpchair.geometry import boxes_to_kitti_camera
 from mpchair.kitti import Labels, read_velodyne, write_labels
-from mpchair.render import render_house
-from mpchair.stats import MATTERPORT_GEOMETRY
 from mpchair.synth import write_synthetic_houses
 
 

@@ -64,7 +64,7 @@ def _started_run(out: Path, model: str, steps: int, precision: str = "fp32") -> 
 def test_status_shows_each_step_and_where_training_stands(tmp_path: Path, capsys) -> None:
     """--status: done steps, a model's step of its total with the time left at its pace, and whether a process holds
     its run folder's lock right now."""
-    from mpchair.lock import folder_lock
+    from mpchair.core.lock import folder_lock
 
     reproduce = _reproduce()
     out = tmp_path / "w"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from mpchair.cli import main
+from mpchair.core.errors import InputError
 from mpchair.dataset.frame import build_context, frame_rng
-from mpchair.errors import InputError
 from mpchair.geometry import mp3d_to_habitat
 from mpchair.matterport import read_house
 from mpchair.matterport.navmesh import POLY_DISABLED, encode_navmesh, read_navmesh

@@ -57,7 +57,7 @@ def test_embree_and_open3d_agree_on_a_full_scan():
 
 
 def test_bad_meshes_and_backends_are_rejected():
-    from mpchair.errors import InputError
+    from mpchair.core.errors import InputError
 
     with pytest.raises(InputError, match="available: embree, open3d"):
         make_raycaster(np.zeros((3, 3)), np.array([[0, 1, 2]]), "optix")

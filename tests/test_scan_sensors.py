@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import SENSOR_TO_CAMERA
 from mpchair.scan.sensors import (
     available_sensors,

@@ -7,8 +7,8 @@ import pytest
 import shapely
 from helpers_scenes import TABLE, HouseBuilder
 
+from mpchair.core.errors import InputError
 from mpchair.dataset.frame import FrameSettings, build_context, frame_rng, make_frame
-from mpchair.errors import InputError
 from mpchair.scan.sensors import load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams, viewpoint_stream
 

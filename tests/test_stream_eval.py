@@ -19,7 +19,7 @@ from detector.infer import boxes_to_results
 from detector.stream import Source, prepare, read_stream, score
 from detector.stream.run import query_labels, query_sources
 from detector.stream.score import evaluate_overall
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Labels, write_labels
 from mpchair.stream import StreamRequest, stream

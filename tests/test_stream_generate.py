@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mpchair.core.errors import InputError
 from mpchair.dataset.frame import build_context, cast_scan, floor_areas, label_pose
-from mpchair.errors import InputError
 from mpchair.geometry import in_region, labels_to_boxes, wrap_angle, yaw_of
 from mpchair.kitti import DONTCARE, read_calib, read_labels, read_poses, read_times, read_velodyne
 from mpchair.labels.filters import OUTSIDE_REGION_REASONS
@@ -171,7 +171,7 @@ def test_clear_errors(house_root, tmp_path, made):
 def test_a_held_folder_is_refused_and_a_killed_first_settings_write_resumes(house_root, tmp_path):
     """A second `mpchair stream` on a folder a live one holds gets one error and touches nothing; a folder left with
     only the temp file of a killed first `.stream.json` write (and a stale lock file) is resumed, not refused."""
-    from mpchair.lock import folder_lock
+    from mpchair.core.lock import folder_lock
 
     root, house = house_root
     req = StreamRequest(root=root, houses=(house.id,), episodes=1, out=tmp_path / "s", rate=1.0, duration=2.0,

@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
-    from mpchair.heap import keep_freed_memory
+    from mpchair.core.heap import keep_freed_memory
 
     keep_freed_memory()  # as `mpchair generate` does (its workers do it too)
     with tempfile.TemporaryDirectory(prefix="mpchair-bench-", dir=args.workdir) as tmp:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import write_bytes
+from mpchair.core.atomic import write_bytes
 from mpchair.matterport import find_houses, read_house
 from mpchair.matterport.housefile import format_house
 from mpchair.matterport.jsonfiles import encode_fsegs, encode_semseg

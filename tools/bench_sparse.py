@@ -59,7 +59,7 @@ from detector.models.sparse_backbone import SparseBackboneNeck  # noqa: E402
 from detector.sparse import SparseTensor, SubMConv2d  # noqa: E402
 from detector.sparse.conv import GEMM_MIN_FILL  # noqa: E402
 from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites  # noqa: E402
-from mpchair.atomic import write_text  # noqa: E402
+from mpchair.core.atomic import write_text  # noqa: E402
 
 REUSE_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
 PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}

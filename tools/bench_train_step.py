@@ -28,8 +28,8 @@ from typing import get_args
 
 import torch
 
+from detector.config import Precision
 from detector.train import train
-from mpchair.experiment_config import Precision
 
 PRECISIONS = get_args(Precision)  # ("fp32", "bf16"): the ratio is fp32 / bf16
 

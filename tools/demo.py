@@ -16,8 +16,8 @@ if str(ROOT) not in sys.path:  # run as a script from a fresh checkout, before `
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mpchair.core.errors import InputError
     from mpchair.dataset.generate import GenerateRequest, default_workers, generate
-    from mpchair.errors import InputError
     from mpchair.synth import synthesize_house, write_house
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script: mpchair.atomic from this checkout
+if str(ROOT) not in sys.path:  # run as a script: mpchair.core.atomic from this checkout
     sys.path.insert(0, str(ROOT))
 # The console script installed next to this interpreter: the venv's mpchair, not whatever is first on PATH.
 MPCHAIR = Path(sys.executable).with_name("mpchair")
@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     except (CommandError, json.JSONDecodeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    from mpchair.atomic import write_text
+    from mpchair.core.atomic import write_text
 
     write_text(args.doc, filled)
     gen, manifest = m["generate"], m["manifest"]

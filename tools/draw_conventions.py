@@ -18,7 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mpchair.atomic import write_bytes  # noqa: E402
+from mpchair.core.atomic import write_bytes  # noqa: E402
 from mpchair.geometry import box_corners, boxes_to_kitti_camera, make_tr_velo_to_cam, transform_points  # noqa: E402
 from mpchair.kitti import Calib  # noqa: E402
 

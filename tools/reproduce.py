@@ -322,7 +322,7 @@ def _peer_available(dry_run: bool) -> bool:
     if dry_run:
         return importlib.util.find_spec("open3d") is not None
     from detector.peer import open3d_ml_pointpillars
-    from mpchair.errors import InputError
+    from mpchair.core.errors import InputError
 
     try:
         open3d_ml_pointpillars()
@@ -620,7 +620,7 @@ def _train_status(out: Path, model: str) -> str:
     """One line on a model's training in work folder ``out``: trained, not started, or at step s of N with its recent
     pace and the time left, and whether a process is training it right now (its run folder's lock is held)."""
     from detector.train import format_duration
-    from mpchair.lock import held
+    from mpchair.core.lock import held
 
     run = out / "runs" / model
     if (run / "done").exists():
@@ -778,7 +778,7 @@ def _epochs_text(sc: Scale) -> str:
 def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes: list[str] | None = None) -> None:
     """docs/results.md from the step outputs that exist (missing ones are named); ``notes``: sentences the operator
     adds to the opening paragraph (how the run deviated from the plain command)."""
-    from mpchair.atomic import write_text
+    from mpchair.core.atomic import write_text
 
 
     img_dir = path.parent / "img" / f"results-{scale}"

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from mpchair.atomic import write_bytes
+from mpchair.core.atomic import write_bytes
 from mpchair.geometry import fov_mask
 from mpchair.kitti import (
     frame_paths,

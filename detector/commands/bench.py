@@ -52,8 +52,8 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         --data dataset/ --frames 20 --trials 3 --threads 2 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
-    from mpchair.atomic import write_text
-    from mpchair.errors import InputError
+    from mpchair.core.atomic import write_text
+    from mpchair.core.errors import InputError
 
     if checkpoints and len(checkpoints) != len(configs):
         raise InputError(f"give one --checkpoint per --config ('-' for random weights): {len(checkpoints)} "

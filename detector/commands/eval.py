@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 def _parse_min_overlaps(values: tuple[str, ...]) -> dict[str, tuple[float, float, float]]:

@@ -32,8 +32,8 @@ def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as
       detector ops --config configs/models/mpchair_sparse.yaml --data dataset/ --frames 50
     """
     from detector.opcount import count_dataset, format_counts
-    from mpchair.atomic import write_text
-    from mpchair.errors import InputError
+    from mpchair.core.atomic import write_text
+    from mpchair.core.errors import InputError
 
     if frames < 1 or start < 0:
         raise InputError(f"need --frames >= 1 and --start >= 0 (got {frames}, {start})")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 @click.command("stream-eval", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
@@ -69,7 +69,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
     if latency_log is not None and (replay is not None or latency_ms is not None):
         raise InputError("--latency-log records measured latencies; it cannot go with --latency-ms or a replayed log")
     if rerun_out is not None:
-        from mpchair.rerun_log import check_rerun_path
+        from mpchair.recording.rerun import check_rerun_path
 
         check_rerun_path(rerun_out)
     if json_out is not None and str(json_out) != "-" and json_out.suffix.lower() != ".json":
@@ -82,7 +82,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
     if save_results is not None:
         write_results(prep, save_results)
     if latency_log is not None:
-        from mpchair.atomic import write_text
+        from mpchair.core.atomic import write_text
 
         write_text(latency_log, json.dumps(prep.latency_log, sort_keys=True, indent=1) + "\n")
     text = json.dumps(summary, sort_keys=True, indent=1) + "\n"
@@ -91,7 +91,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
 
         log_stream_eval(prep, rerun_out)
     if json_out is not None and str(json_out) != "-":
-        from mpchair.atomic import write_text
+        from mpchair.core.atomic import write_text
 
         write_text(json_out, text)
     if json_out is not None and str(json_out) == "-":

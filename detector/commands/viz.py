@@ -6,7 +6,7 @@ import json
 
 import click
 
-from mpchair.clitools import FRAME_ID
+from mpchair.core.clitools import FRAME_ID
 
 
 @click.command("viz-sparsity")

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from mpchair.atomic import atomic_open
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import InputError
 from mpchair.geometry import bev_polygons, points_in_boxes
 
 _FORMAT = 1  # bump when the file layout changes

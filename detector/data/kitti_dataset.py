@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import fov_mask, labels_to_boxes
 from mpchair.kitti import (
     Calib,

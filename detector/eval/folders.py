@@ -8,7 +8,7 @@ from pathlib import Path
 from detector.eval.kitti import EvalResult
 from detector.eval.open3d_ml import Open3DMLResult
 from detector.eval.protocols import Protocol, check_protocol, evaluate_protocol
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels, read_labels
 
 

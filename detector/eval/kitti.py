@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from detector.ops.iou import camera_boxes, camera_overlaps_indexed
-from mpchair.jit import njit_cached
+from mpchair.core.jit import njit_cached
 from mpchair.kitti import DONTCARE, Labels
 
 DIFFICULTIES: tuple[str, ...] = ("easy", "moderate", "hard")

@@ -28,7 +28,7 @@ this against ``BEVBox3D.to_dicts`` on sensor-frame boxes. (The reference's KITTI
 KITTI reader, whose camera boxes span upward: the true 3D IoU. Only the 3D metric can differ.)
 
 Needs Open3D with its ML part (``pip install 'open3d-cpu[ml]'``, the project's ``open3d`` extra); without it the
-protocol is an :class:`mpchair.errors.InputError`.
+protocol is an :class:`mpchair.core.errors.InputError`.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import numpy as np
 
 from detector.eval.kitti import check_inputs, resolve_min_overlaps
 from detector.ops.iou import camera_boxes
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels
 
 PROTOCOL = "open3d-ml"

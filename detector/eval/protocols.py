@@ -9,7 +9,7 @@ from typing import Literal
 
 from detector.eval.kitti import EvalResult, evaluate
 from detector.eval.open3d_ml import Open3DMLResult, evaluate_open3d_ml, load_open3d_ml_map
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels
 
 Protocol = Literal["kitti", "open3d-ml"]

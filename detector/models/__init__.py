@@ -8,13 +8,13 @@ Stages in the order of the paper's timers: ``voxelizer`` (points → pillars, th
 ``(N, 7) [x, y, z_centre, l, w, h, yaw]`` in the sensor frame (x forward, y left, z up, metres), yaw CCW from +x.
 """
 
+from detector.config import ExperimentConfig, ModelConfig, load_experiment
 from detector.models.assign import Targets, assign_targets
 from detector.models.build import build_model
 from detector.models.head import HeadOutput
 from detector.models.losses import compute_loss
 from detector.models.pointpillars import PointPillars
 from detector.models.postprocess import Detections
-from mpchair.experiment_config import ExperimentConfig, ModelConfig, load_experiment
 
 __all__ = [
     "Detections",

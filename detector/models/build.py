@@ -7,6 +7,7 @@ are ``Literal`` config fields, each chosen by one ``match`` here.
 
 from __future__ import annotations
 
+from detector.config import ModelConfig, check_model_config
 from detector.models.anchors import generate_anchors
 from detector.models.backbone import SecondBackbone
 from detector.models.head import AnchorHead, SparseExactHead
@@ -14,7 +15,6 @@ from detector.models.neck import SecondFPN
 from detector.models.pillar_net import PillarFeatureNet
 from detector.models.pointpillars import PointPillars
 from detector.models.sparse_backbone import SparseBackboneNeck
-from mpchair.experiment_config import ModelConfig, check_model_config
 
 
 def head_feature_size(cfg: ModelConfig) -> tuple[int, int]:

@@ -33,7 +33,7 @@ class PointPillars(nn.Module):
     """Dense or sparse PointPillars. Sub-modules: ``pillar_encoder``, ``backbone``, ``neck`` (None for the sparse
     variants, whose backbone includes the neck), ``anchor_head``; ``anchors`` is a non-persistent buffer (H*W*A, 7).
 
-    Geometry kwargs as :class:`mpchair.experiment_config.ModelConfig` (metres, sensor frame). ``sparse_input``: the
+    Geometry kwargs as :class:`detector.config.ModelConfig` (metres, sensor frame). ``sparse_input``: the
     backbone consumes a ``SparseTensor`` (no scatter) and returns ``(map, active)``; otherwise it consumes the dense
     canvas and returns a list of maps for ``neck``.
     """

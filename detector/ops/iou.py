@@ -24,7 +24,7 @@ vectorised numpy Sutherland–Hodgman over the same pairs (both float64, boxes 0
 pairs overlap): 10 x 10 pairs numba 0.02 ms vs numpy 0.8 ms, 100 x 100 numba 1.3 ms vs numpy 96 ms (the numpy form
 must carry fixed-size vertex buffers and compact them with gathers at every clip edge). Hence numba.
 ``tools/bench_eval.py`` times the evaluator that uses it. Every kernel of ``detector.ops`` (NMS's too) lives in this
-file and is compiled with :func:`mpchair.jit.njit_cached`: the machine code is cached on disk, so only the first
+file and is compiled with :func:`mpchair.core.jit.njit_cached`: the machine code is cached on disk, so only the first
 process after a change compiles (about 4.5 s); later ones load it (about 0.1 s).
 """
 
@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from mpchair.jit import njit_cached
+from mpchair.core.jit import njit_cached
 
 # Vertex buffer of the clip. A convex quad clipped by 4 half-planes has at most 8 vertices; each step can at most
 # double the count even when rounding makes the polygon slightly non-convex, so 4 * 2**4 = 64 can never overflow.

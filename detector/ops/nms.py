@@ -7,7 +7,7 @@ import sys
 import numpy as np
 
 # The kernel lives in iou.py next to the clip it calls: numba's cache of a kernel is invalidated only by changes
-# to its own file (see mpchair/jit.py).
+# to its own file (see mpchair/core/jit.py).
 from detector.ops.iou import _nms_kernel
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti import Calib, Labels, read_calib, read_labels, read_poses, read_times
 
 

@@ -1,4 +1,4 @@
-"""``detector stream-eval --rerun``: the stream's recording (:func:`mpchair.rerun_log.log_stream`) plus, at every
+"""``detector stream-eval --rerun``: the stream's recording (:func:`mpchair.recording.rerun.log_stream`) plus, at every
 frame, the boxes the detector had at that moment: ``detections/raw`` as emitted (stale, read in the current sensor
 frame) and ``detections/ego`` moved by the robot's motion since their input frame."""
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 from detector.stream.run import Prepared, query_sources
 from detector.stream.score import moved_boxes
-from mpchair.rerun_log import BLUE, RED, Recorder, log_stream
+from mpchair.recording.rerun import BLUE, RED, Recorder, log_stream
 
 
 def log_stream_eval(prep: Prepared, out: str | Path) -> dict:

@@ -19,7 +19,7 @@ from detector.stream.data import Stream
 from detector.stream.outputs import ModelRunner, Output, oracle_outputs, result_outputs
 from detector.stream.schedule import Schedule, latest_outputs, single_worker, unbounded_workers
 from detector.stream.score import MODES, evaluate_overall, query_results
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Calib, Labels
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 def _parse_shard(value: str) -> tuple[int, int]:
@@ -69,11 +69,11 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
       mpchair generate --root mp3d/ --house A --house B --frames 3750 --height 1.25 --split-mode paper --out mpc/
       mpchair generate ... --shard 3/8        # one job of a cluster array
     """
+    from mpchair.core.heap import keep_freed_memory
     from mpchair.dataset.generate import GenerateRequest
     from mpchair.dataset.generate import generate as run
-    from mpchair.heap import keep_freed_memory
 
-    keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/heap.py)
+    keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/core/heap.py)
 
     req = GenerateRequest(
         root=root, houses=tuple(houses), frames=frames, out=out, sensor=sensor, seed=seed, height=height,

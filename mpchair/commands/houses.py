@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 def _navmesh_summary(house) -> dict | None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
@@ -47,8 +47,8 @@ def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | No
       mpchair stats --density tests/data/kitti --preset kitti --json
       mpchair stats --boxes dataset/ --plot boxes.png
     """
-    from mpchair import render
-    from mpchair import stats as lib
+    from mpchair.analysis import render
+    from mpchair.analysis import stats as lib
 
     if mode is None:
         raise click.UsageError("choose --density or --boxes")

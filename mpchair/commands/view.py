@@ -8,8 +8,8 @@ from pathlib import Path
 
 import click
 
-from mpchair.clitools import FRAME_ID
-from mpchair.errors import InputError
+from mpchair.core.clitools import FRAME_ID
+from mpchair.core.errors import InputError
 
 _CTX = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
 
@@ -59,7 +59,7 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
     if rerun_out is not None:
         _rerun(dataset, rerun_out, limit, as_json, other=frame is not None or out is not None)
         return
-    from mpchair.render import RenderError, default_zmax, frame_picture
+    from mpchair.analysis.render import RenderError, default_zmax, frame_picture
 
     if frame is None or out is None:
         raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd")
@@ -101,7 +101,7 @@ def _zmax(value: str) -> float | None:
 
 def _rerun(dataset: Path, out: Path, limit: int | None, as_json: bool, other: bool) -> None:
     """``mpchair view --rerun``: a stream (``stream.json``) or a dataset as a Rerun recording."""
-    from mpchair.rerun_log import check_rerun_path, log_dataset, log_stream
+    from mpchair.recording.rerun import check_rerun_path, log_dataset, log_stream
 
     if other:
         raise InputError("--rerun writes a recording of the whole folder; leave out --frame / --out")
@@ -139,7 +139,7 @@ def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Pat
     Example:
       mpchair view-house --root houses/ --house synth0000 --out house.png --dataset dataset/
     """
-    from mpchair.render import house_picture
+    from mpchair.analysis.render import house_picture
 
     _png(out, "--out")
     if size is not None and min(size) < 64:

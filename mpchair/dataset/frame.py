@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import write_bytes, write_text
+from mpchair.core.atomic import write_bytes, write_text
+from mpchair.core.errors import InputError
+from mpchair.core.jit import njit_cached
 from mpchair.dataset.image import depth_image, png_bytes
-from mpchair.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image, rotate_vectors
-from mpchair.jit import njit_cached
 from mpchair.kitti import DONTCARE, Calib, Labels, format_calib, frame_paths, write_labels, write_velodyne
 from mpchair.labels.filters import OUTSIDE_REGION_REASONS, LabelFilters
 from mpchair.labels.select import BoxDecisions, apply_scan_points, decide_boxes

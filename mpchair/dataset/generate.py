@@ -37,8 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from mpchair import __version__
-from mpchair.atomic import temp_glob, write_text
-from mpchair.config import to_dict
+from mpchair.core.atomic import temp_glob, write_text
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError, RunError
+from mpchair.core.heap import keep_freed_memory
+from mpchair.core.lock import folder_lock, held, wait_lock
 from mpchair.dataset.frame import (
     FrameSettings,
     build_context,
@@ -52,10 +55,7 @@ from mpchair.dataset.frame import (
 )
 from mpchair.dataset.splits import split_frames
 from mpchair.dataset.workers import WorkerDied, imap_unordered
-from mpchair.errors import InputError, RunError
-from mpchair.heap import keep_freed_memory
 from mpchair.kitti import write_imageset
-from mpchair.lock import folder_lock, held, wait_lock
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House, objects_of, read_house
 from mpchair.matterport.source import SUFFIXES, HouseSource, find_houses
@@ -196,7 +196,7 @@ def _init_state(houses: dict[str, House], settings: FrameSettings, cats: frozens
 
 
 def _init_worker(*args) -> None:
-    """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.heap``)."""
+    """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.core.heap``)."""
     keep_freed_memory()
     _init_state(*args)
 

@@ -19,7 +19,7 @@ import zlib
 import numpy as np
 from isal import isal_zlib
 
-from mpchair.jit import njit_cached
+from mpchair.core.jit import njit_cached
 from mpchair.kitti import Calib
 
 

@@ -16,7 +16,7 @@ import zlib
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 SPLIT_MODES = ("frame", "house", "paper")
 FRACTIONS = (0.6, 0.2, 0.2)

@@ -2,9 +2,9 @@
 ``[x, y, z, l, w, h, yaw]`` (geometric centre, ``l`` along the heading, yaw CCW about +z from +x) in the sensor frame
 (x forward, y left, z up, metres) unless a docstring says world frame (Matterport, z up, metres). ``frames`` holds
 angle wrapping and rigid 4×4 transforms, ``boxes`` corners / BEV polygons / point membership, ``camera`` the
-conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule,
-``region`` the labelled region (box centre height, distance, field of view). See
-``docs/conventions.md``.
+conversions to and from KITTI camera labels and image_2 projection, ``pillars`` the one pillar indexing rule and the
+pseudoimage grid (``PseudoimageGeometry``, ``frame_density``), ``region`` the labelled region (box centre height,
+distance, field of view). See ``docs/conventions.md``.
 """
 
 from mpchair.geometry.boxes import bev_polygons, box_corners, points_in_boxes
@@ -33,11 +33,24 @@ from mpchair.geometry.frames import (
     yaw_matrix,
     yaw_of,
 )
-from mpchair.geometry.pillars import grid_size, pillar_coords
+from mpchair.geometry.pillars import (
+    KITTI_GEOMETRY,
+    MATTERPORT_GEOMETRY,
+    PseudoimageGeometry,
+    frame_density,
+    geometry_from_model_yaml,
+    grid_size,
+    pillar_coords,
+)
 from mpchair.geometry.region import REGION_TESTS, in_region, region_failures
 
 __all__ = [
     "BOX_EDGES",
+    "KITTI_GEOMETRY",
+    "MATTERPORT_GEOMETRY",
+    "PseudoimageGeometry",
+    "frame_density",
+    "geometry_from_model_yaml",
     "HABITAT_TO_MP3D",
     "NEAR_PLANE",
     "REGION_TESTS",

@@ -1,4 +1,4 @@
-"""The one pillar indexing rule, shared by the detector's voxelizer and ``mpchair stats --density``.
+"""The one pillar indexing rule and the pseudoimage grid, shared by the detector's voxelizer and ``mpchair stats``.
 
 ``pc_range = (x_min, y_min, z_min, x_max, y_max, z_max)`` (sensor frame, metres); a point is kept iff
 ``min <= p < max`` on x, y and z (half-open), and its pillar is ``(iy, ix) = floor((p - min) / voxel)`` on y and x.
@@ -7,8 +7,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
+
+from mpchair.core.config import from_dict, load_yaml
+from mpchair.core.errors import InputError
 
 
 def _range_and_voxel(pc_range: Sequence[float], voxel_size: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -55,3 +60,95 @@ def pillar_coords(
     iy = np.floor((kept[:, 1] - r[1]) / v[1]).astype(np.int64)
     coords = np.stack([np.minimum(iy, ny - 1), np.minimum(ix, nx - 1)], axis=1)
     return coords, keep
+
+
+# ------------------------------------------------------------------------------------------- the pseudoimage grid
+
+
+@dataclass(frozen=True)
+class PseudoimageGeometry:
+    """The pillar grid of a model: where points are kept and how large the pseudoimage canvas is.
+
+    ``point_cloud_range`` ``(x_min, y_min, z_min, x_max, y_max, z_max)`` sensor frame, metres; ``voxel_size``
+    ``(vx, vy)`` metres; ``grid`` ``(W, H)`` = ``(nx, ny)`` cells of the (possibly padded) canvas. The one definition
+    of the canvas that the detector's density figures and ``mpchair stats --density`` share.
+    """
+
+    point_cloud_range: tuple[float, float, float, float, float, float]
+    voxel_size: tuple[float, float]
+    grid: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        try:
+            nx, ny = grid_size(self.point_cloud_range, self.voxel_size)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+        W, H = self.grid
+        if W < nx or H < ny:
+            raise InputError(
+                f"grid {W} x {H} is smaller than the range's {nx} x {ny} pillars (range {list(self.point_cloud_range)}"
+                f", voxel {list(self.voxel_size)})")
+
+    @property
+    def real_grid(self) -> tuple[int, int]:
+        """``(nx, ny)``: pillars the range itself spans (``<= grid``)."""
+        return grid_size(self.point_cloud_range, self.voxel_size)
+
+    def to_dict(self) -> dict:
+        """JSON-able form (``grid`` and ``real_grid`` as ``[W, H]``)."""
+        return {
+            "point_cloud_range": list(self.point_cloud_range),
+            "voxel_size": list(self.voxel_size),
+            "grid": list(self.grid),
+            "real_grid": list(self.real_grid),
+        }
+
+
+#: Matterport-Chair model geometry (paper V-A): 5 cm pillars, range [0, 25] x [-19, 19] x [-2, 2] m, canvas 512 x 768.
+MATTERPORT_GEOMETRY = PseudoimageGeometry((0.0, -19.0, -2.0, 25.0, 19.0, 2.0), (0.05, 0.05), (512, 768))
+#: KITTI car geometry (paper V-B): 16 cm pillars, range [0, 69.12] x [-39.68, 39.68] x [-3, 1] m, padded canvas
+#: 440 x 504 (the paper's "504 x 440 pillar pseudoimage"; real grid 432 x 496).
+KITTI_GEOMETRY = PseudoimageGeometry((0.0, -39.68, -3.0, 69.12, 39.68, 1.0), (0.16, 0.16), (440, 504))
+PRESETS: dict[str, PseudoimageGeometry] = {"matterport": MATTERPORT_GEOMETRY, "kitti": KITTI_GEOMETRY}
+
+
+@dataclass(frozen=True)
+class _GridKeys:
+    """The three grid keys of a model YAML's ``model`` section (the detector's schema owns the rest)."""
+
+    point_cloud_range: tuple[float, float, float, float, float, float]
+    voxel_size: tuple[float, ...]
+    output_shape: tuple[int, int]
+
+
+def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
+    """The pseudoimage geometry of a detector model YAML: ``model.point_cloud_range``, ``model.voxel_size`` (first
+    two used) and ``model.output_shape`` (``[ny, nx]``). Only these keys are read (``detector`` validates the rest
+    when it loads the file); a missing or mistyped one, or a canvas smaller than the range's grid, is an
+    :class:`InputError` naming the file and the key."""
+    data = load_yaml(path)
+    model = data.get("model")
+    if not isinstance(model, dict):
+        raise InputError("model: expected a mapping with point_cloud_range, voxel_size and output_shape", path)
+    keys = [f.name for f in fields(_GridKeys)]
+    missing = [k for k in keys if k not in model]
+    if missing:
+        raise InputError(f"model.{missing[0]}: missing (the pillar grid needs {', '.join(keys)})", path)
+    grid = from_dict(_GridKeys, {k: model[k] for k in keys}, source=str(path), prefix="model.")
+    ny, nx = grid.output_shape
+    try:
+        return PseudoimageGeometry(grid.point_cloud_range, tuple(grid.voxel_size[:2]), (nx, ny))
+    except InputError as e:
+        raise InputError(f"model.point_cloud_range / voxel_size / output_shape: {e.message}", path) from None
+
+
+def frame_density(points: np.ndarray, geometry: PseudoimageGeometry) -> tuple[int, int, float]:
+    """``(points_in_range, non_empty_pillars, D)`` of one (N, >=3) sensor-frame scan.
+
+    ``D = non_empty_pillars / (W * H)`` with ``W x H`` = ``geometry.grid`` (the padded canvas the backbone convolves);
+    pillars from :func:`pillar_coords` (the detector's voxelization rule).
+    """
+    coords, keep = pillar_coords(points, geometry.point_cloud_range, geometry.voxel_size)
+    W, H = geometry.grid
+    pillars = int(np.unique(coords[:, 0] * W + coords[:, 1]).size)
+    return int(keep.sum()), pillars, pillars / float(W * H)

@@ -3,7 +3,7 @@ OpenPCDet's line-index reader needs), ``label_2`` (15 columns, 16 with a score, 
 (raw float32 x, y, z, reflectance), ``ImageSets`` (6-digit ids), the odometry sequence files (``times.txt``,
 ``poses.txt``) and the folder layout. Values stay in the file's own
 frame (rectified camera for labels, LiDAR/sensor for scans); conversions to sensor boxes live in ``mpchair.geometry``.
-Bad input raises :class:`mpchair.errors.InputError` naming the file and line; every write is atomic.
+Bad input raises :class:`mpchair.core.errors.InputError` naming the file and line; every write is atomic.
 """
 
 from mpchair.kitti.calib import CALIB_KEYS, Calib, format_calib, read_calib, to_4x4, write_calib

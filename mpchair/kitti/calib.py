@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import atomic_open
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import InputError
 
 #: Keys in the order OpenPCDet expects them (it reads calib files by line index), with their shapes.
 CALIB_KEYS: tuple[tuple[str, tuple[int, int]], ...] = (

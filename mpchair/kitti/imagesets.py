@@ -6,8 +6,8 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from mpchair.atomic import atomic_open
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import InputError
 
 _ID = re.compile(r"[0-9]{6}")
 

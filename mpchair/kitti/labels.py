@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import atomic_open
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import InputError
 
 DONTCARE = "DontCare"
 

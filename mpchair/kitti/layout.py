@@ -7,7 +7,7 @@ from pathlib import Path
 
 from PIL import Image, UnidentifiedImageError
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 
 @dataclasses.dataclass(frozen=True)

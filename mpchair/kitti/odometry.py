@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import write_text
-from mpchair.errors import InputError
+from mpchair.core.atomic import write_text
+from mpchair.core.errors import InputError
 
 
 def format_times(times_us: np.ndarray) -> str:

@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.kitti.imagesets import read_imageset
 from mpchair.kitti.layout import imageset_path
 

@@ -26,8 +26,8 @@ import dataclasses
 
 import numpy as np
 
+from mpchair.core.jit import njit_cached
 from mpchair.geometry import points_in_boxes, project_boxes_to_image
-from mpchair.jit import njit_cached
 from mpchair.kitti import Calib
 from mpchair.scan.grid_rays import mask_rays
 from mpchair.scan.raycast import Raycaster, make_raycaster

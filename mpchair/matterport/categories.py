@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 #: mpcat40 index of ``chair``, the class of the Matterport-Chair dataset.
 CHAIR = 3

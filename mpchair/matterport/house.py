@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import habitat_to_mp3d
 from mpchair.matterport.boxes import TILT_WARN_DEG, aligned_box, orthonormal_axes
 from mpchair.matterport.categories import mpcat40_name, resolve_categories

@@ -6,7 +6,7 @@ portals); files re-saved by GAPS write portals with the letter ``R``, which the 
 ``#regions`` ``R`` lines are regions). ``#`` in category names stands for a space. A line may be short only in its
 trailing zero fields. All positions are in the raw Matterport world frame (metres, z up).
 
-Any malformed line raises :class:`mpchair.errors.InputError` naming the file and line.
+Any malformed line raises :class:`mpchair.core.errors.InputError` naming the file and line.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 # Record layouts: letter → (meaningful tokens, full tokens). A line may omit trailing zero fields down to the
 # meaningful count (hand-made fixtures do), but never a meaningful field.

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 # A valid JSON escape (kept as is) or a lone backslash (doubled, so "\o" reads as a literal backslash + "o").
 _ESCAPE = re.compile(r'\\(?:["\\/bfnrt]|u[0-9a-fA-F]{4})|\\')

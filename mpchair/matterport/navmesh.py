@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.geometry import habitat_to_mp3d, mp3d_to_habitat
 
 MSET_MAGIC = 0x4D534554  # 'MSET'

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",

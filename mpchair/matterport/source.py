@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 from mpchair.matterport.ply import ply_byte_limit
 
 #: The files of one house by layout, by suffix; the first two are required.

@@ -13,7 +13,7 @@ import functools
 
 import numpy as np
 
-from mpchair.jit import njit_cached
+from mpchair.core.jit import njit_cached
 from mpchair.scan.sensors import CameraConfig, grid_directions
 
 

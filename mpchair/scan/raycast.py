@@ -21,8 +21,8 @@ from typing import Protocol
 
 import numpy as np
 
-from mpchair.errors import InputError
-from mpchair.jit import njit_cached
+from mpchair.core.errors import InputError
+from mpchair.core.jit import njit_cached
 
 #: Ray-triangle cosines below this count as grazing when recomputing ``t`` from the face plane (then the backend's
 #: float32 hit position is used instead, since the plane equation is ill-conditioned there).

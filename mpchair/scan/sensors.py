@@ -27,8 +27,8 @@ from typing import Literal
 
 import numpy as np
 
-from mpchair.config import load_config
-from mpchair.errors import InputError
+from mpchair.core.config import load_config
+from mpchair.core.errors import InputError
 from mpchair.geometry import make_tr_velo_to_cam
 from mpchair.kitti import Calib
 

@@ -26,8 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import temp_glob, write_text
-from mpchair.config import to_dict
+from mpchair.core.atomic import temp_glob, write_text
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError, RunError
+from mpchair.core.heap import keep_freed_memory
+from mpchair.core.lock import folder_lock
 from mpchair.dataset.frame import (
     HouseContext,
     build_context,
@@ -40,10 +43,7 @@ from mpchair.dataset.frame import (
 from mpchair.dataset.generate import _versions as package_versions
 from mpchair.dataset.generate import sha256_of
 from mpchair.dataset.workers import WorkerDied, imap_unordered
-from mpchair.errors import InputError, RunError
-from mpchair.heap import keep_freed_memory
 from mpchair.labels.select import apply_scan_points, label_half_fov
-from mpchair.lock import folder_lock
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House, objects_of, read_house
 from mpchair.matterport.source import SUFFIXES, find_houses

@@ -1,4 +1,4 @@
-"""The files of a stream: KITTI-odometry-style sequence folders, written atomically (``mpchair.atomic``).
+"""The files of a stream: KITTI-odometry-style sequence folders, written atomically (``mpchair.core.atomic``).
 
 Layout under the output folder ``DIR``::
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import write_text
+from mpchair.core.atomic import write_text
 from mpchair.dataset.frame import box_labels, calib_text, dontcare_candidates, frame_labels, kitti_name
 from mpchair.kitti import write_labels, write_poses, write_times, write_velodyne
 from mpchair.labels.select import BoxDecisions

@@ -28,7 +28,7 @@ import numpy as np
 from shapely.geometry import Polygon
 from shapely.geometry import box as shapely_box
 
-from mpchair.atomic import atomic_open, write_bytes
+from mpchair.core.atomic import atomic_open, write_bytes
 from mpchair.geometry.frames import wrap_angle
 from mpchair.matterport.boxes import obb_from_aligned
 from mpchair.matterport.categories import mpcat40_color, mpcat40_name, resolve_category

@@ -1,8 +1,9 @@
-"""Experiment configuration: one YAML file per experiment, loaded into frozen dataclasses.
+"""The detector's experiment configuration: one YAML file per experiment, loaded into frozen dataclasses.
 
-The schema of ``configs/models/*.yaml``, on the shared floor (it imports only ``mpchair.config``, ``errors`` and
-``geometry``) because both stacks read these files: ``detector train/eval/...`` (through ``detector.models``) and
-``mpchair stats --density --config``, so both validate a file the same way.
+The schema of ``configs/models/*.yaml``, read once at the edge (``detector train/eval/bench/...``); modules below take
+explicit keyword arguments. ``mpchair`` never reads this schema: ``mpchair stats --config`` takes only the pillar grid
+(``model.point_cloud_range / voxel_size / output_shape``) through :func:`mpchair.geometry.geometry_from_model_yaml`,
+and :func:`pseudoimage_geometry` gives the detector the same :class:`~mpchair.geometry.PseudoimageGeometry`.
 
 The file reads top to bottom like OpenPCDet's ``pointpillar.yaml``: ``model`` (voxelizer → pillar net → backbone →
 neck → anchors → head → losses → post-processing), ``data`` (classes and augmentation switches), ``train`` (optimiser
@@ -22,9 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mpchair.config import from_dict, load_yaml
-from mpchair.errors import InputError
-from mpchair.geometry import grid_size
+from mpchair.core.config import from_dict, load_yaml
+from mpchair.core.errors import InputError
+from mpchair.geometry import PseudoimageGeometry, grid_size
 
 Backbone = Literal["dense", "sparse", "sparse1_dense23", "sparse12_dense3", "sparse_wide", "sparse_wide_down"]
 """Middle of the network: the dense SECOND backbone + FPN, or one of the sparse variants of the paper. Sparse+WideConv
@@ -213,6 +214,13 @@ def real_grid(cfg: ModelConfig) -> tuple[int, int]:
     """
     nx, ny = grid_size(cfg.point_cloud_range, cfg.voxel_size)
     return ny, nx
+
+
+def pseudoimage_geometry(cfg: ModelConfig) -> PseudoimageGeometry:
+    """The model's pillar grid as the shared floor names it: range and voxel (m, sensor frame) and the padded canvas
+    ``(W, H)`` = ``output_shape[::-1]`` (for :func:`mpchair.geometry.frame_density`)."""
+    ny, nx = cfg.output_shape
+    return PseudoimageGeometry(cfg.point_cloud_range, cfg.voxel_size[:2], (nx, ny))
 
 
 def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:

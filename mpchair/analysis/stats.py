@@ -20,7 +20,6 @@ manifest's rejected-box reasons when the dataset has a ``manifest.json``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections import Counter
@@ -29,9 +28,16 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.errors import InputError
-from mpchair.experiment_config import load_experiment
-from mpchair.geometry import fov_mask, grid_size, labels_to_boxes, pillar_coords, points_in_boxes
+from mpchair.core.errors import InputError
+from mpchair.geometry import fov_mask, labels_to_boxes, points_in_boxes
+from mpchair.geometry.pillars import (  # noqa: F401  (re-exported: stats --density works on these)
+    KITTI_GEOMETRY,
+    MATTERPORT_GEOMETRY,
+    PRESETS,
+    PseudoimageGeometry,
+    frame_density,
+    geometry_from_model_yaml,
+)
 from mpchair.kitti import (
     frame_paths,
     imageset_path,
@@ -50,63 +56,6 @@ PAPER_DENSITY: dict[str, dict[str, float]] = {
 
 #: Percentiles reported by :func:`summarize` (besides min / median / max).
 PERCENTILES: tuple[int, ...] = (5, 10, 25, 75, 90, 95)
-
-
-@dataclasses.dataclass(frozen=True)
-class PseudoimageGeometry:
-    """The pillar grid of a model: where points are kept and how large the pseudoimage canvas is.
-
-    ``point_cloud_range`` ``(x_min, y_min, z_min, x_max, y_max, z_max)`` sensor frame, metres; ``voxel_size``
-    ``(vx, vy)`` metres; ``grid`` ``(W, H)`` = ``(nx, ny)`` cells of the (possibly padded) canvas.
-    """
-
-    point_cloud_range: tuple[float, float, float, float, float, float]
-    voxel_size: tuple[float, float]
-    grid: tuple[int, int]
-
-    def __post_init__(self) -> None:
-        try:
-            nx, ny = grid_size(self.point_cloud_range, self.voxel_size)
-        except ValueError as e:
-            raise InputError(str(e)) from None
-        W, H = self.grid
-        if W < nx or H < ny:
-            raise InputError(
-                f"grid {W} x {H} is smaller than the range's {nx} x {ny} pillars (range {list(self.point_cloud_range)}"
-                f", voxel {list(self.voxel_size)})")
-
-    @property
-    def real_grid(self) -> tuple[int, int]:
-        """``(nx, ny)``: pillars the range itself spans (``<= grid``)."""
-        return grid_size(self.point_cloud_range, self.voxel_size)
-
-    def to_dict(self) -> dict:
-        """JSON-able form (``grid`` and ``real_grid`` as ``[W, H]``)."""
-        return {
-            "point_cloud_range": list(self.point_cloud_range),
-            "voxel_size": list(self.voxel_size),
-            "grid": list(self.grid),
-            "real_grid": list(self.real_grid),
-        }
-
-
-#: Matterport-Chair model geometry (paper V-A): 5 cm pillars, range [0, 25] x [-19, 19] x [-2, 2] m, canvas 512 x 768.
-MATTERPORT_GEOMETRY = PseudoimageGeometry((0.0, -19.0, -2.0, 25.0, 19.0, 2.0), (0.05, 0.05), (512, 768))
-#: KITTI car geometry (paper V-B): 16 cm pillars, range [0, 69.12] x [-39.68, 39.68] x [-3, 1] m, padded canvas
-#: 440 x 504 (the paper's "504 x 440 pillar pseudoimage"; real grid 432 x 496).
-KITTI_GEOMETRY = PseudoimageGeometry((0.0, -39.68, -3.0, 69.12, 39.68, 1.0), (0.16, 0.16), (440, 504))
-PRESETS: dict[str, PseudoimageGeometry] = {"matterport": MATTERPORT_GEOMETRY, "kitti": KITTI_GEOMETRY}
-
-
-def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
-    """The pseudoimage geometry of a detector experiment YAML: ``model.point_cloud_range``, ``model.voxel_size``
-    (first two used) and ``model.output_shape`` (``[ny, nx]``). The whole file is validated first, exactly as
-    ``detector train`` / ``eval`` do (:func:`mpchair.experiment_config.load_experiment`): an unknown key, a wrong type
-    or an inconsistent value anywhere is an :class:`InputError` naming the file and the key.
-    """
-    model = load_experiment(path).model
-    ny, nx = model.output_shape  # load_experiment checked it against the range's grid
-    return PseudoimageGeometry(model.point_cloud_range, model.voxel_size[:2], (nx, ny))
 
 
 # ----------------------------------------------------------------------------------------------------------- frames
@@ -148,18 +97,6 @@ def load_points(root: str | Path, frame_id: str, fov_crop: bool = False) -> np.n
 
 
 # ---------------------------------------------------------------------------------------------------------- density
-
-
-def frame_density(points: np.ndarray, geometry: PseudoimageGeometry) -> tuple[int, int, float]:
-    """``(points_in_range, non_empty_pillars, D)`` of one (N, >=3) sensor-frame scan.
-
-    ``D = non_empty_pillars / (W * H)`` with ``W x H`` = ``geometry.grid``; pillars from
-    :func:`mpchair.geometry.pillar_coords` (the detector's voxelization rule).
-    """
-    coords, keep = pillar_coords(points, geometry.point_cloud_range, geometry.voxel_size)
-    W, H = geometry.grid
-    pillars = int(np.unique(coords[:, 0] * W + coords[:, 1]).size)
-    return int(keep.sum()), pillars, pillars / float(W * H)
 
 
 def summarize(values: Sequence[float]) -> dict:

@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from mpchair.errors import InputError
+from mpchair.core.errors import InputError
 
 T = TypeVar("T")
 

@@ -2,8 +2,8 @@
 
 * :class:`LazyGroup` registers subcommands by ``"module:attribute"`` so a command imports only what it needs
   (``mpchair houses`` never imports torch). ``--help`` lists every registered command.
-* :func:`run_cli` turns :class:`mpchair.errors.InputError`, ``OSError`` (``error: PATH: reason``) and click's usage
-  errors into one ``error: ...`` line and exit status 2, :class:`mpchair.errors.RunError` into one line and exit 1.
+* :func:`run_cli` turns :class:`mpchair.core.errors.InputError`, ``OSError`` (``error: PATH: reason``) and click's usage
+  errors into one ``error: ...`` line and exit status 2, :class:`mpchair.core.errors.RunError` into one line and exit 1.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import sys
 
 import click
 
-from mpchair.errors import InputError, RunError
+from mpchair.core.errors import InputError, RunError
 
 
 class LazyGroup(click.Group):

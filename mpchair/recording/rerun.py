@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import atomic_path
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_path
+from mpchair.core.errors import InputError
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import frame_paths, read_calib, read_labels, read_poses, read_times, read_velodyne
 
@@ -94,7 +94,7 @@ class Recorder:
 
 @contextlib.contextmanager
 def recording(out: str | Path) -> Iterator[Recorder]:
-    """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.atomic``)."""
+    """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.core.atomic``)."""
     with atomic_path(out) as tmp:
         rec = Recorder(tmp)
         try:

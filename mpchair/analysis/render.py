@@ -6,7 +6,7 @@ frame's 3D view and a house's top-down view.
 * The 3D view uses pyvista/VTK off-screen. Without a display VTK is asked for its EGL window (VTK 9.4+ reads
   ``VTK_DEFAULT_OPENGL_WINDOW``; set it yourself to pick another, e.g. ``vtkOSOpenGLRenderWindow``). When no
   off-screen OpenGL context can be made, :func:`render_frame_3d` raises :class:`RenderError` with the reason.
-* Every file goes through :func:`mpchair.atomic.atomic_open`: a reader never sees a half-written PNG.
+* Every file goes through :func:`mpchair.core.atomic.atomic_open`: a reader never sees a half-written PNG.
 
 Frames: scans and boxes are in the sensor frame (x forward, y left, z up, metres; boxes ``(N, 7)`` ``[x, y, z, l, w,
 h, yaw]`` geometric centre, yaw CCW about +z); houses and viewpoints in the Matterport world frame (z up, metres).
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.atomic import atomic_open
-from mpchair.errors import InputError
+from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import InputError
 from mpchair.geometry import BOX_EDGES, bev_polygons, box_corners, labels_to_boxes, yaw_of
 from mpchair.kitti import Calib, frame_paths, read_calib, read_labels
 
@@ -71,8 +71,8 @@ def _save_rgb(image: np.ndarray, out: str | Path) -> None:
 
 
 def plot_density_histogram(stats: dict, out: str | Path, size: tuple[int, int] = (900, 500)) -> None:
-    """Histogram of per-frame density ``D`` (from :func:`mpchair.stats.density_stats`) with this dataset's median
-    and the paper's medians (Matterport-Chair 0.00750, KITTI 0.02459) marked; PNG of ``size = (W, H)`` pixels.
+    """Histogram of per-frame density ``D`` (from :func:`mpchair.analysis.stats.density_stats`) with this dataset's
+    median and the paper's medians (Matterport-Chair 0.00750, KITTI 0.02459) marked; PNG of ``size = (W, H)`` pixels.
     """
     d = np.asarray([f["density"] for f in stats["frames"]], dtype=np.float64)
     paper = stats["paper"]
@@ -104,7 +104,7 @@ def _class_colours(names: Sequence[str]) -> dict[str, tuple]:
 
 
 def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 800)) -> None:
-    """Multi-panel figure of :func:`mpchair.stats.box_stats`: boxes per frame, ``l / w / h`` (solid / dashed /
+    """Multi-panel figure of :func:`mpchair.analysis.stats.box_stats`: boxes per frame, ``l / w / h`` (solid / dashed /
     dotted), points per box, distance, yaw, occlusion, truncation and, when the dataset has a manifest, rejected-box
     reasons; one colour per class, the mean box (anchor) per class in a text panel. Drawn from the histograms in
     ``stats`` alone, so a saved ``--json`` redraws the same figure.
@@ -493,7 +493,7 @@ def house_viewpoints(dataset: str | Path, house_id: str) -> np.ndarray:
     taken in house ``house_id``: frames from ``manifest.json`` (its ``house`` ids), poses from
     ``training/pose/<id>.txt`` (3x4 row-major sensor → world; yaw = heading of the sensor's +x). A dataset
     without a manifest is an :class:`InputError` (the house of a frame is known only there)."""
-    from mpchair.stats import read_manifest
+    from mpchair.analysis.stats import read_manifest
 
     dataset = Path(dataset)
     path = dataset / "manifest.json"
@@ -539,7 +539,7 @@ def default_zmax(dataset: str | Path) -> float | None:
     manifest's ``config.viewpoints.height`` (1.0 m, so z = 1.0, at generate's default ``--height 1.0``). ``None``
     (keep every point) for a folder without a manifest or whose manifest has no ``config`` (real KITTI: outdoors, no
     ceiling to cut). A ``config`` without a positive sensor height is an :class:`InputError`."""
-    from mpchair.stats import read_manifest
+    from mpchair.analysis.stats import read_manifest
 
     manifest = read_manifest(dataset)
     if manifest is None or "config" not in manifest:
@@ -573,7 +573,7 @@ def frame_picture(
     passes :func:`default_zmax` unless told otherwise); ``None`` keeps every point. Returns ``{frame, points (drawn),
     zmax, above_zmax (points left out), boxes, detections, out, out_3d}``.
     """
-    from mpchair.stats import load_points
+    from mpchair.analysis.stats import load_points
 
     paths = frame_paths(dataset, frame_id)
     points = load_points(dataset, frame_id, fov_crop)
