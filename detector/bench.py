@@ -50,9 +50,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from detector.checkpoint import load_model
 from detector.config import pseudoimage_geometry
+from detector.data.experiment import load_eval_frames
 from detector.device import use_device
-from detector.models import ExperimentConfig, PointPillars, build_model, load_experiment
+from detector.models import ExperimentConfig, PointPillars, load_experiment
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
 
@@ -81,33 +83,6 @@ MALLOC_REUSE: dict[str, str] = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_
 
 
 # --- data ---------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class EvalFrame:
-    """One frame ready for inference: ``points`` (N, C) float32, sensor frame (m), range-filtered for the model."""
-
-    frame_id: str
-    points: np.ndarray
-
-
-def load_eval_frames(
-    cfg: ExperimentConfig, data_dir: str | Path, split: str, limit: int | None = None, start: int = 0, *,
-    progress: bool = False,
-) -> list[EvalFrame]:
-    """Frames ``start .. start+limit`` of ``split`` of a KITTI-format folder, transformed as at inference
-    (:func:`detector.data.pipeline.make_eval_sample`: range filter, ``in_channels`` columns); ``progress``: a bar on
-    stderr when it is a terminal."""
-    from detector.data.pipeline import make_eval_sample
-    from detector.train import augment_options, open_split
-
-    frames = open_split(cfg, data_dir, split)
-    ids = frames.ids[start:] if limit is None else frames.ids[start : start + limit]
-    if not ids:
-        raise InputError(f"split {split!r} has no frame at index {start} (it has {len(frames.ids)})", data_dir)
-    options = augment_options(cfg)
-    bar = tqdm(ids, desc="loading frames", unit="frame", disable=None if progress else True, leave=False)
-    return [EvalFrame(fid, make_eval_sample(frames.load(fid), options).points) for fid in bar]
-
-
 def density_summary(values: Sequence[float]) -> dict[str, float]:
     """``{"frames", "median", "mean", "min", "max"}`` of per-frame densities."""
     v = np.asarray(values, dtype=np.float64)
@@ -116,26 +91,6 @@ def density_summary(values: Sequence[float]) -> dict[str, float]:
 
 
 # --- models -------------------------------------------------------------------------------------------------------
-def build_bench_model(
-    cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device, seed: int = 0
-) -> PointPillars:
-    """``cfg.model`` in eval mode on ``device``: trained weights from ``checkpoint`` or seeded random weights.
-
-    Random weights are drawn under ``torch.random.fork_rng`` so the caller's global RNG is untouched. Conv weights do
-    not depend on the grid, so a checkpoint trained at one pseudo-image size loads into a model of another size.
-    """
-    if checkpoint is not None:
-        from detector.infer import load_model_from_checkpoint
-
-        model = load_model_from_checkpoint(checkpoint, cfg, device)
-    else:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            model = build_model(cfg.model)
-        model = model.to(device)
-    return model.eval()
-
-
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -296,7 +251,7 @@ def run_bench(
         raise InputError(f"unknown peer {peer!r} (choose from {', '.join(PEERS)})")
     if peer is not None and device != "cpu":
         raise InputError(f"--peer {peer} times the CPU only (open3d-cpu); drop --device {device}")
-    nets = [build_bench_model(c, m.checkpoint, dev, seed) for c, m in zip(cfgs, models)]
+    nets = [load_model(c, m.checkpoint, dev, seed=seed) for c, m in zip(cfgs, models)]
     data = [load_eval_frames(c, data_dir, split, frames, progress=progress) for c in cfgs]
     n = len(data[0])
     densities = [[frame_density(f.points, pseudoimage_geometry(c.model))[2] for f in d] for c, d in zip(cfgs, data)]

@@ -1,4 +1,5 @@
-"""Checkpoint files: the one place that writes and reads them (``detector train``, ``eval``, ``bench``).
+"""Checkpoint files: the one place that writes and reads them, and the one model loader (:func:`load_model`) that
+``detector eval``, ``bench``, ``viz-sparsity``, ``stream-eval`` and the tools share.
 
 A checkpoint is a ``torch.save`` dict of tensors and plain data only (numbers, strings, lists, tuples, dicts, None):
 the model and optimiser state dicts, the LR scheduler's state, the epoch / step counters, the RNG states and the
@@ -18,7 +19,7 @@ import torch
 from torch import nn
 
 from detector.config import experiment_from_dict
-from detector.models import ExperimentConfig
+from detector.models import ExperimentConfig, PointPillars, build_model
 from mpchair.core.atomic import write_bytes
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
@@ -78,3 +79,27 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 def config_from_checkpoint(state: dict, source: str) -> ExperimentConfig:
     """The experiment a checkpoint was trained with."""
     return experiment_from_dict(state["config"], source=source)
+
+
+def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device | str = "cpu", *,
+               seed: int = 0) -> PointPillars:
+    """``cfg.model`` in eval mode on ``device``: trained weights from ``checkpoint``, or seeded random weights when it
+    is None (drawn under ``torch.random.fork_rng``, so the caller's global RNG is untouched).
+
+    Conv weights do not depend on the grid, so a checkpoint trained at one pseudo-image size loads into a model of
+    another size. A checkpoint whose weights do not fit the model is an :class:`InputError` (one line).
+    """
+    if checkpoint is None:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            model = build_model(cfg.model)
+        return model.to(device).eval()
+    state = load_checkpoint(checkpoint, map_location=device)
+    model = build_model(cfg.model).to(device)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        msg = " ".join(first[:2])[:300]
+        raise InputError(f"checkpoint does not fit the config's model: {msg}", checkpoint) from None
+    return model.eval()

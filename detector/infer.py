@@ -20,14 +20,13 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from detector.checkpoint import load_checkpoint
+from detector.checkpoint import load_model
 from detector.data import Frame, KittiDataset
+from detector.data.experiment import augment_options, open_split
 from detector.data.pipeline import make_eval_sample
 from detector.device import use_device
-from detector.experiment import augment_options, open_split
-from detector.models import Detections, ExperimentConfig, build_model, load_experiment
+from detector.models import Detections, ExperimentConfig, load_experiment
 from mpchair.core.atomic import write_text
-from mpchair.core.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
 
@@ -192,21 +191,6 @@ def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> 
     return final
 
 
-def load_model_from_checkpoint(
-    checkpoint: str | Path, cfg: ExperimentConfig, device: torch.device | str = "cpu"
-) -> nn.Module:
-    """Build ``cfg.model`` and load the checkpoint's weights (a mismatching checkpoint is an :class:`InputError`)."""
-    state = load_checkpoint(checkpoint, map_location=device)
-    model = build_model(cfg.model).to(device)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as e:
-        first = str(e).strip().splitlines()
-        msg = " ".join(first[:2])[:300]
-        raise InputError(f"checkpoint does not fit the config's model: {msg}", checkpoint) from None
-    return model
-
-
 def default_results_dir(checkpoint: str | Path, split: str) -> Path:
     """Where ``detector eval --checkpoint`` writes without ``--out``: ``<checkpoint folder>/<checkpoint name>_<split>``
     (``runs/dense/last.pt``, ``val`` → ``runs/dense/last_val``)."""
@@ -243,7 +227,7 @@ def evaluate_checkpoint(
     check_protocol(protocol)
     use_device(device, threads)
     cfg = load_experiment(config_path)
-    model = load_model_from_checkpoint(checkpoint, cfg, device)
+    model = load_model(cfg, checkpoint, device)
     # A missing folder, split or frame file fails here, before any output (a progress bar included).
     open_split(cfg, data_dir, split).check()
     if recalibrate_bn_split is not None:

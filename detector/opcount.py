@@ -410,7 +410,7 @@ def count_dataset(
 ) -> dict:
     """``detector ops``: load the config and ``frames`` frames of ``split``, count every frame (``progress``: bars on
     stderr when it is a terminal)."""
-    from detector.bench import load_eval_frames
+    from detector.data.experiment import load_eval_frames
 
     cfg = load_experiment(config_path)
     data = load_eval_frames(cfg, data_dir, split, frames, start, progress=progress)

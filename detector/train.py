@@ -56,7 +56,7 @@ from tqdm import tqdm
 from detector.checkpoint import load_checkpoint, save_checkpoint
 from detector.config import Precision, experiment_from_dict
 from detector.data import GTDatabase, KittiDataset, TrainingSet, build_gt_database, collate
-from detector.experiment import augment_options, open_split
+from detector.data.experiment import augment_options, open_split
 from detector.infer import evaluate_model
 from detector.models import ExperimentConfig, HeadOutput, build_model, compute_loss, load_experiment
 from mpchair.core.atomic import write_text

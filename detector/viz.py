@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from detector.bench import build_bench_model, load_eval_frames
-from detector.experiment import open_split
+from detector.checkpoint import load_model
+from detector.data.experiment import load_eval_frames, open_split
 from detector.models import ExperimentConfig, PointPillars, load_experiment
 from mpchair.core.atomic import write_bytes
 from mpchair.core.errors import InputError
@@ -161,8 +161,8 @@ def viz_sparsity(
     dense_model_cfg = replace(cfg.model, backbone="dense", head="dense")
     sparse_model_cfg = cfg.model if cfg.model.backbone != "dense" else replace(cfg.model, backbone="sparse")
     dev = torch.device("cpu")
-    dense = build_bench_model(replace(cfg, model=dense_model_cfg), dense_checkpoint, dev, seed)
-    sparse = build_bench_model(replace(cfg, model=sparse_model_cfg), sparse_checkpoint, dev, seed)
+    dense = load_model(replace(cfg, model=dense_model_cfg), dense_checkpoint, dev, seed=seed)
+    sparse = load_model(replace(cfg, model=sparse_model_cfg), sparse_checkpoint, dev, seed=seed)
     masks = {"dense": dense_masks(dense, data.points), "sparse": sparse_masks(sparse, data.points)}
     shape = cfg.model.output_shape
     images = {k: [to_image(m, shape) for m in v] for k, v in masks.items()}

@@ -12,10 +12,11 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset
 
-from detector.bench import COMPONENTS, SHARED, format_table, load_eval_frames, ratio_rows, time_shared
+from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
+from detector.checkpoint import load_model
 from detector.cli import cli, main
 from detector.config import pseudoimage_geometry
-from detector.infer import load_model_from_checkpoint
+from detector.data.experiment import load_eval_frames
 from detector.models import build_model, load_experiment
 from detector.train import save_checkpoint
 from mpchair.geometry import frame_density
@@ -119,7 +120,7 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
     assert res.exit_code == 0, res.output
     trained, untrained = json.loads(out.read_text())["models"]
     assert trained["weights"] == str(ckpt) and untrained["weights"].startswith("random")
-    loaded = load_model_from_checkpoint(ckpt, cfg).eval()
+    loaded = load_model(cfg, ckpt)
     expected = sum(len(loaded.predict([torch.from_numpy(f.points)])[0].boxes)
                    for f in load_eval_frames(cfg, data, "test", 2))
     assert trained["detections_per_frame"] == expected / 2 > 0 and untrained["detections_per_frame"] == 0

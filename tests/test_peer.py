@@ -17,8 +17,10 @@ import torch
 from helpers_detector import make_tiny_dataset, write_test_config
 
 import detector.peer as peer_mod
-from detector.bench import COMPONENTS, build_bench_model, load_eval_frames, ratio_rows
+from detector.bench import COMPONENTS, ratio_rows
+from detector.checkpoint import load_model
 from detector.cli import main
+from detector.data.experiment import load_eval_frames
 from detector.models import load_experiment
 from mpchair.core.errors import InputError
 
@@ -46,7 +48,7 @@ def test_peer_is_our_dense_network_in_open3d_ml_code(setup) -> None:
     """Same weights → the same head maps on every frame: the same layers, channels, grid and decorations."""
     data, dense, _ = setup
     cfg = load_experiment(dense)
-    ours = build_bench_model(cfg, None, torch.device("cpu"), seed=3)
+    ours = load_model(cfg, None, torch.device("cpu"), seed=3)
     peer = peer_mod.build_peer(cfg.model, ours)
     assert type(peer).__module__ == "open3d._ml3d.torch.models.point_pillars"
     assert peer.middle_encoder.output_shape == list(cfg.model.output_shape)
@@ -74,7 +76,7 @@ def test_peer_is_our_dense_network_in_open3d_ml_code(setup) -> None:
 def test_a_different_architecture_is_refused(setup) -> None:
     _, dense, _ = setup
     cfg = load_experiment(dense)
-    ours = build_bench_model(cfg, None, torch.device("cpu"))
+    ours = load_model(cfg, None, torch.device("cpu"))
     other = dataclasses.replace(cfg.model, layer_nums=(1, 1, 2))
     with pytest.raises(InputError, match="differs"):
         peer_mod.build_peer(other, ours)

@@ -22,7 +22,6 @@ from mpchair.analysis.stats import (
 )
 from mpchair.cli import cli
 from mpchair.core.atomic import write_bytes, write_text
-from mpchair.core.errors import InputError
 from mpchair.geometry import boxes_to_kitti_camera, make_tr_velo_to_cam, project_boxes_to_image
 from mpchair.kitti import (
     Calib,

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from detector.bench import build_bench_model, load_eval_frames
+from detector.checkpoint import load_model
+from detector.data.experiment import load_eval_frames
 from detector.models import load_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     models, outputs = {}, {}
     for m in MODELS:
         cfg = load_experiment(ROOT / "configs" / "models" / f"mpchair_{m}.yaml")
-        model = models[m] = build_bench_model(cfg, ckpts[m], torch.device("cpu"))
+        model = models[m] = load_model(cfg, ckpts[m], torch.device("cpu"))
         outputs[m] = []
         with torch.no_grad():
             for f in load_eval_frames(cfg, args.work / "dataset", "test", args.frames):

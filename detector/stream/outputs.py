@@ -79,14 +79,14 @@ class ModelRunner:
     """A trained model (``config`` + ``checkpoint``) run on stream frames, one at a time (batch 1, eval mode)."""
 
     def __init__(self, config: str | Path, checkpoint: str | Path, device: str = "cpu", threads: int | None = None):
+        from detector.checkpoint import load_model
+        from detector.data.experiment import augment_options
         from detector.device import use_device
-        from detector.experiment import augment_options
-        from detector.infer import load_model_from_checkpoint
         from detector.models import load_experiment
 
         self.device = use_device(device, threads)
         self.cfg = load_experiment(config)
-        self.model = load_model_from_checkpoint(checkpoint, self.cfg, self.device).eval()
+        self.model = load_model(self.cfg, checkpoint, self.device)
         self.options = augment_options(self.cfg)
         self.classes = tuple(self.cfg.eval.classes)
 
