@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import click
-
 from detector import __version__
-from mpchair.core.clitools import LazyGroup, run_cli
+from mpchair.core.clitools import lazy_group, run_cli
 
 COMMANDS = {
     "train": "detector.commands.train:train",
@@ -17,12 +15,7 @@ COMMANDS = {
 }
 
 
-@click.group(
-    cls=LazyGroup,
-    lazy_commands=COMMANDS,
-    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
-)
-@click.version_option(__version__, prog_name="detector")
+@lazy_group("detector", __version__, COMMANDS)
 def cli() -> None:
     """Train, evaluate and time dense PointPillars vs Sparse PointPillars on KITTI-format datasets.
 

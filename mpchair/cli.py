@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import click
-
 from mpchair import __version__
-from mpchair.core.clitools import LazyGroup, run_cli
+from mpchair.core.clitools import lazy_group, run_cli
 
 COMMANDS = {
     "synth": "mpchair.commands.synth:synth",
@@ -18,12 +16,7 @@ COMMANDS = {
 }
 
 
-@click.group(
-    cls=LazyGroup,
-    lazy_commands=COMMANDS,
-    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
-)
-@click.version_option(__version__, prog_name="mpchair")
+@lazy_group("mpchair", __version__, COMMANDS)
 def cli() -> None:
     """Build the Matterport-Chair 3D detection dataset (KITTI format) from Matterport3D houses.
 

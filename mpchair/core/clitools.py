@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+from collections.abc import Callable
 
 import click
 
@@ -41,6 +42,18 @@ class LazyGroup(click.Group):
             module_name, attr = target.split(":")
             return getattr(importlib.import_module(module_name), attr)
         return super().get_command(ctx, cmd_name)
+
+
+def lazy_group(prog: str, version: str, commands: dict[str, str]) -> Callable[[Callable[[], None]], click.Group]:
+    """Decorator: the top-level click group of a CLI (``mpchair``, ``detector``) whose subcommands load lazily from
+    ``commands`` (``{name: "package.module:attr"}``), with ``-h/--help`` and ``--version``."""
+
+    def make(func: Callable[[], None]) -> click.Group:
+        settings = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
+        group = click.group(cls=LazyGroup, lazy_commands=commands, context_settings=settings)
+        return group(click.version_option(version, prog_name=prog)(func))
+
+    return make
 
 
 class FrameIdType(click.ParamType):
