@@ -19,6 +19,7 @@ geometry; see ``docs/model.md`` for every key.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -248,6 +249,13 @@ def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
         len(t) != 3 for t in (cfg.layer_nums, cfg.layer_strides, cfg.neck_channels, cfg.upsample_strides)
     ):
         fail("layer_channels, layer_nums, layer_strides, neck_channels, upsample_strides: three levels each")
+    for name in ("layer_channels", "layer_strides", "neck_channels", "upsample_strides"):
+        if min(getattr(cfg, name)) < 1:
+            fail(f"{name}: every value must be >= 1, got {list(getattr(cfg, name))}")
+    if min(cfg.layer_nums) < 0:
+        fail(f"layer_nums: every value must be >= 0, got {list(cfg.layer_nums)}")
+    if cfg.pfn_channels < 1:
+        fail(f"pfn_channels: must be >= 1, got {cfg.pfn_channels}")
     total = math.prod(cfg.layer_strides)
     if ny % total or nx % total:
         fail(f"output_shape: [{ny}, {nx}] must be a multiple of the total stride {total}")
@@ -274,6 +282,45 @@ def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
         fail(f"neg_iou_thr / pos_iou_thr: need 0 <= neg <= pos <= 1, got {cfg.neg_iou_thr}, {cfg.pos_iou_thr}")
     if cfg.nms_pre < 1:
         fail(f"nms_pre: must be >= 1, got {cfg.nms_pre}")
+    check_memory(cfg, source)
+
+
+def memory_floor_bytes(cfg: ModelConfig, batch_size: int = 1) -> int:
+    """A lower bound on the memory one training step of ``cfg`` needs (bytes, fp32): weights with their gradients and
+    AdamW's two moments, the voxelizer's pillar buffer, and the neck's output map; a dense backbone adds the
+    pseudo-image and one feature map per layer (a sparse one stores features at active sites only).
+
+    Deliberately an under-estimate (no autograd copies, no allocator slack), so that it only refuses configs that
+    cannot run at all, before anything is built or written.
+    """
+    c_in = 10 if cfg.in_channels == 4 else 9  # decorated point features of the pillar net
+    weights = c_in * cfg.pfn_channels
+    ny, nx = cfg.output_shape
+    dense = cfg.backbone == "dense"
+    maps = sum(cfg.neck_channels) * (ny // cfg.layer_strides[0]) * (nx // cfg.layer_strides[0])
+    maps += cfg.pfn_channels * ny * nx if dense else 0
+    c_prev, stride = cfg.pfn_channels, 1
+    for c, n, s, u, cn in zip(cfg.layer_channels, cfg.layer_nums, cfg.layer_strides, cfg.upsample_strides,
+                              cfg.neck_channels):
+        stride *= s
+        weights += 9 * c_prev * c + n * 9 * c * c + c * cn * u * u
+        maps += (n + 1) * c * (ny // stride) * (nx // stride) if dense else 0
+        c_prev = c
+    pillars = max(cfg.max_pillars_train, cfg.max_pillars_test) * cfg.max_points_per_pillar * (c_in + cfg.pfn_channels)
+    return 4 * (4 * weights + batch_size * (maps + pillars))
+
+
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine (bytes)."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_memory(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1) -> None:
+    """:class:`InputError` when :func:`memory_floor_bytes` exceeds this machine's physical memory."""
+    need, have = memory_floor_bytes(cfg, batch_size), machine_memory_bytes()
+    if need > have:
+        raise InputError(f"model: needs at least {need / 2**30:,.1f} GiB for one step (layer sizes, canvas, pillar "
+                         f"buffer) but this machine has {have / 2**30:,.1f} GiB", source)
 
 
 def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
@@ -285,7 +332,19 @@ def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
         )
     if len(cfg.eval.iou_thresholds) != len(cfg.eval.classes):
         raise InputError("eval.iou_thresholds: one threshold per eval class", source)
+    unknown = [c for c in cfg.eval.classes if c not in cfg.data.classes]
+    if unknown:
+        raise InputError(f"eval.classes: {unknown[0]!r} is not a trained class (data.classes: "
+                         f"{', '.join(cfg.data.classes)})", source)
     check_train_config(cfg.train, source)
+    check_memory(cfg.model, source, cfg.train.batch_size)
+
+
+#: Bounds that no real schedule reaches (the reference trains 200 epochs of 5,000 samples), so a typo cannot start a
+#: run that never ends.
+MAX_EPOCHS = 100_000
+MAX_SAMPLES_PER_EPOCH = 10_000_000
+MAX_WORKERS = 64
 
 
 def check_train_config(cfg: TrainConfig, source: str = "<config>") -> None:
@@ -296,6 +355,17 @@ def check_train_config(cfg: TrainConfig, source: str = "<config>") -> None:
 
     if cfg.batch_size < 1 or cfg.epochs < 0:
         raise InputError("train.batch_size must be >= 1 and train.epochs >= 0", source)
+    if cfg.epochs > MAX_EPOCHS:
+        fail(f"epochs: at most {MAX_EPOCHS:,}, got {cfg.epochs}")
+    if cfg.samples_per_epoch is not None and not 1 <= cfg.samples_per_epoch <= MAX_SAMPLES_PER_EPOCH:
+        fail(f"samples_per_epoch: between 1 and {MAX_SAMPLES_PER_EPOCH:,} (or null for one pass), got "
+             f"{cfg.samples_per_epoch}")
+    if not 0 <= cfg.seed < 2**32:
+        fail(f"seed: between 0 and 2**32 - 1, got {cfg.seed}")
+    if not 0 <= cfg.num_workers <= MAX_WORKERS:
+        fail(f"num_workers: between 0 and {MAX_WORKERS}, got {cfg.num_workers}")
+    if cfg.checkpoint_every < 0 or cfg.eval_every < 0:
+        fail(f"checkpoint_every / eval_every: must be >= 0, got {cfg.checkpoint_every}, {cfg.eval_every}")
     if cfg.lr <= 0:
         fail(f"lr: must be > 0, got {cfg.lr}")
     if not 0.0 < cfg.pct_start < 1.0:

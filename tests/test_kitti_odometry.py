@@ -35,6 +35,7 @@ def test_poses_round_trip(tmp_path):
     ("0.0\n-0.5\n", 2, "expected a time in seconds"),
     ("0.0\nnan\n", 2, "expected a time in seconds"),
     ("0.0\nabc\n", 2, "expected a time in seconds"),
+    ("0.0\n1e300\n", 2, "expected a time in seconds"),
 ])
 def test_bad_times_name_the_line(tmp_path, text, line, message):
     (tmp_path / "t.txt").write_text(text)
@@ -42,9 +43,23 @@ def test_bad_times_name_the_line(tmp_path, text, line, message):
         read_times(tmp_path / "t.txt")
 
 
+IDENTITY = "1 0 0 0 0 1 0 0 0 0 1 0\n"
+
+
 def test_bad_poses_name_the_line(tmp_path):
-    (tmp_path / "p.txt").write_text(" ".join(["1"] * 12) + "\n" + " ".join(["1"] * 11) + "\n")
+    (tmp_path / "p.txt").write_text(IDENTITY + " ".join(["1"] * 11) + "\n")
     with pytest.raises(InputError, match="p.txt:2: expected 12 finite numbers"):
         read_poses(tmp_path / "p.txt")
+    for bad in ("2 0 0 0 0 1 0 0 0 0 1 0", "1 0.5 0 0 0 1 0 0 0 0 1 0", "-1 0 0 0 0 1 0 0 0 0 1 0"):  # scale, shear, mirror
+        (tmp_path / "p.txt").write_text(IDENTITY + IDENTITY + bad + "\n")
+        with pytest.raises(InputError, match="p.txt:3: not a rigid pose"):
+            read_poses(tmp_path / "p.txt")
     with pytest.raises(InputError, match="not found"):
         read_poses(tmp_path / "none.txt")
+
+
+@pytest.mark.parametrize("reader", [read_times, read_poses])
+def test_non_utf8_sequence_files_name_the_line(tmp_path, reader):
+    (tmp_path / "f.txt").write_bytes(b"0.0\n\xff\xfe\n")
+    with pytest.raises(InputError, match=r"f.txt:2: not UTF-8 text \(byte 4 is 0xff\)"):
+        reader(tmp_path / "f.txt")

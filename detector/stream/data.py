@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,10 @@ class Stream:
         return sum(len(s) for s in self.sequences)
 
 
+#: Fastest sensor rate a stream may declare (Hz); real depth cameras and LiDARs run at 1-100 Hz.
+MAX_RATE_HZ = 1000.0
+
+
 def read_stream(root: str | Path) -> Stream:
     """Read ``stream.json`` and every sequence's times and poses; a missing or inconsistent file is an
     :class:`InputError` naming it."""
@@ -89,8 +94,16 @@ def read_stream(root: str | Path) -> Stream:
         size = (int(meta["image_size"][0]), int(meta["image_size"][1]))
         names = sorted(meta["sequences"])
         rate = float(meta["rate_hz"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise InputError(f"malformed stream file ({type(e).__name__}: {e})", meta_path) from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"malformed stream file ({type(e).__name__}: {' '.join(str(e).split())[:200]})",
+                         meta_path) from None
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
+        raise InputError(f"rate_hz: expected a sensor rate in (0, {MAX_RATE_HZ:g}] Hz, got {rate!r}", meta_path)
+    fov = () if region.half_fov is None else (region.half_fov,)
+    if not all(math.isfinite(v) and v > 0 for v in (region.max_abs_dz, region.max_distance, *fov)):
+        raise InputError(f"region: expected positive finite limits, got {meta['region']!r}", meta_path)
+    if min(size) < 1:
+        raise InputError(f"image_size: expected a positive width and height, got {list(size)}", meta_path)
     seqs = []
     for name in names:
         folder = root / "sequences" / name

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -18,21 +19,70 @@ from typing import Any, TypeVar
 import yaml
 
 from mpchair.core.errors import InputError
+from mpchair.core.text import decode_utf8
 
 T = TypeVar("T")
 
 
+#: Largest config file read (a config is a few KB; a bigger file is not one).
+MAX_CONFIG_BYTES = 1 << 20
+#: Deepest nesting of mappings / lists accepted (real configs nest three levels).
+MAX_CONFIG_DEPTH = 32
+
+# YAML 1.2 numbers: PyYAML follows YAML 1.1, where ``1e-9`` (no dot) is a string; a config author means a number.
+_FLOAT_12 = r"""^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?(?:[eE][-+]?[0-9]+)?|\.[0-9_]+(?:[eE][-+]?[0-9]+)?)$"""
+
+
+class _ConfigLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses duplicate keys and reads YAML 1.2 floats (``1e-9``)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node.start_mark.line + 1)
+            except TypeError:  # an unhashable key: SafeLoader's own error says so
+                continue
+            if first != key_node.start_mark.line + 1:
+                raise InputError(f"duplicate key {key!r} (first on line {first})", self.name,
+                                 key_node.start_mark.line + 1)
+        return super().construct_mapping(node, deep=deep)
+
+    def compose_node(self, parent, index):  # PyYAML calls it for every node: count the depth
+        self._depth = getattr(self, "_depth", 0) + 1
+        try:
+            if self._depth > MAX_CONFIG_DEPTH:
+                mark = self.peek_event().start_mark
+                raise InputError(f"nested deeper than {MAX_CONFIG_DEPTH} levels", self.name, mark.line + 1)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+_ConfigLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_FLOAT_12, re.X),
+                                    list("-+0123456789."))
+
+
 def load_yaml(path: str | Path) -> dict:
-    """Read a YAML mapping from ``path``; a missing file, a syntax error or a non-mapping is an :class:`InputError`."""
+    """Read a YAML mapping from ``path``; a missing file, a non-UTF-8 or oversized file, a syntax error, a duplicate
+    key, nesting deeper than :data:`MAX_CONFIG_DEPTH` or a non-mapping is an :class:`InputError` (file and line)."""
     path = Path(path)
     if not path.is_file():
         raise InputError("config file not found", path)
+    if path.stat().st_size > MAX_CONFIG_BYTES:
+        raise InputError(f"larger than {MAX_CONFIG_BYTES >> 20} MiB: not a config file", path)
+    text = decode_utf8(path.read_bytes(), path)
+    loader = _ConfigLoader(text)
+    loader.name = str(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = loader.get_single_data()
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         line = None if mark is None else mark.line + 1
-        raise InputError(f"invalid YAML: {getattr(e, 'problem', e)}", path, line) from None
+        raise InputError(f"invalid YAML: {getattr(e, 'problem', None) or e}", path, line) from None
+    finally:
+        loader.dispose()
     if not isinstance(data, dict):
         raise InputError("expected a YAML mapping at the top level", path)
     return data

@@ -10,6 +10,7 @@ import numpy as np
 
 from mpchair.core.atomic import atomic_open
 from mpchair.core.errors import InputError
+from mpchair.core.text import read_text
 
 #: Keys in the order OpenPCDet expects them (it reads calib files by line index), with their shapes.
 CALIB_KEYS: tuple[tuple[str, tuple[int, int]], ...] = (
@@ -97,12 +98,7 @@ def read_calib(path: str | Path) -> Calib:
     non-numeric value is an :class:`InputError` naming the file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("calib file not found", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read calib file: {e}", path) from None
+    text = read_text(path, "calib file")
     shapes = dict(CALIB_KEYS)
     values: dict[str, np.ndarray] = {}
     for lineno, raw in enumerate(text.splitlines(), start=1):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from mpchair.core.atomic import atomic_open
 from mpchair.core.errors import InputError
+from mpchair.core.text import read_text
 
 _ID = re.compile(r"[0-9]{6}")
 
@@ -19,12 +20,7 @@ def read_imageset(path: str | Path) -> list[str]:
     (after stripping surrounding whitespace) or a repeated id is an :class:`InputError` naming the file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("image set file not found", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read image set file: {e}", path) from None
+    text = read_text(path, "image set file")
     ids: list[str] = []
     seen: dict[str, int] = {}
     for lineno, raw in enumerate(text.splitlines(), start=1):

@@ -15,6 +15,7 @@ import numpy as np
 
 from mpchair.core.atomic import atomic_open
 from mpchair.core.errors import InputError
+from mpchair.core.text import read_text
 
 DONTCARE = "DontCare"
 
@@ -141,12 +142,7 @@ def read_labels(path: str | Path) -> Labels:
     rows, a non-number, a NaN / infinity or a non-integer ``occluded`` is an :class:`InputError` naming file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("label file not found", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read label file: {e}", path) from None
+    text = read_text(path, "label file")
     names: list[str] = []
     rows: list[list[float]] = []
     occluded: list[int] = []

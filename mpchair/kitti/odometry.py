@@ -16,6 +16,12 @@ import numpy as np
 
 from mpchair.core.atomic import write_text
 from mpchair.core.errors import InputError
+from mpchair.core.text import read_text
+
+#: Largest capture time read (seconds; ~31,700 years, far above any clock, well inside int64 microseconds).
+MAX_SECONDS = Decimal("1e12")
+#: How far a pose's rotation may be from orthonormal (``%.9e`` text keeps real ones within 1e-8).
+RIGID_TOL = 1e-4
 
 
 def format_times(times_us: np.ndarray) -> str:
@@ -28,16 +34,15 @@ def read_times(path: str | Path) -> np.ndarray:
     writes it, or KITTI's ``1.234568e+01``; read exactly as decimals and rounded to the microsecond), strictly
     increasing; anything else is an :class:`InputError` naming the line."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError("times file not found", path)
     out = []
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for n, line in enumerate(read_text(path, "times file").splitlines(), 1):
         try:
             seconds = Decimal(line.strip())
         except InvalidOperation:
             seconds = Decimal("NaN")
-        if not seconds.is_finite() or seconds < 0:
-            raise InputError(f"expected a time in seconds (>= 0), got {line.strip()!r}", path, n)
+        if not seconds.is_finite() or not 0 <= seconds <= MAX_SECONDS:
+            raise InputError(f"expected a time in seconds (0 to {MAX_SECONDS:.0e}), got {line.strip()[:40]!r}", path,
+                             n)
         out.append(int((seconds * 1_000_000).to_integral_value(ROUND_HALF_EVEN)))
     t = np.array(out, dtype=np.int64)
     if len(t) == 0:
@@ -54,12 +59,11 @@ def format_poses(poses: np.ndarray) -> str:
 
 
 def read_poses(path: str | Path) -> np.ndarray:
-    """(N,4,4) float64 poses of a ``poses.txt``; a line without 12 finite numbers is an :class:`InputError`."""
+    """(N,4,4) float64 rigid poses of a ``poses.txt``; a line without 12 finite numbers, or whose 3x3 block is not a
+    rotation (orthonormal within :data:`RIGID_TOL`, determinant +1), is an :class:`InputError` naming the line."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError("poses file not found", path)
     rows = []
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for n, line in enumerate(read_text(path, "poses file").splitlines(), 1):
         try:
             v = [float(x) for x in line.split()]
         except ValueError:
@@ -68,6 +72,9 @@ def read_poses(path: str | Path) -> np.ndarray:
             raise InputError("expected 12 finite numbers (a 3x4 pose, row-major)", path, n)
         T = np.eye(4)
         T[:3] = np.array(v).reshape(3, 4)
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) < 0:
+            raise InputError("not a rigid pose: the 3x3 block is not a rotation (scale, shear or reflection)", path, n)
         rows.append(T)
     return np.array(rows).reshape(-1, 4, 4)
 
