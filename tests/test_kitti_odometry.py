@@ -50,7 +50,8 @@ def test_bad_poses_name_the_line(tmp_path):
     (tmp_path / "p.txt").write_text(IDENTITY + " ".join(["1"] * 11) + "\n")
     with pytest.raises(InputError, match="p.txt:2: expected 12 finite numbers"):
         read_poses(tmp_path / "p.txt")
-    for bad in ("2 0 0 0 0 1 0 0 0 0 1 0", "1 0.5 0 0 0 1 0 0 0 0 1 0", "-1 0 0 0 0 1 0 0 0 0 1 0"):  # scale, shear, mirror
+    # a scale, a shear, a mirror
+    for bad in ("2 0 0 0 0 1 0 0 0 0 1 0", "1 0.5 0 0 0 1 0 0 0 0 1 0", "-1 0 0 0 0 1 0 0 0 0 1 0"):
         (tmp_path / "p.txt").write_text(IDENTITY + IDENTITY + bad + "\n")
         with pytest.raises(InputError, match="p.txt:3: not a rigid pose"):
             read_poses(tmp_path / "p.txt")
