@@ -17,18 +17,23 @@ def _navmesh_summary(house) -> dict | None:
     habitat's PointNav episodes start) and the walkable area (horizontal, m²)."""
     if house.navmesh is None:
         return None
-    from mpchair.scan.navmesh import NavmeshSampler
+    from mpchair.scan.navmesh import NavmeshSampler, island_labels, island_radii
 
     try:
         s = NavmeshSampler(house.navmesh)
-        big = len(s.islands)
+        islands, big, area = len(s.island_radius), len(s.islands), float(s.island_area.sum())
     except ValueError:  # no island large enough: still describe the others
-        s, big = NavmeshSampler(house.navmesh, min_island_radius=0.0), 0
+        try:
+            s = NavmeshSampler(house.navmesh, min_island_radius=0.0)
+            islands, big, area = len(s.island_radius), 0, float(s.island_area.sum())
+        except ValueError:  # not one triangle with an area (coincident vertices): nothing walkable
+            islands = len(island_radii(house.navmesh, island_labels(house.navmesh)))
+            big, area = 0, 0.0
     return {
         "version": house.navmesh.version,
-        "islands": len(s.island_radius),
+        "islands": islands,
         "islands_sampled": big,
-        "walkable_area_m2": round(float(s.island_area.sum()), 3),
+        "walkable_area_m2": round(area, 3),
     }
 
 

@@ -360,6 +360,11 @@ def parse_house_text(text: str, path: str = "<house>") -> HouseFile:
         if len(out[kind]) != n:
             problem = "truncated file? " if len(out[kind]) < n else ""
             raise InputError(f"{problem}H record says {n} {what}, found {len(out[kind])}", path, last)
+    if not text.endswith("\n"):
+        # Matterport's writer ends every record with a newline, and a record may legally omit its trailing zeros,
+        # so a missing final newline is the one sign left that the file was cut inside its last record.
+        raise InputError("the file ends inside its last line (truncated?): a .house file ends with a newline", path,
+                         len(lines))
 
     hf = HouseFile(
         version=version, header=header, levels=tuple(out["L"]), regions=tuple(out["R"]), portals=tuple(out["Pp"]),

@@ -233,6 +233,9 @@ def _read_ascii_body(data: bytes | memoryview, pos: int, elements: list[_Element
                 col += 4
         arrays[el.name] = rec
         at += need
+    if at < len(tokens):
+        raise InputError(f"PLY body is longer than its header says: {len(tokens) - at} values after the last element "
+                         f"(first: {tokens[at][:20].decode('ascii', 'replace')!r})", path)
     return arrays
 
 

@@ -19,6 +19,7 @@ decompressed.
 from __future__ import annotations
 
 import os
+import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -102,10 +103,35 @@ class HouseSource:
                     info = zf.getinfo(f"{self.prefix}{self.id}{suffix}")
                 except KeyError:
                     raise InputError("file not found in the zip archive", where) from None
+                _check_member(info, where)
                 with zf.open(info) as f:
                     return _read_capped(f, info.file_size, suffix, where)
-        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError, NotImplementedError) as e:
             raise InputError(f"cannot read zip archive: {e}", self.zip_path) from None
+
+
+#: Compression methods Python's zipfile decompresses (stored, deflate, bzip2, lzma).
+ZIP_METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate", zipfile.ZIP_BZIP2: "bzip2",
+               zipfile.ZIP_LZMA: "lzma"}
+#: A house id as Matterport3D (11 letters and digits) and our synthetic houses write them: a safe file-name stem.
+HOUSE_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+
+
+def _check_member(info: zipfile.ZipInfo, where: str) -> None:
+    """Refuse, before reading, a zip member that is encrypted or compressed with a method zipfile cannot undo."""
+    if info.flag_bits & 0x1:
+        raise InputError("zip member is encrypted; refused (Matterport3D zips are not)", where)
+    if info.compress_type not in ZIP_METHODS:
+        raise InputError(f"zip member uses compression method {info.compress_type}, not one of "
+                         f"{', '.join(ZIP_METHODS.values())}; refused", where)
+
+
+def check_house_id(hid: str, where: str | Path) -> str:
+    """``hid`` when it is a valid house id (:data:`HOUSE_ID`), else an :class:`InputError` that shows it escaped."""
+    if not HOUSE_ID.fullmatch(hid) or hid in (".", ".."):
+        raise InputError(f"{hid!r} is not a house id (letters, digits, '_', '-', '.'; not starting with '-' or '.')",
+                         where)
+    return hid
 
 
 def _read_capped(f, declared: int, suffix: str, where: str) -> bytearray:
@@ -144,15 +170,19 @@ def _houses_in_zip(zip_path: Path) -> list[HouseSource]:
     """Houses inside a zip (members ``.../<id>.house`` at any depth)."""
     try:
         with zipfile.ZipFile(zip_path) as zf:
-            names = set(zf.namelist())
-    except (zipfile.BadZipFile, OSError) as e:
+            listed = zf.namelist()
+    except (zipfile.BadZipFile, OSError, RuntimeError, NotImplementedError, ValueError) as e:
         raise InputError(f"cannot read zip archive: {e}", zip_path) from None
+    names = set(listed)
+    if len(names) != len(listed):
+        twice = sorted(n for n in names if listed.count(n) > 1)[0]
+        raise InputError(f"the archive holds member {twice!r} more than once (which one is meant?); refused", zip_path)
     out = []
     for name in sorted(names):
         if name.endswith(".house") and not name.endswith("/"):
             prefix, _, base = name.rpartition("/")
             prefix = prefix + "/" if prefix else ""
-            hid = base[: -len(".house")]
+            hid = check_house_id(base[: -len(".house")], f"{zip_path}:{name!r}")
             out.append(HouseSource(hid, zip_path=zip_path, prefix=prefix, layout=_layout_of(names, prefix, hid)))
     return out
 
@@ -179,7 +209,7 @@ def _walk(root: Path) -> list[tuple[tuple, HouseSource]]:
         files = {e.name for e in entries if e.is_file()}
         for e in entries:
             if e.is_file() and e.name.endswith(".house"):
-                hid = e.name[: -len(".house")]
+                hid = check_house_id(e.name[: -len(".house")], folder / repr(e.name))
                 src = HouseSource(hid, folder=folder, layout=_layout_of(files, "", hid))
                 found.append(((src.layout != "release", 0, depth, str(folder)), src))
             elif e.is_file() and _wanted_zip(e.name):
@@ -204,7 +234,7 @@ def find_houses(root: str | Path) -> dict[str, HouseSource]:
         if zipfile.is_zipfile(root):
             found = [((src.layout != "release",), src) for src in _houses_in_zip(root)]
         elif root.name.endswith(".house"):
-            hid = root.name[: -len(".house")]
+            hid = check_house_id(root.name[: -len(".house")], root)
             files = {p.name for p in root.parent.iterdir()}
             found = [((), HouseSource(hid, folder=root.parent, layout=_layout_of(files, "", hid)))]
         else:
