@@ -128,3 +128,18 @@ def test_houses_describes_a_navmesh_of_coincident_vertices(tmp_path, capsys):
     (row,) = json.loads(out)["houses"]
     navmesh = row["navmesh"]
     assert navmesh["islands_sampled"] == 0 and navmesh["walkable_area_m2"] == 0.0
+
+
+def test_a_warning_never_precedes_the_error_line(tmp_path, capsys):
+    """The ASCII 1.0 house warns (no objects) and then fails generate: the output is the error line alone."""
+    code, out = run(capsys, "generate", "--root", ASCII_HOUSE, "--house", "OLDASCII010", "--frames", "2", "--out",
+                    tmp_path / "d")
+    assert code == 2 and out.splitlines() == [f"error: {ASCII_HOUSE / 'OLDASCII010.house'}: house OLDASCII010 has "
+                                              "no object of class chair (it has: no objects)"], out
+
+
+def test_warnings_of_a_successful_run_are_one_line_each_after_its_output(tmp_path, capsys):
+    code, out = run(capsys, "view-house", "--root", ASCII_HOUSE, "--house", "OLDASCII010", "--out", tmp_path / "h.png")
+    lines = out.splitlines()
+    assert code == 0 and lines[0].startswith("wrote ") and len(lines) == 2, out
+    assert lines[1] == f"warning: {ASCII_HOUSE / 'OLDASCII010.house'}: no objects (ASCII 1.0); regions and floors only"

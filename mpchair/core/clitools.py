@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+import warnings
 from collections.abc import Callable
 
 import click
@@ -86,29 +87,46 @@ def run_cli(group: click.Group, args: list[str] | None = None) -> None:
 
     :class:`InputError`, an ``OSError`` (``error: PATH: reason``: a full disk, a missing permission, ``--out`` under
     a file) and click's usage errors (with the command's ``--help`` hint on the same line) exit with status 2,
-    :class:`RunError` with 1; Ctrl-C exits 130 without a traceback.
+    :class:`RunError` with 1; Ctrl-C exits 130 without a traceback. Python warnings raised on the way (a house's
+    oddities, numpy's floating-point notes) are held and printed after a successful run as one ``warning: ...`` line
+    each (repeats once); a failed run prints its error line alone, so the error is never buried.
     """
+    held: list[str] = []
+
+    def hold(message, category, filename, lineno, file=None, line=None) -> None:  # warnings.showwarning's signature
+        text = " ".join(str(message).split())
+        if text not in held:
+            held.append(text)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = hold
+        code, error = _run_group(group, args)
+    if error is not None:
+        click.echo(f"error: {error}", err=True)
+    elif code == 0:
+        for text in held:
+            click.echo(f"warning: {text}", err=True)
+    sys.exit(code)
+
+
+def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | None]:
+    """``(exit status, error line or None)`` of one run of ``group``."""
     try:
         rv = group.main(args=args, standalone_mode=False)
     except InputError as e:
-        click.echo(f"error: {e}", err=True)
-        sys.exit(2)
+        return 2, str(e)
     except RunError as e:
-        click.echo(f"error: {e}", err=True)
-        sys.exit(1)
+        return 1, str(e)
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("interrupted", err=True)
-        sys.exit(130)
+        return 130, None
     except click.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""
-        click.echo(f"error: {' '.join(e.format_message().split())}{hint}", err=True)
-        sys.exit(e.exit_code)
+        return e.exit_code, f"{' '.join(e.format_message().split())}{hint}"
     except click.ClickException as e:
-        click.echo(f"error: {e.format_message()}", err=True)
-        sys.exit(e.exit_code)
+        return e.exit_code, e.format_message()
     except OSError as e:
-        click.echo(f"error: {os_error_line(e)}", err=True)
-        sys.exit(2)
+        return 2, os_error_line(e)
     except click.exceptions.Exit as e:
-        sys.exit(e.exit_code)
-    sys.exit(rv if isinstance(rv, int) else 0)
+        return e.exit_code, None
+    return (rv if isinstance(rv, int) else 0), None
