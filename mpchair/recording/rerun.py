@@ -17,8 +17,13 @@ rerun-sdk, an optional extra, only when a recording is written.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import errno
 import json
+import os
+import shutil
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -42,6 +47,9 @@ def check_rerun_path(path: str | Path) -> None:
 
 
 def _rerun():
+    # rerun-sdk's Rust logger prints its own multi-line errors (a full disk) to stderr; this module turns every failure
+    # into one OSError, so the logger stays quiet unless the user asks for it with RUST_LOG.
+    os.environ.setdefault("RUST_LOG", "off")
     try:
         import rerun
     except ImportError:
@@ -49,20 +57,46 @@ def _rerun():
     return rerun
 
 
-class Recorder:
-    """A recording written to the temporary file ``path`` (see :func:`recording`)."""
+#: Longest wait for rerun-sdk's file writer to catch up (seconds); it writes a frame in milliseconds on a healthy disk.
+FLUSH_TIMEOUT_S = 10.0
 
-    def __init__(self, path: str | Path, application: str = "mpchair"):
+
+class Recorder:
+    """A recording written to the temporary file ``path`` (see :func:`recording`); ``out`` is the file name users see
+    in errors. Each frame's data is flushed before the next frame starts, with a timeout, so a full disk surfaces as
+    one ``OSError`` naming ``out`` within a frame, where rerun's writer thread would otherwise die (or, at the end,
+    hang in ``flush``)."""
+
+    def __init__(self, path: str | Path, application: str = "mpchair", out: str | Path | None = None):
         rr = self.rr = _rerun()
+        self._tmp, self.out = Path(path), Path(out or path)
         self.rec = rr.RecordingStream(application)
         self.rec.save(str(path))
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._frames = 0
+        self.failed = False
 
     def time(self, frame: int, time_us: int | None = None) -> None:
         """Set the timelines for what is logged next: ``frame`` index and capture time (microseconds)."""
+        if self._frames:
+            self.flush()
+        self._frames += 1
         self.rec.set_time("frame", sequence=int(frame))
         if time_us is not None:
             self.rec.set_time("time", duration=int(time_us) * 1e-6)
+
+    def flush(self) -> None:
+        """Wait (at most :data:`FLUSH_TIMEOUT_S`) until everything logged is in the file; a write failure is an
+        ``OSError`` naming ``out`` (``ENOSPC`` when the disk is full)."""
+        try:
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        except Exception as e:  # rerun raises RuntimeError (its writer died) or TimeoutError; the cause is in its log
+            self.failed = True
+            free = shutil.disk_usage(self._tmp.parent).free
+            if free < MIN_FREE_BYTES:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.out)) from None
+            raise OSError(errno.EIO, f"rerun-sdk could not write the recording ({' '.join(str(e).split())[:200]})",
+                          str(self.out)) from None
 
     def pose(self, entity: str, T: np.ndarray) -> None:
         """A (4,4) transform of ``entity`` into its parent's frame (child → parent)."""
@@ -87,20 +121,56 @@ class Recorder:
         self.rec.log(entity, self.rr.LineStrips3D([np.asarray(xyz, dtype=np.float64)], colors=[BLUE]), static=True)
 
     def close(self) -> None:
-        """Write everything to the file and close it."""
-        self.rec.flush()
+        """Write everything to the file and close it (``OSError`` as :meth:`flush`). A stream whose write failed is
+        kept, untouched, until the process ends: its ``disconnect`` and its destructor wait on the dead writer
+        thread forever (rerun-sdk 0.41), while rerun's own exit hook shuts it down cleanly."""
+        if self.failed:
+            _abandon(self.rec)
+            return
+        self.flush()
         self.rec.disconnect()
+
+
+#: Recording streams whose file write failed, kept alive so that their destructor never runs (see Recorder.close).
+_ABANDONED: list = []
+
+
+def _abandon(stream) -> None:
+    """Keep a failed stream until the process ends, and end the process without rerun's exit hook, which waits on
+    the stream's blocked writer thread forever (seen on a full tmpfs). Only a failed write gets here, and it has
+    become an ``OSError`` that the CLI reports with exit status 2, so the process ends with status 2."""
+    if not _ABANDONED:
+        atexit.register(_exit_now)  # atexit runs last-registered first: before rerun's hook
+    _ABANDONED.append(stream)
+
+
+def _exit_now() -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(2)
+
+#: Free space below which a failed write is reported as a full disk (bytes).
+MIN_FREE_BYTES = 1 << 20
 
 
 @contextlib.contextmanager
 def recording(out: str | Path) -> Iterator[Recorder]:
-    """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.core.atomic``)."""
+    """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.core.atomic``:
+    a failure, a full disk included, leaves neither the file nor a temporary)."""
     with atomic_path(out) as tmp:
-        rec = Recorder(tmp)
+        try:
+            rec = Recorder(tmp, out=out)
+        except RuntimeError as e:  # rerun-sdk cannot even write the file header (the disk is full already)
+            raise OSError(errno.ENOSPC if shutil.disk_usage(Path(tmp).parent).free < MIN_FREE_BYTES else errno.EIO,
+                          f"rerun-sdk could not start the recording ({' '.join(str(e).split())[:200]})",
+                          str(out)) from None
         try:
             yield rec
-        finally:
+        except BaseException:
+            rec.failed = True  # the recording is abandoned: no final flush
             rec.close()
+            raise
+        rec.close()
 
 
 def _frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[str]]:
