@@ -48,19 +48,17 @@ import numpy as np
 import torch
 from torch import nn
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from detector.bench.timing import COMPONENTS, time_frame  # noqa: E402
-from detector.device import MALLOC_REUSE  # noqa: E402
-from detector.models import build_model, load_experiment  # noqa: E402
-from detector.models.backbone import SecondBackbone  # noqa: E402
-from detector.models.head import AnchorHead, SparseExactHead  # noqa: E402
-from detector.models.neck import SecondFPN  # noqa: E402
-from detector.models.sparse_backbone import SparseBackboneNeck  # noqa: E402
-from detector.sparse import SparseTensor, SubMConv2d  # noqa: E402
-from detector.sparse.conv import GEMM_MIN_FILL  # noqa: E402
-from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites  # noqa: E402
-from mpchair.core.atomic import write_text  # noqa: E402
+from detector.bench.timing import COMPONENTS, time_frame
+from detector.device import MALLOC_REUSE
+from detector.models import build_model, load_experiment
+from detector.models.backbone import SecondBackbone
+from detector.models.head import AnchorHead, SparseExactHead
+from detector.models.neck import SecondFPN
+from detector.models.sparse_backbone import SparseBackboneNeck
+from detector.sparse import SparseTensor, SubMConv2d
+from detector.sparse.conv import GEMM_MIN_FILL
+from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites
+from mpchair.core.atomic import write_text
 
 PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "models"
