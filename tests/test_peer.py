@@ -1,4 +1,4 @@
-"""``detector bench --peer open3d-ml``: Open3D-ML's own PointPillars as a timing row (detector.peer).
+"""``detector bench --peer open3d-ml``: Open3D-ML's own PointPillars as a timing row (detector.bench.peer).
 
 The peer must be our dense network in Open3D-ML's code (same layers, channels, grid, weights), run on the same frames
 in the same interleaved loop, and reported in the JSON and the table; without Open3D-ML the option fails with one
@@ -16,7 +16,7 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset, write_test_config
 
-import detector.peer as peer_mod
+import detector.bench.peer as peer_mod
 from detector.bench import COMPONENTS, ratio_rows
 from detector.checkpoint import load_model
 from detector.cli import main

@@ -10,7 +10,7 @@ concat included; the sparse rows build their neighbour tables inside the timed r
 The "end to end" rows run the models that ``detector.models.build_model`` builds from ``configs/models/
 mpchair_dense.yaml`` and ``mpchair_sparse.yaml`` (with ``head: sparse_exact``, and once more with its dense head for
 reference), random weights, on one synthetic Matterport-Chair-like frame: 21,095 points (the mp3d-depth90 ray count)
-in clustered pillars at 0.75 % of the 768 x 512 canvas. Every stage of ``detector.bench.time_frame`` is timed:
+in clustered pillars at 0.75 % of the 768 x 512 canvas. Every stage of ``detector.bench.timing.time_frame`` is timed:
 voxelize + pillar net, scatter / SparseTensor, backbone + neck, head, decode + rotated NMS. ``score_thr`` is set to 0
 for the benchmark so that NMS runs on the ``nms_pre`` = 100 top boxes as it would with a trained model (random weights
 score every anchor about 0.01, below the configured 0.1).
@@ -48,20 +48,18 @@ import numpy as np
 import torch
 from torch import nn
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from detector.bench.timing import COMPONENTS, time_frame
+from detector.device import MALLOC_REUSE
+from detector.models import build_model, load_experiment
+from detector.models.backbone import SecondBackbone
+from detector.models.head import AnchorHead, SparseExactHead
+from detector.models.neck import SecondFPN
+from detector.models.sparse_backbone import SparseBackboneNeck
+from detector.sparse import SparseTensor, SubMConv2d
+from detector.sparse.conv import GEMM_MIN_FILL
+from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites
+from mpchair.core.atomic import write_text
 
-from detector.bench import COMPONENTS, time_frame  # noqa: E402
-from detector.models import build_model, load_experiment  # noqa: E402
-from detector.models.backbone import SecondBackbone  # noqa: E402
-from detector.models.head import AnchorHead, SparseExactHead  # noqa: E402
-from detector.models.neck import SecondFPN  # noqa: E402
-from detector.models.sparse_backbone import SparseBackboneNeck  # noqa: E402
-from detector.sparse import SparseTensor, SubMConv2d  # noqa: E402
-from detector.sparse.conv import GEMM_MIN_FILL  # noqa: E402
-from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites  # noqa: E402
-from mpchair.core.atomic import write_text  # noqa: E402
-
-REUSE_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
 PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "models"
 #: The issue's targets: (section, row, label, minimum ratio dense / sparse).
@@ -213,7 +211,7 @@ def matterport_points(seed: int = 4, num_points: int = 21095, density: float = 0
 
 
 def bench_end_to_end(repeats: int) -> list[dict[str, object]]:
-    """Points → detections with the models built from the Matterport configs (``detector.bench.time_frame``)."""
+    """Points → detections with the models built from the Matterport configs (``detector.bench.timing.time_frame``)."""
     dense_cfg = load_experiment(CONFIGS / "mpchair_dense.yaml").model
     sparse_cfg = load_experiment(CONFIGS / "mpchair_sparse.yaml").model
     variants = {
@@ -345,16 +343,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-repeats", type=int, default=3)
     p.add_argument("--skip", nargs="*", default=[], choices=["subm", "backbone", "e2e", "train"])
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this path")
-    p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {REUSE_ENV}")
+    p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {MALLOC_REUSE}")
     p.add_argument("--omp-passive", action="store_true", help=f"re-run under {PASSIVE_ENV} (busy machines)")
     args = p.parse_args(argv)
-    want = {**(REUSE_ENV if args.reuse_allocator else {}), **(PASSIVE_ENV if args.omp_passive else {})}
+    want = {**(MALLOC_REUSE if args.reuse_allocator else {}), **(PASSIVE_ENV if args.omp_passive else {})}
     if any(os.environ.get(k) != v for k, v in want.items()):
         os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **want})
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    allocator = {k: os.environ.get(k, "(unset)") for k in REUSE_ENV}
+    allocator = {k: os.environ.get(k, "(unset)") for k in MALLOC_REUSE}
     header = {
         "torch": torch.__version__,
         "threads": args.threads,
@@ -362,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": platform.machine(),
         "load_average": os.getloadavg(),
         "allocator": allocator,
-        "allocator_reuse": all(os.environ.get(k) == v for k, v in REUSE_ENV.items()),
+        "allocator_reuse": all(os.environ.get(k) == v for k, v in MALLOC_REUSE.items()),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(unset)"),
     }
     print("# bench_sparse", json.dumps(header))

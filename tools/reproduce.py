@@ -321,7 +321,7 @@ def _peer_available(dry_run: bool) -> bool:
 
     if dry_run:
         return importlib.util.find_spec("open3d") is not None
-    from detector.peer import open3d_ml_pointpillars
+    from detector.bench.peer import open3d_ml_pointpillars
     from mpchair.core.errors import InputError
 
     try:

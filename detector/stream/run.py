@@ -163,7 +163,7 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
 
     log = None
     if measured:
-        from detector.bench import machine_info
+        from detector.device import machine_info
 
         first = stream.sequences[0]
         for w in range(warmup):  # the kernels, caches and allocator settle before anything is timed

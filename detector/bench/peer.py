@@ -43,11 +43,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from detector.bench import COMPONENTS
+from detector.bench.timing import stamps_to_ms
 from detector.config import ModelConfig
 from detector.models import PointPillars
 from mpchair.core.errors import InputError
 
+#: The peer row's name, and the peers ``run_bench(peer=...)`` knows (this module imports Open3D-ML only when used).
+PEER_NAME = "open3d-ml"
+PEERS: tuple[str, ...] = (PEER_NAME,)
 #: Open3D-ML's multiclass_nms hard-codes this BEV IoU threshold.
 OPEN3D_ML_NMS_IOU = 0.01
 
@@ -143,7 +146,7 @@ def build_peer(cfg: ModelConfig, ours: PointPillars) -> nn.Module:
 @torch.no_grad()
 def time_peer_frame(peer: nn.Module, points: np.ndarray) -> tuple[dict[str, float], int]:
     """One frame through the peer's stages with a stamp after each (CPU): ``({component: ms}, detections)``, the
-    components of :data:`detector.bench.COMPONENTS`."""
+    components of :data:`detector.bench.timing.COMPONENTS`."""
     stamps = [time.perf_counter()]
     pts = torch.from_numpy(points)
     stamps.append(time.perf_counter())
@@ -161,6 +164,4 @@ def time_peer_frame(peer: nn.Module, points: np.ndarray) -> tuple[dict[str, floa
         warnings.simplefilter("ignore", UserWarning)
         boxes, _, _ = peer.bbox_head.get_bboxes(*outs)
     stamps.append(time.perf_counter())
-    ms = {k: (stamps[i + 1] - stamps[i]) * 1e3 for i, k in enumerate(COMPONENTS[:-1])}
-    ms["total"] = (stamps[-1] - stamps[0]) * 1e3
-    return ms, int(sum(int(b.shape[0]) for b in boxes))
+    return stamps_to_ms(stamps), int(sum(int(b.shape[0]) for b in boxes))

@@ -1,0 +1,18 @@
+"""The runtime benchmark (``detector bench``): the paper's per-component timings of dense and sparse PointPillars.
+
+- :mod:`detector.bench.timing`: the components, their titles, and the stamps around one frame's stages;
+- :mod:`detector.bench.peer`: Open3D-ML's own PointPillars as a peer row (imports ``timing``);
+- :mod:`detector.bench.run`: the protocol (warm-up, interleaved trials, back to back) and the JSON-ready result
+  (imports ``timing`` and ``peer``);
+- :mod:`detector.bench.report`: the result as the paper's tables (imports ``timing``; reads only the result dict).
+
+The modules import each other directly, in that one direction; this file only re-exports the names callers use. The
+machine a result describes is :func:`detector.device.machine_info`.
+"""
+
+from detector.bench.report import format_table, machine_line, ratio_rows
+from detector.bench.run import BenchModel, default_name, run_bench
+from detector.bench.timing import COMPONENTS, SHARED, TITLES, time_frame, time_shared
+
+__all__ = ["COMPONENTS", "SHARED", "TITLES", "BenchModel", "default_name", "format_table", "machine_line",
+           "ratio_rows", "run_bench", "time_frame", "time_shared"]

@@ -1,0 +1,307 @@
+"""Per-component runtime of dense and sparse PointPillars: the paper's Tables II / IV protocol, made measurable.
+
+The components and their stamps are :mod:`detector.bench.timing`'s; Open3D-ML's own PointPillars can be timed as a
+peer row (:mod:`detector.bench.peer`); :mod:`detector.bench.report` prints the result as the paper's tables.
+
+Protocol: every model is warmed up on the first frames, then ``trials`` passes over the same ``frames`` frames are
+timed. Within a pass the models are **interleaved per frame** (the order alternates from frame to frame), so load
+spikes of a shared machine hit all models alike. A trial's value of a component is its mean over the frames (the
+per-instance runtime); the reported mean ± std is over trials (population std), as the paper's tables. On CUDA the
+device is synchronised before every stamp; stamps are ``time.perf_counter``.
+
+Back to back: a component runs at the speed of the state the stage before it left (caches, predictors, allocator). The
+paper calls the Head and BBox Extract identical in both models, yet in the per-frame pipeline each one follows a
+model-specific backbone: on a 2-core AMX Xeon the same post-processing took 1.6x as long after the dense backbone
+(400 ms of oneDNN convolutions) as after the sparse one on identical work (random weights; 1.25-2.5x on trained ones),
+even a single ``amax`` over the class map did, and the gap vanished when a tiny dummy call warmed the code path first
+(the paper saw the same effect on GPUs and put it down to pipelining). So after the timed passes, ``trials`` more passes
+time these :data:`~detector.bench.timing.SHARED` components **back to back**: per frame every model runs to its neck
+(untimed), then every model's Head, then every model's BBox Extract, each on its own maps, in an order rotated from
+frame to frame, so each model's component follows the same kind of stage as the others'. The per-frame columns stay the
+paper's protocol (what a pipeline pays); the back-to-back columns are the components' own cost, the one to compare
+between models.
+
+The result records the data's pseudo-image density ``D`` (pillars indexed by :func:`mpchair.geometry.pillar_coords`,
+over the model's ``output_shape`` canvas) and the machine (:func:`detector.device.machine_info`): CPU model, threads,
+torch version, GPU, load average, the glibc allocator settings ``MALLOC_MMAP_MAX_`` / ``MALLOC_TRIM_THRESHOLD_`` (they
+can dominate CPU timings, see ``docs/benchmarks.md``) and page faults per frame of each model (``resource.getrusage``,
+whole process).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from detector.bench import peer as open3d_peer
+from detector.bench.timing import COMPONENTS, SHARED, page_faults, time_frame, time_shared
+from detector.checkpoint import load_model
+from detector.config import pseudoimage_geometry
+from detector.data.experiment import EvalFrame, load_eval_frames
+from detector.device import machine_info, use_device
+from detector.models import ExperimentConfig, PointPillars, load_experiment
+from mpchair.core.errors import InputError
+from mpchair.geometry import frame_density
+
+#: One frame's points (N, C) float32, sensor frame → ``({component: ms}, detections)``.
+FrameTimer = Callable[[np.ndarray], tuple[dict[str, float], int]]
+
+
+@dataclass(frozen=True)
+class BenchModel:
+    """One model to time: display ``name``, its ``config`` path and optional ``checkpoint``."""
+
+    name: str
+    config: str
+    checkpoint: str | None = None
+
+
+class TimedRow(NamedTuple):
+    """One row of the result: its display ``name``, the ``model`` / ``cfg`` it was built from (the peer: the first
+    model's), a description of its ``weights``, ``peer`` (None for ours), its ``timer`` and the ``frames`` it is fed
+    with their pseudo-image ``densities`` (pillars / canvas cells)."""
+
+    name: str
+    model: BenchModel
+    cfg: ExperimentConfig
+    weights: str
+    peer: str | None
+    timer: FrameTimer
+    frames: list[EvalFrame]
+    densities: list[float]
+
+
+@dataclass(frozen=True)
+class Timings:
+    """The timed passes of every row: ``per_frame`` (rows, trials, frames, components) ms, ``trial_means`` (rows,
+    trials, components) ms (a trial's mean over its frames), ``faults`` and ``detections`` (rows,) summed over every
+    timed frame; ``back_to_back`` (our models, trials, shared components) ms, per trial the mean over frames, or None
+    when fewer than two of our models ran."""
+
+    per_frame: np.ndarray
+    trial_means: np.ndarray
+    faults: np.ndarray
+    detections: np.ndarray
+    back_to_back: np.ndarray | None
+
+
+def density_summary(values: Sequence[float]) -> dict[str, float]:
+    """``{"frames", "median", "mean", "min", "max"}`` of per-frame densities."""
+    v = np.asarray(values, dtype=np.float64)
+    return {"frames": int(v.size), "median": float(np.median(v)), "mean": float(v.mean()), "min": float(v.min()),
+            "max": float(v.max())}
+
+
+def default_name(cfg: ExperimentConfig, path: str | Path) -> str:
+    """``dense`` / ``sparse`` / ... from the backbone, plus ``+sparse_head`` for the exact sparse head."""
+    name = cfg.model.backbone
+    if cfg.model.head != "dense":
+        name += "+sparse_head"
+    return name
+
+
+def display_names(models: Sequence[BenchModel], cfgs: Sequence[ExperimentConfig]) -> list[str]:
+    """Each model's row name: its ``name``, else :func:`default_name`; names that repeat get ``:<config stem>``."""
+    names = [m.name or default_name(c, m.config) for m, c in zip(models, cfgs)]
+    if len(set(names)) != len(names):
+        # two configs with the same backbone (e.g. a shape sweep): fall back to file stems
+        names = [n if names.count(n) == 1 else f"{n}:{Path(m.config).stem}" for n, m in zip(names, models)]
+    return names
+
+
+def run_bench(
+    models: Sequence[BenchModel],
+    data_dir: str | Path,
+    *,
+    split: str = "test",
+    frames: int = 20,
+    trials: int = 3,
+    warmup: int = 3,
+    device: str = "cpu",
+    threads: int | None = None,
+    seed: int = 0,
+    peer: str | None = None,
+    progress: bool = False,
+) -> dict:
+    """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
+    bars on stderr (loading, warm-up and timed frames) when it is a terminal.
+
+    ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "back_to_back": {shared
+    key: {"mean_ms", "std_ms"}} (None for the peer and for a single model), "median_frame_ms",
+    "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer"}], "density": {...},
+    "machine": {...}, "protocol": {...}}``.
+
+    ``peer="open3d-ml"`` adds Open3D-ML's own PointPillars as the last row (``"peer": "open3d-ml"``; ours have
+    ``"peer": None``): built with the first model's architecture and grid and its weights (:mod:`detector.bench.peer`;
+    the first model must be dense), fed the first model's frames, interleaved per frame with the others. CPU only.
+    """
+    if not models:
+        raise InputError("bench needs at least one --config")
+    if frames < 1 or trials < 1 or warmup < 0:
+        raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
+    dev = use_device(device, threads)
+    cfgs = [load_experiment(m.config) for m in models]
+    names = display_names(models, cfgs)
+    _check_peer(peer, device)
+    nets = [load_model(c, m.checkpoint, dev, seed=seed) for c, m in zip(cfgs, models)]
+    rows = our_rows(models, cfgs, names, nets, dev, data_dir, split, frames, seed, progress)
+    if peer is not None:
+        rows.append(peer_row(rows[0], nets[0], peer))
+
+    n = len(rows[0].frames)
+    # one bar step = one frame through every model; stderr, so a table or Markdown on stdout stays clean
+    bar = tqdm(total=min(warmup, n) + trials * n * (2 if len(nets) > 1 else 1), desc="bench warm-up", unit="frame",
+               disable=None if progress else True, leave=False)
+    warm_up(rows, min(warmup, n), bar)
+    timings = time_rows(rows, trials, bar)
+    if len(nets) > 1:  # the shared components back to back (ours only: the peer's stages are not ours to split)
+        timings = replace(timings, back_to_back=time_back_to_back(nets, rows[: len(nets)], trials, dev, bar))
+    bar.close()
+    return {
+        "models": [model_record(row, j, timings) for j, row in enumerate(rows)],
+        "density": density_record(rows[0]),
+        "machine": machine_record(dev, peer),
+        "protocol": protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
+    }
+
+
+def _check_peer(peer: str | None, device: str) -> None:
+    """:class:`InputError` unless ``peer`` is None or a known peer timed on the CPU."""
+    if peer is not None and peer not in open3d_peer.PEERS:
+        raise InputError(f"unknown peer {peer!r} (choose from {', '.join(open3d_peer.PEERS)})")
+    if peer is not None and device != "cpu":
+        raise InputError(f"--peer {peer} times the CPU only (open3d-cpu); drop --device {device}")
+
+
+def our_rows(models: Sequence[BenchModel], cfgs: Sequence[ExperimentConfig], names: Sequence[str],
+             nets: Sequence[PointPillars], device: torch.device, data_dir: str | Path, split: str, frames: int,
+             seed: int, progress: bool) -> list[TimedRow]:
+    """One row per model of ours: its first ``frames`` frames of ``split`` (each model's own transform) and their
+    densities over its canvas, timed by :func:`detector.bench.timing.time_frame` on ``device``."""
+    data = [load_eval_frames(c, data_dir, split, frames, progress=progress) for c in cfgs]
+    rows = []
+    for model, cfg, name, net, fs in zip(models, cfgs, names, nets, data):
+        geometry = pseudoimage_geometry(cfg.model)
+        weights = str(model.checkpoint) if model.checkpoint else f"random (seed {seed}; untrained, timing only)"
+        rows.append(TimedRow(name=name, model=model, cfg=cfg, weights=weights, peer=None,
+                             timer=lambda pts, net=net: time_frame(net, pts, device), frames=fs,
+                             densities=[frame_density(f.points, geometry)[2] for f in fs]))
+    return rows
+
+
+def peer_row(first: TimedRow, first_net: PointPillars, peer: str) -> TimedRow:
+    """The peer's row: Open3D-ML's PointPillars built like our ``first`` row's (dense) model with its weights, fed its
+    frames. Raises :class:`InputError` if Open3D-ML is missing or the architectures differ."""
+    peer_net = open3d_peer.build_peer(first.cfg.model, first_net)
+    # looked up per call, not bound here: the module's timer is the one that runs (tests spy on it)
+    return first._replace(name=open3d_peer.PEER_NAME, weights=f"{first.name}'s weights, copied: {first.weights}",
+                          peer=peer, timer=lambda pts: open3d_peer.time_peer_frame(peer_net, pts))
+
+
+def warm_up(rows: Sequence[TimedRow], frames: int, bar: tqdm) -> None:
+    """Run every row's timer on its first ``frames`` frames, untimed (kernels, caches and the allocator settle)."""
+    for i in range(frames):
+        for row in rows:
+            row.timer(row.frames[i].points)
+        bar.update(1)
+
+
+def time_rows(rows: Sequence[TimedRow], trials: int, bar: tqdm) -> Timings:
+    """``trials`` timed passes over every row's frames, the rows interleaved per frame with the order alternating
+    from frame to frame; page faults counted around each call (``back_to_back`` None)."""
+    k, n = len(rows), len(rows[0].frames)
+    trial_means = np.zeros((k, trials, len(COMPONENTS)))
+    per_frame = np.zeros((k, trials, n, len(COMPONENTS)))
+    faults = np.zeros((k,), dtype=np.int64)
+    dets = np.zeros((k,), dtype=np.int64)
+    for t in range(trials):
+        bar.set_description(f"bench trial {t + 1}/{trials}")
+        for i in range(n):
+            order = range(k) if (t * n + i) % 2 == 0 else reversed(range(k))  # alternate who goes first
+            for j in order:
+                f0 = page_faults()
+                ms, nd = rows[j].timer(rows[j].frames[i].points)
+                faults[j] += page_faults() - f0
+                dets[j] += nd
+                per_frame[j, t, i] = [ms[c] for c in COMPONENTS]
+            bar.update(1)
+        trial_means[:, t] = per_frame[:, t].mean(axis=1)
+    return Timings(per_frame=per_frame, trial_means=trial_means, faults=faults, detections=dets, back_to_back=None)
+
+
+def time_back_to_back(nets: Sequence[PointPillars], rows: Sequence[TimedRow], trials: int, device: torch.device,
+                      bar: tqdm) -> np.ndarray:
+    """``trials`` passes of :func:`detector.bench.timing.time_shared` over our rows' frames, the first model rotated
+    from frame to frame: (models, trials, shared components) ms, per trial the mean over frames."""
+    n = len(rows[0].frames)
+    back = np.zeros((len(nets), trials, len(SHARED)))
+    for t in range(trials):
+        bar.set_description(f"bench back to back {t + 1}/{trials}")
+        back[:, t] = np.mean([time_shared(nets, [r.frames[i].points for r in rows], device, (t * n + i) % len(nets))
+                              for i in range(n)], axis=0)
+        bar.update(n)
+    return back
+
+
+def model_record(row: TimedRow, j: int, timings: Timings) -> dict:
+    """The JSON record of row ``j``: mean ± std over trials per component, back to back (ours, two or more models),
+    median / min single-frame ms, detections, page faults and the median density per frame."""
+    means, frames = timings.trial_means[j], timings.per_frame[j]
+    count = frames.shape[0] * frames.shape[1]  # trials x frames
+    back = None if row.peer is not None or timings.back_to_back is None else timings.back_to_back[j]
+    return {
+        "name": row.name,
+        "peer": row.peer,
+        "config": str(row.model.config),
+        "weights": row.weights,
+        "backbone": row.cfg.model.backbone,
+        "head": row.cfg.model.head,
+        "output_shape": list(row.cfg.model.output_shape),
+        "components": {key: {"mean_ms": float(means[:, ci].mean()), "std_ms": float(means[:, ci].std())}
+                       for ci, key in enumerate(COMPONENTS)},
+        "back_to_back": None if back is None else {
+            key: {"mean_ms": float(back[:, si].mean()), "std_ms": float(back[:, si].std())}
+            for si, key in enumerate(SHARED)
+        },
+        "median_frame_ms": {key: float(np.median(frames[:, :, ci])) for ci, key in enumerate(COMPONENTS)},
+        "min_frame_ms": {key: float(frames[:, :, ci].min()) for ci, key in enumerate(COMPONENTS)},
+        "detections_per_frame": float(timings.detections[j]) / count,
+        "page_faults_per_frame": float(timings.faults[j]) / count,
+        "density_median": float(np.median(row.densities)),
+    }
+
+
+def density_record(row: TimedRow) -> dict:
+    """:func:`density_summary` of a row's frames plus the grid they were counted on (range, pillar size in m, canvas
+    cells)."""
+    density = density_summary(row.densities)
+    m = row.cfg.model
+    density["geometry"] = {"point_cloud_range": list(m.point_cloud_range), "voxel_size": list(m.voxel_size),
+                           "output_shape": list(m.output_shape)}
+    return density
+
+
+def protocol_record(first: TimedRow, data_dir: str | Path, split: str, peer: str | None, trials: int, warmup: int,
+                    back_to_back: bool) -> dict:
+    """How the result was measured: data, split, the ``first`` row's frames, peer, trials, warm-up frames, batch,
+    interleaving, the components timed back to back (none with a single model) and what the std is over."""
+    return {"data": str(data_dir), "split": split, "frames": len(first.frames),
+            "frame_ids": [f.frame_id for f in first.frames], "peer": peer, "trials": trials, "warmup": warmup,
+            "batch_size": 1, "interleaved": True, "back_to_back": list(SHARED) if back_to_back else [],
+            "std": "population std over trials of the per-trial mean over frames"}
+
+
+def machine_record(device: torch.device, peer: str | None) -> dict:
+    """:func:`detector.device.machine_info`, plus Open3D's version when a peer ran."""
+    mach = machine_info(device)
+    if peer is not None:
+        import open3d
+
+        mach["open3d"] = open3d.__version__
+    return mach

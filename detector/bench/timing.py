@@ -1,0 +1,122 @@
+"""Stamps around the paper's timing components: one frame through a model's stages, and the shared ones back to back.
+
+Components (one :class:`detector.models.PointPillars` stage each, batch 1, eval mode, ``torch.no_grad``):
+
+| key | paper column | what runs |
+|---|---|---|
+| ``to_device`` | To Device | ``torch.from_numpy(points).to(device)`` (on CPU: the tensor wrap only, no copy) |
+| ``feature_extract`` | Feature Extract | ``voxelize`` + ``pillar_net`` |
+| ``feature_net`` | Feature Net | ``feature_net``: scatter to the dense canvas, or wrapping as a ``SparseTensor`` |
+| ``backbone`` | Backbone | ``backbone_neck``: backbone + neck, incl. the sparse model's todense + concat |
+| ``head`` | Head | ``head`` (three 1x1 convs, or the exact sparse head) |
+| ``bbox_extract`` | BBox Extract | ``postprocess``: top-k, decode, rotated NMS, direction fix |
+| ``total`` | Total time | the sum of the six, i.e. first stamp to last stamp of a frame |
+
+On CUDA the device is synchronised before every stamp; stamps are ``time.perf_counter``, reported in ms.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from detector.models import PointPillars
+
+#: Component keys in table order (``total`` last).
+COMPONENTS: tuple[str, ...] = ("to_device", "feature_extract", "feature_net", "backbone", "head", "bbox_extract",
+                               "total")
+#: Components the paper calls identical in every model that follow a model-specific stage: also timed back to back.
+SHARED: tuple[str, ...] = ("head", "bbox_extract")
+#: Column titles of the paper's runtime tables.
+TITLES: dict[str, str] = {
+    "to_device": "To Device",
+    "feature_extract": "Feature Extract",
+    "feature_net": "Feature Net",
+    "backbone": "Backbone",
+    "head": "Head",
+    "bbox_extract": "BBox Extract",
+    "total": "Total",
+}
+
+
+def sync_device(device: torch.device) -> None:
+    """Wait for ``device``'s queued kernels (CUDA), so that a stamp taken next includes them; a no-op on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def page_faults() -> int:
+    """Page faults (minor + major) of this whole process so far (``resource.getrusage``)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return int(r.ru_minflt + r.ru_majflt)
+
+
+def stamps_to_ms(stamps: Sequence[float]) -> dict[str, float]:
+    """``{component: ms}`` from the seven ``time.perf_counter`` stamps around the six stages (s), ``total`` the first
+    to the last."""
+    ms = {k: (stamps[i + 1] - stamps[i]) * 1e3 for i, k in enumerate(COMPONENTS[:-1])}
+    ms["total"] = (stamps[-1] - stamps[0]) * 1e3
+    return ms
+
+
+@torch.no_grad()
+def time_frame(model: PointPillars, points: np.ndarray, device: torch.device) -> tuple[dict[str, float], int]:
+    """Run one frame (``points`` (N, C) float32, sensor frame) through the stages with a stamp after each:
+    ``({component: ms}, detections)``."""
+    stamps = []
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    pts = torch.from_numpy(points).to(device)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    voxels = model.voxelize([pts])
+    features, coords = model.pillar_net(voxels)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    x = model.feature_net(features, coords, voxels.batch_size)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    x, active = model.backbone_neck(x)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    out = model.head(x, active)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    dets = model.postprocess(out.cls, out.reg, out.dir)
+    sync_device(device)
+    stamps.append(time.perf_counter())
+    return stamps_to_ms(stamps), int(sum(int(d.boxes.shape[0]) for d in dets))
+
+
+@torch.no_grad()
+def time_shared(models: Sequence[PointPillars], points: Sequence[np.ndarray], device: torch.device,
+                first: int) -> np.ndarray:
+    """One frame through every model to its neck (untimed), then every model's Head, then every model's BBox Extract,
+    starting with model ``first`` (then ``first + 1``, ... cyclically): ``(len(models), len(SHARED))`` ms."""
+    necks = []
+    for model, pts in zip(models, points):
+        voxels = model.voxelize([torch.from_numpy(pts).to(device)])
+        features, coords = model.pillar_net(voxels)
+        necks.append(model.backbone_neck(model.feature_net(features, coords, voxels.batch_size)))
+    k = len(models)
+    order = [(first + j) % k for j in range(k)]
+    ms = np.zeros((k, len(SHARED)))
+    outs: dict[int, object] = {}
+    for j in order:
+        sync_device(device)
+        t0 = time.perf_counter()
+        outs[j] = models[j].head(*necks[j])
+        sync_device(device)
+        ms[j, 0] = (time.perf_counter() - t0) * 1e3
+    for j in order:
+        out = outs[j]
+        sync_device(device)
+        t0 = time.perf_counter()
+        models[j].postprocess(out.cls, out.reg, out.dir)
+        sync_device(device)
+        ms[j, 1] = (time.perf_counter() - t0) * 1e3
+    return ms
