@@ -302,7 +302,9 @@ def _train_epochs(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at:
             stopped = True
             break
         part = _train_epoch(run, parts, base, at, log, estimate, saves)
-        at, last_loss = part.at, part.last_loss if part.last_loss is not None else last_loss
+        at = part.at
+        if part.last_loss is not None:
+            last_loss = part.last_loss
         if part.stopped or at.step_in_epoch < run.steps_per_epoch:
             stopped = True  # --max-steps hit inside the epoch
             break
