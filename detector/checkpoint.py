@@ -1,16 +1,18 @@
 """Checkpoint files: the one place that writes and reads them, and the one model loader (:func:`load_model`) that
 ``detector eval``, ``bench``, ``viz-sparsity``, ``stream-eval`` and the tools share.
 
-A checkpoint is a ``torch.save`` dict of tensors and plain data only (numbers, strings, lists, tuples, dicts, None):
-the model and optimiser state dicts, the LR scheduler's state, the epoch / step counters, the RNG states and the
-experiment config as a plain dict. It is read with ``torch.load(weights_only=True)``, which refuses any pickle that
-would import or call something else: a checkpoint from elsewhere cannot run code here. It is serialised in memory and
-written with :func:`mpchair.core.atomic.write_bytes` (temp file + rename), so a full disk is an ``OSError`` naming
-the file and a kill never leaves a half-written ``last.pt``.
+In memory a checkpoint is a :class:`Checkpoint` record; on disk it is a ``torch.save`` dict of tensors and plain data
+only (numbers, strings, lists, tuples, dicts, None): the model and optimiser state dicts, the LR scheduler's state,
+the epoch / step counters, the RNG states and the experiment config as a plain dict. It is read with
+``torch.load(weights_only=True)``, which refuses any pickle that would import or call something else: a checkpoint
+from elsewhere cannot run code here. It is serialised in memory and written with
+:func:`mpchair.core.atomic.write_bytes` (temp file + rename), so a full disk is an ``OSError`` naming the file and a
+kill never leaves a half-written ``last.pt``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import re
 from pathlib import Path
@@ -27,34 +29,99 @@ from mpchair.core.errors import InputError
 CHECKPOINT_FORMAT = 1
 
 
-def save_checkpoint(path: Path, *, model: nn.Module, optimizer: torch.optim.Optimizer, cfg: ExperimentConfig,
-                    epoch: int, step_in_epoch: int, step: int, global_batch: int,
-                    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> None:
-    """Write the training state to ``path`` atomically (``epoch``: completed epochs; ``step``: global steps)."""
-    if isinstance(model, nn.parallel.DistributedDataParallel):
-        model = model.module
-    state = {
-        "format": CHECKPOINT_FORMAT,
-        "model": model.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "scheduler": scheduler.state_dict() if scheduler is not None else None,
-        "epoch": epoch,
-        "step_in_epoch": step_in_epoch,
-        "step": step,
-        "global_batch": global_batch,
-        "rng": {
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-        },
-        "config": to_dict(cfg),
+@dataclasses.dataclass(frozen=True)
+class RngStates:
+    """The global torch generators' states: ``cpu`` (``torch.get_rng_state()``, the file's ``rng["torch"]``) and one
+    per visible CUDA device (``cuda``; empty without CUDA)."""
+
+    cpu: torch.Tensor
+    cuda: tuple[torch.Tensor, ...] = ()
+
+    @classmethod
+    def capture(cls) -> RngStates:
+        """This process's generator states now."""
+        return cls(cpu=torch.get_rng_state(),
+                   cuda=tuple(torch.cuda.get_rng_state_all()) if torch.cuda.is_available() else ())
+
+    def restore(self) -> None:
+        """Set this process's generators to these states (the CUDA ones only where CUDA is available)."""
+        torch.set_rng_state(self.cpu)
+        if self.cuda and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(list(self.cuda))
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """What a checkpoint holds: the model's ``state_dict`` and, from a training run, the optimiser's and the LR
+    scheduler's state dicts (``scheduler`` None for a constant LR), ``epoch`` (completed epochs), ``step_in_epoch``,
+    the global ``step``, the ``global_batch`` (samples per optimiser step, all processes), the RNG states and the
+    experiment ``config`` as a plain dict. A file without some training field (one not written by a training run)
+    reads it as None."""
+
+    model: dict[str, torch.Tensor]
+    optimizer: dict | None = None
+    scheduler: dict | None = None
+    epoch: int | None = None
+    step_in_epoch: int | None = None
+    step: int | None = None
+    global_batch: int | None = None
+    rng: RngStates | None = None
+    config: dict | None = None
+    format: int = CHECKPOINT_FORMAT
+
+    @classmethod
+    def capture(cls, *, model: nn.Module, optimizer: torch.optim.Optimizer, cfg: ExperimentConfig, epoch: int,
+                step_in_epoch: int, step: int, global_batch: int,
+                scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> Checkpoint:
+        """The training state now (``epoch``: completed epochs; ``step``: global steps), with this process's RNG
+        states. The state dicts reference the live tensors: save it before the next optimiser step."""
+        if isinstance(model, nn.parallel.DistributedDataParallel):
+            model = model.module
+        return cls(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                   scheduler=scheduler.state_dict() if scheduler is not None else None, epoch=epoch,
+                   step_in_epoch=step_in_epoch, step=step, global_batch=global_batch, rng=RngStates.capture(),
+                   config=to_dict(cfg))
+
+
+def _file_dict(checkpoint: Checkpoint) -> dict:
+    """The plain dict ``torch.save`` writes (its keys in this order since format 1, so the bytes stay the same)."""
+    rng = checkpoint.rng
+    return {
+        "format": checkpoint.format,
+        "model": checkpoint.model,
+        "optimizer": checkpoint.optimizer,
+        "scheduler": checkpoint.scheduler,
+        "epoch": checkpoint.epoch,
+        "step_in_epoch": checkpoint.step_in_epoch,
+        "step": checkpoint.step,
+        "global_batch": checkpoint.global_batch,
+        "rng": None if rng is None else {"torch": rng.cpu, "cuda": list(rng.cuda)},
+        "config": checkpoint.config,
     }
+
+
+def _from_file_dict(state: dict) -> Checkpoint:
+    """A loaded file's dict as a :class:`Checkpoint` (keys an older or foreign writer left out read as None)."""
+    rng = state.get("rng")
+    has_rng = isinstance(rng, dict) and isinstance(rng.get("torch"), torch.Tensor)
+    return Checkpoint(
+        model=state["model"], optimizer=state.get("optimizer"), scheduler=state.get("scheduler"),
+        epoch=state.get("epoch"), step_in_epoch=state.get("step_in_epoch"), step=state.get("step"),
+        global_batch=state.get("global_batch"),
+        rng=RngStates(cpu=rng["torch"], cuda=tuple(rng.get("cuda") or ())) if has_rng else None,
+        config=state.get("config"), format=state["format"])
+
+
+def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:
+    """Write ``checkpoint`` to ``path`` atomically, as the plain dict of tensors and plain data described above."""
     buf = io.BytesIO()
-    torch.save(state, buf)
+    torch.save(_file_dict(checkpoint), buf)
     write_bytes(path, buf.getbuffer())
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint written by :func:`save_checkpoint` (tensors and plain data only).
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint` (tensors and plain data only), tensors on
+    ``map_location``.
 
     A missing, damaged or foreign file, and one whose pickle would import or call anything else, is an
     :class:`InputError` (one line); nothing in the file runs.
@@ -73,12 +140,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise InputError(f"cannot read checkpoint: {type(e).__name__}: {text[:300]}", path) from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
         raise InputError("not a detector checkpoint (missing format/model keys)", path)
-    return state
+    return _from_file_dict(state)
 
 
-def config_from_checkpoint(state: dict, source: str) -> ExperimentConfig:
-    """The experiment a checkpoint was trained with."""
-    return experiment_from_dict(state["config"], source=source)
+def config_from_checkpoint(checkpoint: Checkpoint, source: str) -> ExperimentConfig:
+    """The experiment a checkpoint was trained with (``source`` names it in errors)."""
+    if checkpoint.config is None:
+        raise InputError("the checkpoint holds no experiment config", source)
+    return experiment_from_dict(checkpoint.config, source=source)
 
 
 def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device | str = "cpu", *,
@@ -94,10 +163,10 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
             torch.manual_seed(seed)
             model = build_model(cfg.model)
         return model.to(device).eval()
-    state = load_checkpoint(checkpoint, map_location=device)
+    saved = load_checkpoint(checkpoint, map_location=device)
     model = build_model(cfg.model).to(device)
     try:
-        model.load_state_dict(state["model"])
+        model.load_state_dict(saved.model)
     except RuntimeError as e:
         first = str(e).strip().splitlines()
         msg = " ".join(first[:2])[:300]

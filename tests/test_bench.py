@@ -13,12 +13,11 @@ import torch
 from helpers_detector import make_tiny_dataset
 
 from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
-from detector.checkpoint import load_model
+from detector.checkpoint import Checkpoint, load_model, save_checkpoint
 from detector.cli import cli, main
 from detector.config import pseudoimage_geometry
 from detector.data.experiment import load_eval_frames
 from detector.models import build_model, load_experiment
-from detector.train import save_checkpoint
 from mpchair.geometry import frame_density
 
 DENSE = "configs/models/mpchair_dense_smoke.yaml"
@@ -111,8 +110,8 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
     with torch.no_grad():
         model.anchor_head.conv_cls.bias.fill_(2.0)
     ckpt = tmp_path / "dense.pt"
-    save_checkpoint(ckpt, model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg, epoch=0,
-                    step_in_epoch=0, step=0, global_batch=1)
+    save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg,
+                                             epoch=0, step_in_epoch=0, step=0, global_batch=1))
     out = tmp_path / "bench.json"
     res = click.testing.CliRunner().invoke(cli, [
         "bench", "--config", DENSE, "--config", SPARSE, "--checkpoint", str(ckpt), "--checkpoint", "-", "--data",

@@ -1,7 +1,7 @@
 """Distributed training: 2 CPU processes (torchrun, gloo) x batch 1 == 1 process x batch 2, step for step.
 
 The equivalence holds because every BatchNorm uses global-batch statistics across ranks and the losses are
-normalised by the global number of positive anchors (see ``detector/train.py``). Compared per step: the total loss and
+normalised by the global number of positive anchors (see ``detector/train/``). Compared per step: the total loss and
 the gradient norm (both before the optimiser step, so they check the forward statistics and the all-reduced
 gradients directly), the learning rate and beta1 of the one-cycle schedule (whose length counts global steps); after
 the run: every weight's and BatchNorm buffer's change from the shared initial state. The job's output: one plan, epoch

@@ -128,9 +128,9 @@ def test_tiny_dense_model_trains_and_predicts() -> None:
         assert preds.cls.shape == (1, 16, 16, 2) and preds.reg.shape == (1, 16, 16, 14)
         loss = model.loss(preds, [box], [labels])
         opt.zero_grad()
-        loss["total"].backward()
+        loss.total.backward()
         opt.step()
-        losses.append(float(loss["total"].detach()))
+        losses.append(float(loss.total.detach()))
     assert all(torch.isfinite(torch.tensor(losses)))
     assert losses[-1] < 0.8 * losses[0] and losses == sorted(losses, reverse=True), losses  # 2.80 → 2.02 measured
     model.eval()
@@ -249,8 +249,8 @@ def test_sparse_variants_build_and_run() -> None:
         torch.testing.assert_close(preds.cls, ref, atol=1e-5, rtol=1e-5)
         model.train()
         loss = model.loss(model([pts]), [box], [torch.zeros(1, dtype=torch.int64)])
-        loss["total"].backward()
-        assert torch.isfinite(loss["total"])
+        loss.total.backward()
+        assert torch.isfinite(loss.total)
         for block in model.backbone.blocks:  # gradients reach the first and the last conv of every block
             assert block[0].weight.grad.abs().sum() > 0 and block[-3].weight.grad.abs().sum() > 0, backbone
     # the released code's Sparse+WideConv: 9x9 stride-2 down-convs (grown active sets), 3x3 SubMs
@@ -261,6 +261,6 @@ def test_sparse_variants_build_and_run() -> None:
     assert [m.kernel_size for m in downs] == [9, 9, 9] and {m.kernel_size for m in subms} == {3}
     preds = wide([pts])
     assert preds.cls.shape == (1, 16, 16, 2)
-    wide.loss(preds, [box], [torch.zeros(1, dtype=torch.int64)])["total"].backward()
+    wide.loss(preds, [box], [torch.zeros(1, dtype=torch.int64)]).total.backward()
     with pytest.raises(InputError, match="downsample"):
         check_model_config(_tiny_config(backbone="sparse_wide_down", downsample="reference_quirk"))

@@ -11,7 +11,7 @@ from detector.models.anchors import generate_anchors
 from detector.models.assign import assign_targets, axis_aligned_iou, direction_bin, nearest_bev
 from detector.models.box_coder import decode_boxes, encode_boxes, limit_period
 from detector.models.head import HeadOutput
-from detector.models.losses import compute_loss, sigmoid_focal_loss, smooth_l1
+from detector.models.losses import Losses, compute_loss, sigmoid_focal_loss, smooth_l1
 from mpchair.geometry import wrap_angle
 
 CHAIR = (0.960005934232471, 0.6668719666706728, 0.8838318530669755)
@@ -151,7 +151,8 @@ def test_compute_loss_known_values() -> None:
     cls_exp = 0.25 * 0.25 * ln2 + 0.75 * 0.25 * ln2
     reg_exp = 2.0 * (0.5 * 0.05**2 / 0.11 + (math.sin(0.5) - 0.055))  # yaw: sin(0)cos(.5) vs cos(0)sin(.5)
     dir_exp = 0.2 * ln2
-    got = {k: float(v) for k, v in out.items()}
+    assert isinstance(out, Losses) and all(v.dim() == 0 for v in out)
+    got = {k: float(v) for k, v in out._asdict().items()}
     np.testing.assert_allclose(
         [got["cls"], got["reg"], got["dir"], got["total"]],
         [cls_exp, reg_exp, dir_exp, cls_exp + reg_exp + dir_exp],
@@ -161,5 +162,5 @@ def test_compute_loss_known_values() -> None:
     t0 = Targets(t.labels, torch.zeros(1, 3, dtype=torch.bool), torch.tensor([[True, True, False]]), reg_t, t.dir)
     out = compute_loss(HeadOutput(cls, reg, dirs), t0, num_classes=1)
     np.testing.assert_allclose(
-        [float(out["cls"]), float(out["reg"]), float(out["dir"])], [2 * 0.75 * 0.25 * ln2, 0.0, 0.0], rtol=1e-5
+        [float(out.cls), float(out.reg), float(out.dir)], [2 * 0.75 * 0.25 * ln2, 0.0, 0.0], rtol=1e-5
     )

@@ -188,7 +188,7 @@ def test_cli_errors(streams, tmp_path, capsys):
 def test_model_with_measured_latency(streams, tmp_path):
     import torch
 
-    from detector.checkpoint import save_checkpoint
+    from detector.checkpoint import Checkpoint, save_checkpoint
     from detector.models import build_model, load_experiment
 
     _, still = streams
@@ -198,8 +198,8 @@ def test_model_with_measured_latency(streams, tmp_path):
     torch.manual_seed(0)
     model = build_model(cfg.model)
     ckpt = tmp_path / "tiny.pt"
-    save_checkpoint(ckpt, model=model, optimizer=torch.optim.SGD(model.parameters(), lr=0.1), cfg=cfg, epoch=1,
-                    step_in_epoch=0, step=1, global_batch=1)
+    save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.SGD(model.parameters(), lr=0.1),
+                                             cfg=cfg, epoch=1, step_in_epoch=0, step=1, global_batch=1))
     src = Source("model", config=str(cfg_path), checkpoint=str(ckpt), threads=1)
     prep = prepare(still, src, latency_ms=None, repeats=1, warmup=1)
     s = score(prep, "ego")

@@ -14,10 +14,14 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_config
 
+from detector.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from detector.cli import main
 from detector.eval import all_ap_zero, evaluate_folders
 from detector.infer import evaluate_checkpoint
+from detector.models import Losses, build_model, load_experiment
 from detector.train import epoch_frames, rank_batches, train
+from detector.train.step import all_reduce_losses
+from mpchair.core.errors import InputError
 from mpchair.geometry import kitti_camera_to_boxes, project_boxes_to_image, wrap_angle
 from mpchair.kitti import frame_paths, read_calib, read_labels, read_velodyne, write_velodyne
 
@@ -72,6 +76,47 @@ def test_data_plan_slices_global_batches_per_rank():
     shuffled = epoch_frames(num_frames=5, samples_per_epoch=5, epoch=3, seed=9, shuffle=True)
     assert sorted(shuffled.tolist()) == [0, 1, 2, 3, 4]
     assert shuffled.tolist() == epoch_frames(num_frames=5, samples_per_epoch=5, epoch=3, seed=9, shuffle=True).tolist()
+
+
+def test_checkpoint_record_round_trips_through_the_plain_dict_file(data, tmp_path):
+    """``Checkpoint`` is the in-memory record; the file stays the plain dict of format 1 (same keys, same order), a
+    file with only the format and the weights still loads (its training fields None) but does not resume."""
+    cfg_path = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=1))
+    cfg = load_experiment(cfg_path)
+    torch.manual_seed(0)
+    model = build_model(cfg.model)
+    optimizer = torch.optim.AdamW(model.parameters())
+    saved = Checkpoint.capture(model=model, optimizer=optimizer, cfg=cfg, epoch=2, step_in_epoch=1, step=9,
+                               global_batch=4)
+    save_checkpoint(tmp_path / "a.pt", saved)
+    raw = torch.load(tmp_path / "a.pt", weights_only=True)
+    assert list(raw) == ["format", "model", "optimizer", "scheduler", "epoch", "step_in_epoch", "step",
+                         "global_batch", "rng", "config"]
+    assert raw["format"] == 1 and set(raw["rng"]) == {"torch", "cuda"} and isinstance(raw["rng"]["cuda"], list)
+    loaded = load_checkpoint(tmp_path / "a.pt")
+    assert (loaded.epoch, loaded.step_in_epoch, loaded.step, loaded.global_batch) == (2, 1, 9, 4)
+    assert loaded.scheduler is None and loaded.config == raw["config"]
+    assert torch.equal(loaded.rng.cpu, torch.get_rng_state())
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in loaded.model.items())
+    save_checkpoint(tmp_path / "b.pt", loaded)  # what load reads, save writes back
+    again = torch.load(tmp_path / "b.pt", weights_only=True)
+    assert list(again) == list(raw) and again["config"] == raw["config"] and again["optimizer"] == raw["optimizer"]
+    assert torch.equal(again["rng"]["torch"], raw["rng"]["torch"]) and again["rng"]["cuda"] == raw["rng"]["cuda"]
+    assert all(torch.equal(v, raw["model"][k]) for k, v in again["model"].items())
+
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"format": 1, "model": raw["model"]}, run / "last.pt")
+    weights_only = load_checkpoint(run / "last.pt")
+    assert weights_only.step is None and weights_only.optimizer is None and weights_only.rng is None
+    with pytest.raises(InputError, match=r"holds no training state to resume \(optimizer, epoch"):
+        train(cfg_path, data, run, resume=True, threads=1, progress=False)
+
+
+def test_losses_are_summed_over_ranks_by_field_name():
+    losses = Losses(cls=torch.tensor(1.0), reg=torch.tensor(2.0), dir=torch.tensor(0.5), total=torch.tensor(3.5))
+    summed = all_reduce_losses(losses, torch.tensor(0.5))  # one process: the identity, times the scale
+    assert summed == Losses(cls=0.5, reg=1.0, dir=0.25, total=1.75) and all(type(v) is float for v in summed)
 
 
 def test_resume_reproduces_an_uninterrupted_run_exactly(data, tmp_path):

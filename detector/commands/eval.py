@@ -112,8 +112,8 @@ def _zero_ap_note(checkpoint: Path) -> str:
     """What an all-zero AP means, with the checkpoint's training length (most often: trained too briefly)."""
     from detector.checkpoint import load_checkpoint
 
-    state = load_checkpoint(checkpoint)
-    step, epoch = state.get("step"), state.get("epoch")
+    saved = load_checkpoint(checkpoint)
+    step, epoch = saved.step, saved.epoch
     trained = (f"{checkpoint} holds {step} optimiser step(s) ({epoch} completed epoch(s))" if step is not None
                else f"{checkpoint} records no step count")
     return (f"note: every AP is 0. That is expected of an under-trained model: {trained}, and a briefly trained "

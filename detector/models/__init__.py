@@ -12,7 +12,7 @@ from detector.config import ExperimentConfig, ModelConfig, load_experiment
 from detector.models.assign import Targets, assign_targets
 from detector.models.build import build_model
 from detector.models.head import HeadOutput
-from detector.models.losses import compute_loss
+from detector.models.losses import Losses, compute_loss
 from detector.models.pointpillars import PointPillars
 from detector.models.postprocess import Detections
 
@@ -20,6 +20,7 @@ __all__ = [
     "Detections",
     "ExperimentConfig",
     "HeadOutput",
+    "Losses",
     "ModelConfig",
     "PointPillars",
     "Targets",

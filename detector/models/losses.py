@@ -12,11 +12,23 @@ the max(1, .) makes a batch without positives well defined, where SPP summed unn
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
 
 from detector.models.assign import Targets
 from detector.models.head import HeadOutput
+
+
+class Losses(NamedTuple):
+    """A batch's loss terms, each already weighted, and ``total``, their sum: scalar tensors from
+    :func:`compute_loss`; floats once training has detached and summed them over ranks for its log."""
+
+    cls: torch.Tensor | float
+    reg: torch.Tensor | float
+    dir: torch.Tensor | float
+    total: torch.Tensor | float
 
 
 def sigmoid_focal_loss(logits: torch.Tensor, targets: torch.Tensor, alpha: float, gamma: float) -> torch.Tensor:
@@ -52,10 +64,10 @@ def compute_loss(
     smooth_l1_beta: float = 0.11,
     reg_weight: float = 2.0,
     dir_weight: float = 0.2,
-) -> dict[str, torch.Tensor]:
+) -> Losses:
     """Losses of a batch. preds: head output, cls (B, H, W, A*K), reg (B, H, W, A*7), dir (B, H, W, A*2), flattened in
-    anchor order (y, x, anchor) to match ``targets`` (B, H*W*A). Returns ``{"total", "cls", "reg", "dir"}`` scalar
-    tensors (``cls``/``reg``/``dir`` already weighted; ``total`` is their sum)."""
+    anchor order (y, x, anchor) to match ``targets`` (B, H*W*A). Returns :class:`Losses` of scalar tensors
+    (``cls``/``reg``/``dir`` already weighted; ``total`` is their sum)."""
     b = preds.cls.shape[0]
     cls = preds.cls.reshape(b, -1, num_classes)
     reg = preds.reg.reshape(b, -1, 7)
@@ -69,6 +81,6 @@ def compute_loss(
     p, t = add_sin_difference(reg[pos], targets.reg[pos].to(reg.dtype))
     loss_reg = smooth_l1(p - t, smooth_l1_beta).sum() / num_pos
     loss_dir = F.cross_entropy(dirs[pos], targets.dir[pos], reduction="sum") / num_pos
-    out = {"cls": cls_weight * loss_cls, "reg": reg_weight * loss_reg, "dir": dir_weight * loss_dir}
-    out["total"] = out["cls"] + out["reg"] + out["dir"]
-    return out
+    weighted_cls, weighted_reg, weighted_dir = cls_weight * loss_cls, reg_weight * loss_reg, dir_weight * loss_dir
+    return Losses(cls=weighted_cls, reg=weighted_reg, dir=weighted_dir,
+                  total=weighted_cls + weighted_reg + weighted_dir)

@@ -22,7 +22,7 @@ from torch import nn
 
 from detector.models.assign import Targets, assign_targets
 from detector.models.head import AnchorHead, HeadOutput
-from detector.models.losses import compute_loss
+from detector.models.losses import Losses, compute_loss
 from detector.models.pillar_net import PillarFeatureNet
 from detector.models.postprocess import Detections, postprocess
 from detector.models.scatter import canvas_channels_last, scatter_to_canvas
@@ -165,8 +165,8 @@ class PointPillars(nn.Module):
 
     def loss(
         self, preds: HeadOutput, gt_boxes_list: Sequence[torch.Tensor], gt_labels_list: Sequence[torch.Tensor]
-    ) -> dict[str, torch.Tensor]:
-        """Head maps + per-sample GT → ``{"total", "cls", "reg", "dir"}`` (see :mod:`detector.models.losses`)."""
+    ) -> Losses:
+        """Head maps + per-sample GT → :class:`Losses` (see :mod:`detector.models.losses`)."""
         return compute_loss(
             preds, self.targets(gt_boxes_list, gt_labels_list), num_classes=self.num_classes, **self.loss_params
         )

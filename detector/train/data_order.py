@@ -1,0 +1,67 @@
+"""Which samples each optimiser step trains on: the frame of every slot of an epoch, this rank's slots of every global
+batch, and the loader that turns those keys into augmented batches.
+
+Epoch ``e`` has ``samples_per_epoch`` slots. Slot ``k`` holds frame ``k mod N`` (the reference's unshuffled loop), or
+with ``train.shuffle`` the ``k``-th frame of a permutation seeded by ``(seed, e)``; it is augmented with the generator
+``(seed, e, k)``. Step ``s`` takes the global batch of slots ``[s*G, (s+1)*G)`` with ``G = batch_size * world_size``;
+rank ``r`` takes the ``r``-th per-rank slice. Nothing depends on the worker, the rank count or a resume.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+
+from detector.data import Batch, Sample, TrainingSet, collate
+
+#: One sample of an epoch: ``(epoch, slot, frame index)``.
+SlotKey = tuple[int, int, int]
+
+
+def epoch_frames(*, num_frames: int, samples_per_epoch: int, epoch: int, seed: int, shuffle: bool) -> np.ndarray:
+    """(S,) int64 frame index of every slot of epoch ``epoch`` (see the module docstring for the rule)."""
+    if shuffle:
+        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(epoch), 0x5EED])))
+        reps = -(-samples_per_epoch // num_frames)
+        order = np.concatenate([rng.permutation(num_frames) for _ in range(reps)])
+        return order[:samples_per_epoch].astype(np.int64)
+    return (np.arange(samples_per_epoch) % num_frames).astype(np.int64)
+
+
+def rank_batches(
+    frames: np.ndarray, *, epoch: int, global_batch: int, rank: int, per_rank: int, start_step: int
+) -> list[list[SlotKey]]:
+    """Per-step lists of keys ``(epoch, slot, frame)`` for this rank, from step ``start_step`` on (last partial
+    global batch dropped, so every rank runs the same number of steps)."""
+    steps = len(frames) // global_batch
+    out = []
+    for s in range(start_step, steps):
+        slots = range(s * global_batch + rank * per_rank, s * global_batch + (rank + 1) * per_rank)
+        out.append([(epoch, k, int(frames[k])) for k in slots])
+    return out
+
+
+class SlotDataset(torch.utils.data.Dataset):
+    """Keys ``(epoch, slot, frame)`` → the augmented sample; slot ``k`` is augmented with generator (seed, epoch, k)."""
+
+    def __init__(self, base: TrainingSet) -> None:
+        self.base = base
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, key: SlotKey) -> Sample:
+        epoch, slot, frame = key
+        return self.base.sample(epoch, slot, frame)
+
+
+def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int) -> Iterator[Batch]:
+    """The collated batches of ``keys`` (one list of keys per step), loaded by ``workers`` processes (0: this one)."""
+    if not keys:
+        return iter(())
+    loader = torch.utils.data.DataLoader(
+        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers
+    )
+    return iter(loader)

@@ -1,0 +1,181 @@
+"""What a run reports: ``RUN/metrics.jsonl`` (one JSON object per line, ``kind`` = ``step`` | ``epoch`` | ``eval``),
+cut back to the checkpoint's step on resume, and the lines meant for a person (the plan, the duration estimate, one
+line per epoch and per validation).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from types import TracebackType
+
+from detector.models.losses import Losses
+from detector.train.step import StepStats
+from mpchair.core.atomic import write_text
+
+#: The start-up estimate times ESTIMATE_STEPS steps after ESTIMATE_WARMUP untimed ones (the first step of a process
+#: allocates its buffers and is several times slower than the rest).
+ESTIMATE_WARMUP = 1
+ESTIMATE_STEPS = 3
+
+
+def read_metrics(path: Path, max_step: int) -> list[str]:
+    """Lines of ``metrics.jsonl`` up to global step ``max_step`` (a torn last line from a crash is dropped)."""
+    if not path.is_file():
+        return []
+    kept = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if int(rec.get("step", 0)) <= max_step:
+            kept.append(line)
+    return kept
+
+
+def _loss_fields(losses: Losses) -> dict[str, float]:
+    """The ``loss_*`` keys of a step or epoch record, in the log's order (total first)."""
+    return {"loss_total": losses.total, "loss_cls": losses.cls, "loss_reg": losses.reg, "loss_dir": losses.dir}
+
+
+class MetricsLog:
+    """``metrics.jsonl`` of a run, appended and flushed record by record. Only rank 0 writes (``writes``); on the
+    other ranks every record is dropped. Opening it cuts the file back to global step ``step``: lines an interrupted
+    run wrote after its checkpoint go, so the resumed log replays cleanly."""
+
+    def __init__(self, path: Path, *, step: int, writes: bool) -> None:
+        self.path = path
+        self._kept = read_metrics(path, step) if writes else []
+        if writes:
+            write_text(path, "".join(line + "\n" for line in self._kept))
+        self._file = open(path, "a", encoding="utf-8") if writes else None  # noqa: SIM115 (closed by close())
+
+    def has_eval(self, epoch: int) -> bool:
+        """Whether the log as it was kept at opening holds the evaluation record of ``epoch``."""
+        for line in self._kept:
+            rec = json.loads(line)
+            if rec.get("kind") == "eval" and rec.get("epoch") == epoch:
+                return True
+        return False
+
+    def write(self, record: dict) -> None:
+        """Append one record (an ``OSError`` names the file)."""
+        if self._file is None:
+            return
+        try:
+            self._file.write(json.dumps(record) + "\n")
+            self._file.flush()
+        except OSError as e:
+            e.filename = e.filename or str(self.path)
+            raise
+
+    def step(self, *, epoch: int, step: int, stats: StepStats, seconds: float) -> None:
+        """The record of global step ``step`` in (1-based) epoch ``epoch``: what the step measured and its seconds."""
+        self.write({"kind": "step", "epoch": epoch, "step": step, **_loss_fields(stats.losses),
+                    "grad_norm": stats.grad_norm, "num_pos": stats.num_pos, "lr": stats.lr, "beta1": stats.beta1,
+                    "time_s": round(seconds, 4)})
+
+    def epoch(self, *, epoch: int, step: int, steps: int, means: Losses, seconds: float) -> None:
+        """The record of completed epoch ``epoch``: its ``steps`` steps' mean losses and its seconds."""
+        self.write({"kind": "epoch", "epoch": epoch, "step": step, "steps": steps, **_loss_fields(means),
+                    "time_s": round(seconds, 3)})
+
+    def eval(self, *, epoch: int, step: int, split: str, result: dict) -> None:
+        """The evaluation of the weights after epoch ``epoch`` on ``split`` (a KITTI result's JSON dict)."""
+        self.write({"kind": "eval", "epoch": epoch, "step": step, "split": split, **result})
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> MetricsLog:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def add_losses(a: Losses, b: Losses) -> Losses:
+    """Field-by-field sum of two float :class:`Losses`."""
+    return Losses(**{name: getattr(a, name) + getattr(b, name) for name in Losses._fields})
+
+
+def mean_losses(sums: Losses, steps: int) -> Losses:
+    """Per-step means of summed losses (``sums`` itself when no step ran)."""
+    return Losses(**{name: value / max(steps, 1) for name, value in sums._asdict().items()})
+
+
+ZERO_LOSSES = Losses(cls=0.0, reg=0.0, dir=0.0, total=0.0)
+
+
+class DurationEstimate:
+    """The start-up estimate of a process that runs ``todo`` steps from global step ``first_step``: the wall time of
+    its steps ``ESTIMATE_WARMUP + 1`` to ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` (data loading and checkpoints included).
+    Nothing for ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` steps or fewer."""
+
+    def __init__(self, *, first_step: int, todo: int) -> None:
+        self.first_step = first_step
+        self.todo = todo
+        self._timed_from: float | None = None
+
+    @property
+    def will_measure(self) -> bool:
+        return self.todo > ESTIMATE_WARMUP + ESTIMATE_STEPS
+
+    def after_step(self, step: int) -> float | None:
+        """Call after every step (``step``: the global steps done); returns the measured seconds per step once, else
+        None."""
+        done = step - self.first_step
+        if done == ESTIMATE_WARMUP:
+            self._timed_from = time.perf_counter()
+        elif done == ESTIMATE_WARMUP + ESTIMATE_STEPS and self._timed_from is not None and self.will_measure:
+            return (time.perf_counter() - self._timed_from) / ESTIMATE_STEPS
+        return None
+
+
+def format_duration(seconds: float) -> str:
+    """``"42 s"``, ``"12 min"`` or ``"3.4 h"``: a duration as a person reads it."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def plan_line(*, todo: int, epochs: int, steps_per_epoch: int, global_batch: int, resumed_at: int,
+              max_steps: int | None, stops_early: bool, will_estimate: bool) -> str:
+    """``training 6 step(s): 2 epochs x 4 steps (global batch 2)[, resumed at step S][, stopping at --max-steps M]
+    [; timing the first steps...]``."""
+    return (f"training {todo} step(s): {epochs} epochs x {steps_per_epoch} steps (global batch {global_batch})"
+            + (f", resumed at step {resumed_at}" if resumed_at else "")
+            + (f", stopping at --max-steps {max_steps}" if stops_early else "")
+            + ("; timing the first steps..." if will_estimate else ""))
+
+
+def estimate_line(todo: int, per_step: float, validation: str) -> str:
+    """``6 steps, ~0.85 s/step measured -> ~5 s`` followed by ``validation`` (what comes on top, or empty)."""
+    return f"{todo} steps, ~{per_step:.2f} s/step measured -> ~{format_duration(per_step * todo)}" + validation
+
+
+def epoch_line(*, epoch: int, epochs: int, means: Losses, steps: int, seconds: float, step: int,
+               total_steps: int) -> str:
+    """``epoch 1/2: loss L (cls C, reg R, dir D), N steps in T, step S/TOTAL``."""
+    return (f"epoch {epoch}/{epochs}: loss {means.total:.4f} (cls {means.cls:.4f}, reg {means.reg:.4f}, dir "
+            f"{means.dir:.4f}), {steps} steps in {format_duration(seconds)}, step {step}/{total_steps}")
+
+
+def ap_text(result: dict, classes: tuple[str, ...]) -> str:
+    """``"Chair BEV AP 12.34, 3D AP 5.67"`` (R40, Overall level) of a KITTI result's JSON dict."""
+    parts = [f"{c} BEV AP {result[c]['bev']['overall']['R40']:.2f}, 3D AP {result[c]['3d']['overall']['R40']:.2f}"
+             for c in classes if c in result]
+    return "; ".join(parts) + " (R40, Overall)"
+
+
+def validation_line(*, epoch: int, epochs: int, split: str, result: dict, classes: tuple[str, ...],
+                    seconds: float) -> str:
+    """``epoch 5/25 validation on val: Chair BEV AP 12.34, 3D AP 5.67 (R40, Overall), 48 s``."""
+    return f"epoch {epoch}/{epochs} validation on {split}: {ap_text(result, classes)}, {format_duration(seconds)}"

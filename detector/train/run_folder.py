@@ -1,0 +1,69 @@
+"""The run folder's own files besides checkpoints and metrics: the experiment as run (``config.yaml``), the cached
+GT-sampling database (``gt_database.npz``), and the clean-up of temp files a killed run left.
+
+Rank 0 writes them (the caller holds the folder's lock); the other ranks of a torchrun job read the database after a
+barrier.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+
+from detector.config import ExperimentConfig
+from detector.data import GTDatabase, KittiDataset, build_gt_database
+from detector.train.distributed import DistInfo, barrier
+from mpchair.core.atomic import write_text
+from mpchair.core.config import to_dict
+from mpchair.core.errors import InputError
+
+DATABASE_FILE = "gt_database.npz"
+
+
+def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) -> tuple[GTDatabase, bool]:
+    """The GT database of ``frames`` as cached at ``path``, or built anew when the split, classes or options differ
+    (then ``True``: the caller saves it, once the run may write)."""
+    meta = {
+        "root": str(frames.root.resolve()),
+        "split": frames.split,
+        "ids": frames.ids,
+        "classes": list(frames.classes),
+        "name_map": frames.name_map,
+        "fov_crop": frames.fov_crop,
+    }
+    if path.is_file():
+        try:
+            db = GTDatabase.load(path)
+            if db.meta == json.loads(json.dumps(meta)):
+                return db, False
+        except InputError:
+            pass  # a damaged cache is rebuilt
+    return build_gt_database(frames, meta=meta, progress=progress), True
+
+
+def remove_stale_temps(out: Path) -> None:
+    """Delete temp files (``.<name>.<random>.tmp``) a killed run left in the run folder (the caller holds its lock)."""
+    for p in out.rglob(".*.tmp"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
+
+
+def write_run_files(out: Path, cfg: ExperimentConfig, database: GTDatabase | None, new_database: bool) -> None:
+    """Rank 0 at the start of a run: remove stale temp files, write ``config.yaml`` (the experiment as run) and the
+    database when it was (re)built."""
+    remove_stale_temps(out)
+    write_text(out / "config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    if new_database:
+        database.save(out / DATABASE_FILE)
+
+
+def shared_database(out: Path, info: DistInfo, database: GTDatabase | None, *,
+                    gt_sampling: bool) -> GTDatabase | None:
+    """Every rank's GT database: rank 0's own, the others read the file rank 0 wrote (after a barrier). None without
+    GT sampling."""
+    if not gt_sampling:
+        return database
+    barrier()
+    return database if info.is_main else GTDatabase.load(out / DATABASE_FILE)
