@@ -17,6 +17,7 @@ import pytest
 
 from mpchair.core.errors import InputError
 from mpchair.dataset.generate import GenerateRequest, generate, shard_frames
+from mpchair.dataset.manifest import FrameRecord, Manifest, read_frame_record, read_manifest
 from mpchair.dataset.splits import split_frames
 from mpchair.geometry import (
     canonical_yaw,
@@ -62,15 +63,15 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
     out, summary = dataset
     _, house = house_root
     assert summary.complete and summary.frames == FRAMES and summary.made == FRAMES and summary.kept >= FRAMES
-    manifest = json.loads((out / "manifest.json").read_text())
+    manifest = read_manifest(out)
     assert str(out) not in (out / "manifest.json").read_text()  # no absolute paths
-    assert manifest["houses"][house.id]["files_sha256"][f"{house.id}.house"] == __import__("hashlib").sha256(
+    assert manifest.houses[house.id].files_sha256[f"{house.id}.house"] == __import__("hashlib").sha256(
         house.files()[".house"]).hexdigest()
     ids = sorted(read_imageset(out / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test"))
     assert sorted(sum(ids, [])) == [f"{i:06d}" for i in range(FRAMES)]
     truth = {o.index: o for o in house.objects}
-    for rec in manifest["frames"]:
-        fid = rec["frame"]
+    for rec in manifest.frames:
+        fid = rec.frame
         calib_lines = (out / "training" / "calib" / f"{fid}.txt").read_text().splitlines()[:7]
         assert [ln.split(":")[0] for ln in calib_lines] == ["P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam",
                                                             "Tr_imu_to_velo"]
@@ -82,14 +83,14 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
         labels = read_labels(out / "training" / "label_2" / f"{fid}.txt")
         assert read_image_size(out / "training" / "image_2" / f"{fid}.png") == (1024, 1024)
         pts = read_velodyne(out / "training" / "velodyne" / f"{fid}.bin")
-        assert len(pts) == rec["points"] and (pts[:, 3] == 1.0).all()
+        assert len(pts) == rec.points and (pts[:, 3] == 1.0).all()
         assert (np.abs(pts[:, 2]) < 2).all() and (pts[:, 0] > 0).all() and pts[:, 0].max() <= 25 + 1e-4
         pose = np.loadtxt(out / "training" / "pose" / f"{fid}.txt").reshape(3, 4)
         T = np.vstack([pose, [0, 0, 0, 1]])
         # Boxes: the label file's boxes == the construction's aligned boxes moved through the inverse pose.
         boxes = labels_to_boxes(labels.objects(), calib)
-        assert list(labels.names) == ["Chair"] * len(rec["kept"])
-        expect = transform_boxes(np.stack([truth[k["object"]].aligned_box for k in rec["kept"]]), np.linalg.inv(T))
+        assert list(labels.names) == ["Chair"] * len(rec.kept)
+        expect = transform_boxes(np.stack([truth[k.object_index].aligned_box for k in rec.kept]), np.linalg.inv(T))
         np.testing.assert_allclose(boxes[:, :6], expect[:, :6], atol=0.006)
         # The heading is the canonical one (long side's direction in [-pi/2, pi/2)), up to the file's 2 decimals.
         dyaw = wrap_angle(boxes[:, 6] - canonical_yaw(expect[:, 6]))
@@ -105,9 +106,9 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
         assert fov.mean() > 0.99
         assert (labels.bbox[:, 2] > labels.bbox[:, 0]).all() and (labels.bbox <= 1023).all()
         assert set(labels.occluded) <= {0, 1, 2} and ((labels.truncated >= 0) & (labels.truncated <= 1)).all()
-        for k in rec["kept"]:
-            assert k["visible_pixels"] > 35 and k["points_in_box"] >= 35 and k["in_box_fraction"] >= 0.8
-        assert all(r["reason"] for r in rec["rejected"])
+        for k in rec.kept:
+            assert k.visible_pixels > 35 and k.points_in_box >= 35 and k.in_box_fraction >= 0.8
+        assert all(r.reason for r in rec.rejected)
 
 
 @pytest.mark.parametrize("sensor", ["mp3d-depth90", "lidar64", "lidar16"])
@@ -175,8 +176,8 @@ def test_shards_fill_one_folder(dataset, house_root, tmp_path):
     assert s1.complete and s1.made == FRAMES - FRAMES // 2
     assert _tree(tmp_path / "sh") == _tree(out)
     # the first shard described its own frames, the last one (which wrote the manifest) the whole dataset
-    records = json.loads((out / "manifest.json").read_text())["frames"]
-    assert s0.scope == "shard" and s0.kept == sum(len(r["kept"]) for r in records[: FRAMES // 2]) and not s0.splits
+    records = read_manifest(out).frames
+    assert s0.scope == "shard" and s0.kept == sum(len(r.kept) for r in records[: FRAMES // 2]) and not s0.splits
     assert "incomplete: other shards pending" in s0.line() and "this shard's frames: boxes kept" in s0.line()
     assert {k: getattr(s1, k) for k in DESCRIBES} == {k: getattr(whole, k) for k in DESCRIBES}
 
@@ -196,12 +197,12 @@ def test_a_complete_dataset_is_described_from_its_manifest(dataset, house_root, 
     """Run twice: the second run makes nothing, says so, and reports the same dataset numbers as the first."""
     out, first = dataset
     root, house = house_root
-    manifest = json.loads((out / "manifest.json").read_text())
-    totals = manifest["totals"]
+    manifest = read_manifest(out)
+    totals = manifest.totals
     assert first.made == FRAMES and not first.nothing_to_make and first.scope == "dataset"
-    assert first.kept == totals["boxes_kept"] > 0 and first.kept_by_class == {"chair": first.kept}
-    assert first.rejected == totals["boxes_rejected"] and first.points == totals["points"] / FRAMES > 0
-    assert first.rays == sum(r["rays"] for r in manifest["frames"]) > 0
+    assert first.kept == totals.boxes_kept > 0 and first.kept_by_class == {"chair": first.kept}
+    assert first.rejected == totals.boxes_rejected and first.points == totals.points / FRAMES > 0
+    assert first.rays == sum(r.rays for r in manifest.frames) > 0
     before = _files(out)
     args = ["generate", "--root", root, "--house", house.id, "--frames", FRAMES, "--out", out, "--seed", 11, "--quiet"]
     code, text = _cli(capsys, *args, "--json")
@@ -285,16 +286,16 @@ def test_keep_empty_writes_frames_without_boxes_with_one_dontcare_row(house_root
     assert code == 0, text
     summary = json.loads(text)
     assert summary["complete"] and summary["frames"] == 2 and summary["kept"] == 0
-    manifest = json.loads((tmp_path / "yes" / "manifest.json").read_text())
-    assert len(manifest["frames"]) == 2
-    for rec in manifest["frames"]:
-        fid = rec["frame"]
-        assert rec["kept"] == [] and rec["rejected"] and rec["views_tried"] == 1  # the first valid view is taken
+    manifest = read_manifest(tmp_path / "yes")
+    assert len(manifest.frames) == 2
+    for rec in manifest.frames:
+        fid = rec.frame
+        assert rec.kept == () and rec.rejected and rec.views_tried == 1  # the first valid view is taken
         labels = read_labels(tmp_path / "yes" / "training" / "label_2" / f"{fid}.txt")
         assert list(labels.names) == ["DontCare"] and len(labels.objects()) == 0
-        assert len(read_velodyne(tmp_path / "yes" / "training" / "velodyne" / f"{fid}.bin")) == rec["points"] > 1000
+        assert len(read_velodyne(tmp_path / "yes" / "training" / "velodyne" / f"{fid}.bin")) == rec.points > 1000
     # every candidate failed on the visible pixels the strict profile asks for (or on a cheaper filter before it)
-    reasons = {r["reason"] for rec in manifest["frames"] for r in rec["rejected"]}
+    reasons = {r.reason for rec in manifest.frames for r in rec.rejected}
     assert "visible_pixels" in reasons and reasons <= {"height", "distance", "fov", "visible_pixels"}
 
 
@@ -316,8 +317,7 @@ def test_split_modes_end_to_end(house_root, tmp_path, capsys):
     code, text = _cli(capsys, "generate", "--root", three, *sum((["--house", h] for h in ids), []), "--frames", "1",
                       "--out", tmp_path / "house", "--split-mode", "house", "--seed", "4", "--quiet")
     assert code == 0, text
-    manifest = json.loads((tmp_path / "house" / "manifest.json").read_text())
-    house_of = {rec["frame"]: rec["house"] for rec in manifest["frames"]}
+    house_of = {rec.frame: rec.house for rec in read_manifest(tmp_path / "house").frames}
     got = {s: read_imageset(tmp_path / "house" / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test")}
     expect = split_frames(3, 1, "house", seed=4)
     assert got == {s: [f"{i:06d}" for i in expect[s]] for s in got}
@@ -378,3 +378,32 @@ def test_manifest_holds_the_frame_records_whatever_the_root_is_named(dataset, ho
     generate(_req(odd, house, tmp_path / "odd", workers=1))
     again = json.loads((tmp_path / "odd" / "manifest.json").read_text())
     assert again["frames"] == records and "@@frame records@@" in again["command"]
+
+
+def test_records_read_back_to_the_bytes_written(dataset, tmp_path):
+    """The typed records are the files: every ``.frames`` record and the manifest read back (FrameRecord, Manifest)
+    encode to the very bytes ``generate`` wrote, the manifest's frames are the frame records, and a file that is not
+    a record is an InputError naming it."""
+    out, _ = dataset
+    text = (out / "manifest.json").read_text()
+    manifest = read_manifest(out)
+    assert isinstance(manifest, Manifest) and manifest.to_json() + "\n" == text
+    assert Manifest.from_dict(json.loads(text)) == manifest
+    for g, rec in enumerate(manifest.frames):
+        path = out / ".frames" / f"{g:06d}.json"
+        assert isinstance(rec, FrameRecord) and read_frame_record(path) == rec
+        assert rec.to_json() + "\n" == path.read_text() and f"\n  {rec.to_json()}" in text  # one line per record
+    assert read_manifest(tmp_path) is None  # no manifest.json (real KITTI)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    data = json.loads(text)
+    del data["frames"][1]["pose"]
+    (bad / "manifest.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"manifest.json: not an mpchair manifest: frames\[1\]: missing key 'pose'"):
+        read_manifest(bad)
+    (bad / "manifest.json").write_text("[1]")
+    with pytest.raises(InputError, match="manifest.json: expected a JSON object"):
+        read_manifest(bad)
+    (bad / "r.json").write_text('{"frame": "000000"}')
+    with pytest.raises(InputError, match="r.json: not an mpchair frame record: missing key"):
+        read_frame_record(bad / "r.json")

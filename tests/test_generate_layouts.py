@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from mpchair.dataset.generate import GenerateRequest, generate
+from mpchair.dataset.manifest import read_manifest
 from mpchair.matterport import find_houses, read_house
 from mpchair.scan.navmesh import NavmeshSampler, island_labels, snap_points
 from mpchair.synth import synthesize_house, write_house
@@ -43,13 +44,12 @@ def test_both_layouts_give_byte_identical_frames(roots, tmp_path: Path) -> None:
     assert a.complete and b.complete and a.kept >= FRAMES
     fa, fb = _frames(tmp_path / "a"), _frames(tmp_path / "b")
     assert len(fa) == 5 * FRAMES and fa == fb  # velodyne, label_2, calib, image_2, pose
-    ma, mb = (json.loads((tmp_path / d / "manifest.json").read_text()) for d in "ab")
-    assert ma["frames"] == mb["frames"] and ma["config"] == mb["config"]
-    assert sorted(ma["houses"][house.id]["files_sha256"]) == [f"{house.id}{s}" for s in
-                                                              (".fsegs.json", ".house", ".ply", ".semseg.json")]
-    assert sorted(mb["houses"][house.id]["files_sha256"]) == [f"{house.id}.house", f"{house.id}_semantic.ply"]
-    assert ma["houses"][house.id]["files_sha256"][f"{house.id}.house"] == \
-        mb["houses"][house.id]["files_sha256"][f"{house.id}.house"]  # fmt: skip
+    ma, mb = (read_manifest(tmp_path / d) for d in "ab")
+    assert ma.frames == mb.frames and ma.config == mb.config
+    ha, hb = ma.houses[house.id].files_sha256, mb.houses[house.id].files_sha256
+    assert sorted(ha) == [f"{house.id}{s}" for s in (".fsegs.json", ".house", ".ply", ".semseg.json")]
+    assert sorted(hb) == [f"{house.id}.house", f"{house.id}_semantic.ply"]  # regions: the navmesh is not read
+    assert ha[f"{house.id}.house"] == hb[f"{house.id}.house"]
 
 
 def test_auto_viewpoints_use_the_navmesh_of_a_habitat_house(roots, tmp_path: Path) -> None:
@@ -58,11 +58,11 @@ def test_auto_viewpoints_use_the_navmesh_of_a_habitat_house(roots, tmp_path: Pat
     assert s.complete and s.kept >= FRAMES
     settings = json.loads((tmp_path / "nav" / ".generate.json").read_text())
     assert settings["viewpoint_sources"] == {house.id: "navmesh"}
-    manifest = json.loads((tmp_path / "nav" / "manifest.json").read_text())
-    assert f"{house.id}.navmesh" in manifest["houses"][house.id]["files_sha256"]
+    manifest = read_manifest(tmp_path / "nav")
+    assert f"{house.id}.navmesh" in manifest.houses[house.id].files_sha256
     # Every pose stands 1 m above a point of a navmesh island of radius >= 1.5 m.
     nav = read_house(find_houses(base / "habitat")[house.id]).navmesh
-    pos = np.array([np.array(r["pose"])[:, 3] for r in manifest["frames"]])
+    pos = np.array([np.array(r.pose)[:, 3] for r in manifest.frames])
     snapped, tri = snap_points(nav, pos - [0, 0, 1.0])
     np.testing.assert_allclose(snapped, pos - [0, 0, 1.0], atol=1e-5)
     assert (NavmeshSampler(nav).island_radius[island_labels(nav)[nav.triangle_poly[tri]]] >= 1.5).all()

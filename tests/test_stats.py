@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import math
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,14 @@ from mpchair.analysis.stats import (
 )
 from mpchair.cli import cli
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.dataset.manifest import (
+    MANIFEST_FORMAT,
+    FrameRecord,
+    Manifest,
+    ManifestHouse,
+    ManifestTotals,
+    RejectedBox,
+)
 from mpchair.geometry import boxes_to_kitti_camera, make_tr_velo_to_cam, project_boxes_to_image
 from mpchair.kitti import (
     Calib,
@@ -92,11 +101,30 @@ def build_small_dataset(root: Path, seed: int = 7, manifest: bool = True) -> Pat
         write_labels(root / "training" / "label_2" / f"{fid}.txt", Labels.concatenate([labels, dontcare]))
     write_imageset(root / "ImageSets" / "val.txt", ["000000", "000002"])
     if manifest:
-        frames = [{"frame": "000000", "house": "h1", "rejected": [{"reason": "height"}, {"reason": "fov"}]},
-                  {"frame": "000001", "house": "h1", "rejected": [{"reason": "height"}]},
-                  {"frame": "000002", "house": "h1", "rejected": []}]
-        write_text(root / "manifest.json", json.dumps({"frames": frames}))
+        write_text(root / "manifest.json", small_manifest().to_json() + "\n")
     return root
+
+
+#: The small dataset's rejected boxes by frame (what its manifest records).
+SMALL_REJECTED = {"000000": ("height", "fov"), "000001": ("height",), "000002": ()}
+
+
+def small_manifest() -> Manifest:
+    """The small dataset's manifest, as ``mpchair generate`` would write it for one house ``h1`` at sensor height 1 m
+    (the stats read the kept boxes from label_2; only the rejected ones come from here)."""
+    frames = tuple(
+        FrameRecord(frame=fid, house="h1", index=i, attempt=0, views_tried=1,
+                    pose=((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 1.0)), yaw=0.0,
+                    points=1500, rays=1500, kept=(),
+                    rejected=tuple(RejectedBox(object_index=k, object_id=f"0_0_{k}", class_name="chair", reason=r)
+                                   for k, r in enumerate(reasons)))
+        for i, (fid, reasons) in enumerate(SMALL_REJECTED.items())
+    )  # fmt: skip
+    rejected = Counter(b.reason for f in frames for b in f.rejected)
+    return Manifest(format=MANIFEST_FORMAT, command=("mpchair", "generate"), config={"viewpoints": {"height": 1.0}},
+                    versions={}, seed=7, houses={"h1": ManifestHouse({}, 8, (0, 2))}, conventions={},
+                    splits={"val": 2}, totals=ManifestTotals(3, 0, dict(sorted(rejected.items())), 4500),
+                    frames=frames)  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -28,6 +28,7 @@ from mpchair.stream.episodes import EpisodeSettings, plan_episode
 from mpchair.stream.freespace import free_space
 from mpchair.stream.routes import RouteRules
 from mpchair.stream.unicycle import Limits
+from mpchair.stream.writer import read_stream_record
 from mpchair.synth import synthesize_house, write_house
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,6 +76,13 @@ def test_stream_layout_times_and_motion(made):
     turn = np.abs(wrap_angle(np.diff([yaw_of(T) for T in poses])))
     assert step.max() <= 0.25 + 1e-6 and turn.max() <= 0.5 + 1e-6 and step.sum() > 3.0
     assert np.allclose(poses[:, 2, 3], poses[0, 2, 3], atol=0.05)  # one level, sensor at a constant height
+    # one record per frame, typed and read back to the bytes written; stream.json's totals are their sums
+    paths = sorted((out / ".frames" / "00").glob("*.json"))
+    records = [read_stream_record(p) for p in paths]
+    assert [r.frame for r in records] == [f"{i:06d}" for i in range(n)] and {r.sequence for r in records} == {"00"}
+    assert all(r.to_json() + "\n" == p.read_text() for r, p in zip(records, paths))
+    assert [r.time_us for r in records] == list(times) and sum(r.kept for r in records) == summary.kept
+    assert meta["totals"]["points"] == sum(r.points for r in records) and summary.dontcare == meta["totals"]["dontcare"]
 
 
 def test_frames_are_generates_labels_at_the_planned_poses(made, house_root):

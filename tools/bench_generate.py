@@ -139,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from mpchair.dataset.generate import GenerateRequest, generate
+    from mpchair.dataset.manifest import read_manifest
     from mpchair.matterport.house import read_house
     from mpchair.matterport.source import find_houses
     from mpchair.scan.raycast import EmbreeRaycaster
@@ -169,12 +170,12 @@ def main(argv: list[str] | None = None) -> int:
                                            out=tmp / "ds", seed=args.seed, workers=args.workers, progress=False))
         wall = time.perf_counter() - t0
         frames_s = summary.made / summary.frames_per_second  # the frame loop alone (no start-up, no manifest)
-        records = json.loads((tmp / "ds" / "manifest.json").read_text())["frames"]
-        rays = int(sum(r["rays"] for r in records))
+        records = read_manifest(tmp / "ds").frames
+        rays = int(sum(r.rays for r in records))
         h = read_house(find_houses(tmp / "houses")[house.id])
         rc = EmbreeRaycaster(h.vertices, h.faces)
         d = scan_directions(load_sensor("mp3d-depth90"))
-        poses = [np.vstack([np.array(r["pose"]), [0, 0, 0, 1]]) for r in records]
+        poses = [np.vstack([np.array(r.pose), [0, 0, 0, 1]]) for r in records]
         batches = []
         left, k = rays, 0
         while left > 0:  # precompute float32 inputs so that only Embree is timed

@@ -493,17 +493,13 @@ def house_viewpoints(dataset: str | Path, house_id: str) -> np.ndarray:
     taken in house ``house_id``: frames from ``manifest.json`` (its ``house`` ids), poses from
     ``training/pose/<id>.txt`` (3x4 row-major sensor → world; yaw = heading of the sensor's +x). A dataset
     without a manifest is an :class:`InputError` (the house of a frame is known only there)."""
-    from mpchair.analysis.stats import read_manifest
+    from mpchair.dataset.manifest import read_manifest
 
     dataset = Path(dataset)
-    path = dataset / "manifest.json"
     manifest = read_manifest(dataset)
     if manifest is None:
         raise InputError("no manifest.json (needed for the house of each frame)", dataset)
-    frames = manifest.get("frames")
-    if not isinstance(frames, list):
-        raise InputError("expected a 'frames' list", path)
-    ids = [str(f.get("frame")) for f in frames if isinstance(f, dict) and f.get("house") == house_id]
+    ids = [f.frame for f in manifest.frames if f.house == house_id]
     out = np.zeros((len(ids), 4))
     for k, fid in enumerate(ids):
         pose_path = dataset / "training" / "pose" / f"{fid}.txt"
@@ -537,15 +533,14 @@ def default_zmax(dataset: str | Path) -> float | None:
     """``mpchair view``'s default ``zmax`` for ``dataset`` (sensor frame, metres): on an mpchair dataset
     :data:`CEILING_CUT` above the floor, i.e. ``CEILING_CUT - height`` with the sensor height above the floor of the
     manifest's ``config.viewpoints.height`` (1.0 m, so z = 1.0, at generate's default ``--height 1.0``). ``None``
-    (keep every point) for a folder without a manifest or whose manifest has no ``config`` (real KITTI: outdoors, no
-    ceiling to cut). A ``config`` without a positive sensor height is an :class:`InputError`."""
-    from mpchair.analysis.stats import read_manifest
+    (keep every point) for a folder without a manifest (real KITTI: outdoors, no ceiling to cut). A ``config``
+    without a positive sensor height, or a file that is not an mpchair manifest, is an :class:`InputError`."""
+    from mpchair.dataset.manifest import read_manifest
 
     manifest = read_manifest(dataset)
-    if manifest is None or "config" not in manifest:
+    if manifest is None:
         return None
-    config = manifest["config"]
-    viewpoints = config.get("viewpoints") if isinstance(config, dict) else None
+    viewpoints = manifest.config.get("viewpoints")
     height = viewpoints.get("height") if isinstance(viewpoints, dict) else None
     if isinstance(height, bool) or not isinstance(height, (int, float)) or not 0 < height < float("inf"):
         raise InputError(f"config.viewpoints.height: expected the sensor height above the floor in metres, got "

@@ -20,7 +20,6 @@ manifest's rejected-box reasons when the dataset has a ``manifest.json``.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mpchair.core.errors import InputError
+from mpchair.dataset.manifest import read_manifest
 from mpchair.geometry import fov_mask, labels_to_boxes, points_in_boxes
 from mpchair.geometry.pillars import (  # noqa: F401  (re-exported: stats --density works on these)
     KITTI_GEOMETRY,
@@ -169,45 +169,18 @@ YAW_BINS = 12
 TRUNCATION_EDGES: tuple[float, ...] = (0.0, 0.1, 0.3, 0.5, 0.7, 1.0)
 
 
-def read_manifest(root: str | Path) -> dict | None:
-    """``<root>/manifest.json`` (an mpchair dataset's) parsed, or ``None`` when the folder has none (real KITTI). A
-    manifest that is not a valid JSON object is an :class:`InputError` naming the file (and line)."""
-    path = Path(root) / "manifest.json"
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"invalid JSON: {e}", path, getattr(e, "lineno", None)) from None
-    if not isinstance(data, dict):
-        raise InputError("expected a JSON object", path)
-    return data
-
-
 def read_manifest_rejections(root: str | Path) -> dict | None:
     """Rejected-box reasons of ``<root>/manifest.json`` as ``{reason: count}`` (sorted by count, descending), or
     ``None`` when the dataset has no manifest (real KITTI).
 
-    The manifest holds per-frame kept and rejected boxes; every rejected box carries a ``reason`` (or ``reasons``, a
-    list: the first failed filter is counted). A manifest that is not valid JSON is an :class:`InputError`.
+    The manifest holds per-frame kept and rejected boxes (:class:`mpchair.dataset.manifest.FrameRecord`); every
+    rejected box carries the ``reason`` (the first filter it failed). A manifest that is not valid JSON, or not an
+    mpchair manifest, is an :class:`InputError` (:func:`mpchair.dataset.manifest.read_manifest`).
     """
-    data = read_manifest(root)
-    if data is None:
+    manifest = read_manifest(root)
+    if manifest is None:
         return None
-    path = Path(root) / "manifest.json"
-    frames = data.get("frames")
-    if not isinstance(frames, list):
-        raise InputError("expected a 'frames' list", path)
-    counts: Counter[str] = Counter()
-    for i, frame in enumerate(frames):
-        rejected = frame.get("rejected", []) if isinstance(frame, dict) else None
-        if not isinstance(rejected, list):
-            raise InputError(f"frames[{i}].rejected: expected a list", path)
-        for box in rejected:
-            reason = box.get("reason") if isinstance(box, dict) else None
-            if reason is None and isinstance(box, dict) and isinstance(box.get("reasons"), list) and box["reasons"]:
-                reason = box["reasons"][0]
-            counts[str(reason)] += 1
+    counts = Counter(box.reason for frame in manifest.frames for box in frame.rejected)
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import zlib
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.jit import njit_cached
 from mpchair.dataset.image import depth_image, png_bytes
+from mpchair.dataset.manifest import FrameRecord, KeptBox, RejectedBox
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image, rotate_vectors
 from mpchair.kitti import DONTCARE, Calib, Labels, format_calib, frame_paths, write_labels, write_velodyne
 from mpchair.labels.filters import OUTSIDE_REGION_REASONS, LabelFilters
@@ -358,17 +358,17 @@ def _r(x: float, nd: int = 6) -> float | None:
     return None if not np.isfinite(x) else round(float(x), nd)
 
 
-def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dict:
-    """The frame's manifest entry (plain JSON data, no paths or times): house, pose, points, kept/rejected boxes."""
+def frame_record(fid: str, house: House, index: int, result: FrameResult) -> FrameRecord:
+    """The frame's manifest entry (no paths or times): house, pose, points, kept / rejected boxes (sensor frame)."""
     dec = result.decisions
     pose = result.viewpoint.pose()
     kept, rejected = [], []
     for j, obj in enumerate(dec.objects):
         o = house.objects[int(obj)]
-        entry = {"object": int(o.index), "id": o.id, "class": o.mpcat40_name}
         if dec.reasons[j] == "":
-            entry.update(
-                box=[_r(v) for v in dec.boxes[j]],
+            kept.append(KeptBox(
+                object_index=int(o.index), object_id=o.id, class_name=o.mpcat40_name,
+                box=tuple(_r(v) for v in dec.boxes[j]),
                 visible_pixels=int(dec.visible_pixels[j]),
                 points_in_box=int(dec.points_in_box[j]),
                 in_box_fraction=_r(dec.in_box_fraction[j]),
@@ -378,26 +378,27 @@ def frame_record(fid: str, house: House, index: int, result: FrameResult) -> dic
                 scan_points=int(dec.scan_points[j]),
                 visible_fraction=_r(dec.visible_fraction[j]),
                 occluded=int(dec.occluded[j]),
-            )
-            kept.append(entry)
+            ))
         else:
-            entry["reason"] = dec.reasons[j]
-            if dec.visible_pixels[j] >= 0:
-                entry.update(visible_pixels=int(dec.visible_pixels[j]), points_in_box=int(dec.points_in_box[j]))
-            rejected.append(entry)
-    return {
-        "frame": fid,
-        "house": house.id,
-        "index": index,
-        "attempt": result.viewpoint.attempt,
-        "views_tried": result.views_tried,
-        "pose": [[_r(v, 9) for v in row] for row in pose[:3]],
-        "yaw": _r(result.viewpoint.yaw, 9),
-        "points": len(result.points),
-        "rays": result.rays,
-        "kept": kept,
-        "rejected": rejected,
-    }
+            measured = dec.visible_pixels[j] >= 0  # else a filter before the dense visibility rejected it
+            rejected.append(RejectedBox(
+                object_index=int(o.index), object_id=o.id, class_name=o.mpcat40_name, reason=dec.reasons[j],
+                visible_pixels=int(dec.visible_pixels[j]) if measured else None,
+                points_in_box=int(dec.points_in_box[j]) if measured else None,
+            ))
+    return FrameRecord(
+        frame=fid,
+        house=house.id,
+        index=index,
+        attempt=result.viewpoint.attempt,
+        views_tried=result.views_tried,
+        pose=tuple(tuple(_r(v, 9) for v in row) for row in pose[:3]),
+        yaw=_r(result.viewpoint.yaw, 9),
+        points=len(result.points),
+        rays=result.rays,
+        kept=tuple(kept),
+        rejected=tuple(rejected),
+    )
 
 
 @functools.lru_cache(maxsize=4)
@@ -406,7 +407,8 @@ def calib_text(camera: CameraConfig) -> str:
     return format_calib(camera_calib(camera))
 
 
-def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResult, sensor: SensorConfig) -> dict:
+def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResult,
+                sensor: SensorConfig) -> FrameRecord:
     """Write one frame's KITTI files (velodyne, label_2, calib, image_2, pose), then its record (``.frames/``, last:
     a record on disk means the whole frame is). Returns the record."""
     camera = sensor.camera
@@ -421,7 +423,7 @@ def write_frame(out: Path, fid: str, house: House, index: int, result: FrameResu
     pose = result.viewpoint.pose()
     write_text(out / "training" / "pose" / f"{fid}.txt", " ".join(f"{v:.9e}" for v in pose[:3].reshape(-1)) + "\n")
     record = frame_record(fid, house, index, result)
-    write_text(record_path(out, fid), json.dumps(record, sort_keys=True) + "\n")
+    write_text(record_path(out, fid), record.to_json() + "\n")
     return record
 
 

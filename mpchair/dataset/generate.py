@@ -4,8 +4,9 @@ Layout written under ``out``::
 
     training/{velodyne,label_2,calib,image_2,pose}/NNNNNN.*   one frame each (see mpchair.dataset.frame)
     ImageSets/{train,val,test}.txt                          written when every frame exists
-    manifest.json                                           written last
-    .frames/NNNNNN.json                                     per-frame records (a frame is done iff its record exists)
+    manifest.json                                           written last (mpchair.dataset.manifest.Manifest)
+    .frames/NNNNNN.json                                     per-frame records (mpchair.dataset.manifest.FrameRecord;
+                                                            a frame is done iff its record exists)
     .generate.json                                          the run's settings; a re-run must match them
 
 Determinism: frame ``g`` (global id = house position * frames + index) depends only on ``(seed, house, index)`` and
@@ -21,22 +22,19 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fnmatch
-import hashlib
 import json
 import math
 import os
-import platform
 import re
 import shutil
 import sys
 import time
-from collections import Counter
-from importlib import metadata
+from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from mpchair import __version__
 from mpchair.core.atomic import temp_glob, write_text
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError, RunError
@@ -44,8 +42,8 @@ from mpchair.core.heap import keep_freed_memory
 from mpchair.core.lock import folder_lock, held, wait_lock
 from mpchair.dataset.frame import (
     FrameSettings,
+    HouseContext,
     build_context,
-    frame_rng,  # noqa: F401  (re-exported for callers that reproduce one frame's viewpoint)
     make_frame,
     record_path,
     resolve_viewpoints,
@@ -53,19 +51,28 @@ from mpchair.dataset.frame import (
     warm_up,
     write_frame,
 )
-from mpchair.dataset.splits import split_frames
+from mpchair.dataset.houses import RunHouses, load_run_houses
+from mpchair.dataset.manifest import (
+    MANIFEST_FORMAT,
+    MANIFEST_NAME,
+    FrameRecord,
+    Manifest,
+    ManifestHouse,
+    ManifestTotals,
+    conventions,
+    describe_records,
+    read_frame_record,
+)
+from mpchair.dataset.splits import SPLIT_MODES, split_frames
 from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.kitti import write_imageset
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
-from mpchair.matterport.house import House, objects_of, read_house
-from mpchair.matterport.source import SUFFIXES, HouseSource, find_houses
+from mpchair.matterport.house import House
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 
-MANIFEST_FORMAT = "mpchair-kitti/1"
 #: Frame ids are 6 digits (KITTI file names).
 MAX_FRAMES = 1_000_000
-SPLIT_MODES = ("frame", "house", "paper")
 SETTINGS_FILE = ".generate.json"
 _LOCK_NAME = re.compile(r"\.generate-(\d+)-of-(\d+)\.lock")
 FRAME_DIRS = ("velodyne", "label_2", "calib", "image_2", "pose")
@@ -139,36 +146,35 @@ class GenerateSummary:
                 + (f" ({classes})" if classes else "") + f", rejected: {rej}; {self.points:.0f} points/frame{splits}")
 
 
-def describe_records(records: list[dict]) -> dict:
-    """Counts over frame records (``.frames/*.json``, the manifest's ``frames``): ``kept``, ``kept_by_class``,
-    ``rejected`` (by reason, sorted), ``points`` (mean per frame), ``rays`` (sum)."""
-    return {
-        "kept": sum(len(r["kept"]) for r in records),
-        "kept_by_class": dict(sorted(Counter(k["class"] for r in records for k in r["kept"]).items())),
-        "rejected": dict(sorted(Counter(k["reason"] for r in records for k in r["rejected"]).items())),
-        "points": float(np.mean([r["points"] for r in records])) if records else 0.0,
-        "rays": int(sum(r["rays"] for r in records)),
-    }
+class FrameTask(NamedTuple):
+    """One frame to make: its global ``frame`` id (house position * frames + ``index``), its ``house`` id and its
+    ``index`` in that house."""
+
+    frame: int
+    house: str
+    index: int
+
+    @property
+    def fid(self) -> str:
+        """The 6-digit frame id of the KITTI file names."""
+        return f"{self.frame:06d}"
 
 
-def sha256_of(source: HouseSource, suffix: str) -> str:
-    """Hex sha256 of one house file's bytes (``suffix`` like ``.house``)."""
-    return hashlib.sha256(source.read_bytes(suffix)).hexdigest()
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """A checked ``generate`` run, before it touches the folder: the ``req``, its ``houses``, the ``categories``
+    (mpcat40 names, sorted) and ``category_ids`` to label, the ``settings`` stored in ``.generate.json`` (and the
+    manifest's ``config``) and what every frame shares (``frame_settings``)."""
+
+    req: GenerateRequest
+    houses: RunHouses
+    categories: tuple[str, ...]
+    category_ids: frozenset[int]
+    settings: dict
+    frame_settings: FrameSettings
 
 
-def _versions(backend: str) -> dict[str, str]:
-    out = {"mpchair": __version__, "python": platform.python_version()}
-    names = ["numpy", "trimesh", "embreex", "shapely", "pillow"] + (["open3d-cpu", "open3d"] if backend == "open3d"
-                                                                    else [])
-    for name in names:
-        try:
-            out[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            continue
-    return out
-
-
-def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParams, cats: list[str]) -> dict:
+def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParams, cats: tuple[str, ...]) -> dict:
     """The deterministic part of a run (what the output depends on); stored in ``.generate.json``."""
     return {
         "houses": list(req.houses),
@@ -176,7 +182,7 @@ def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParam
         "sensor": to_dict(sensor),
         "viewpoints": to_dict(params),
         "seed": req.seed,
-        "categories": cats,
+        "categories": list(cats),
         "keep_empty": req.keep_empty,
         "split_mode": req.split_mode,
         "backend": req.backend,
@@ -184,34 +190,49 @@ def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParam
     }
 
 
-# Per-process state of pool workers (fork start method: inherited from the parent, never pickled).
-_STATE: dict = {}
+@dataclasses.dataclass(frozen=True)
+class FrameWorker:
+    """What a process that makes frames holds: the run's ``houses``, the frames' ``settings``, the ``categories``
+    (mpcat40 indices) to label, the raycasting ``backend``, the dataset folder ``out`` and the sensor's scan
+    ``directions`` (sensor frame unit vectors). ``scenes`` caches each house's raycasting scene, built on the first
+    frame of that house this process makes (a shard touches few houses; a scene takes seconds for a real mesh)."""
+
+    houses: Mapping[str, House]
+    settings: FrameSettings
+    categories: frozenset[int]
+    backend: str
+    out: Path
+    directions: np.ndarray
+    scenes: dict[str, HouseContext] = dataclasses.field(default_factory=dict)
 
 
-def _init_state(houses: dict[str, House], settings: FrameSettings, cats: frozenset[int], backend: str,
-                out: Path) -> None:
-    _STATE.clear()
-    _STATE.update(houses=houses, settings=settings, cats=cats, backend=backend, out=out, ctx={},
-                  dirs=scan_directions(settings.sensor))
+def make_frame_task(worker: FrameWorker, task: FrameTask) -> FrameRecord:
+    """Make and write one frame (in a pool worker or in-process); returns its record."""
+    ctx = worker.scenes.get(task.house)
+    if ctx is None:
+        ctx = build_context(worker.houses[task.house], worker.categories, worker.backend,
+                            worker.settings.sensor.filters.box_margin, worker.settings.viewpoint_source)
+        worker.scenes[task.house] = ctx
+    result = make_frame(ctx, worker.settings, task.index, worker.directions)
+    return write_frame(worker.out, task.fid, ctx.house, task.index, result, worker.settings.sensor)
 
 
-def _init_worker(*args) -> None:
+#: The pool worker's state: set once per worker process by :func:`_init_worker` (fork start method: inherited from
+#: the parent, never pickled), never in the parent, which passes its own explicitly.
+_WORKER: FrameWorker | None = None
+
+
+def _init_worker(worker: FrameWorker) -> None:
     """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.core.heap``)."""
+    global _WORKER
     keep_freed_memory()
-    _init_state(*args)
+    _WORKER = worker
 
 
-def _work(task: tuple[int, str, int]) -> dict:
-    """Make and write one frame (runs in a worker or in-process); returns its record."""
-    g, house_id, index = task
-    ctx = _STATE["ctx"].get(house_id)
-    if ctx is None:  # the scene is built once per house and process, then reused for all its frames
-        ctx = build_context(_STATE["houses"][house_id], _STATE["cats"], _STATE["backend"],
-                            _STATE["settings"].sensor.filters.box_margin, _STATE["settings"].viewpoint_source)
-        _STATE["ctx"][house_id] = ctx
-    settings: FrameSettings = _STATE["settings"]
-    result = make_frame(ctx, settings, index, _STATE["dirs"])
-    return write_frame(_STATE["out"], f"{g:06d}", ctx.house, index, result, settings.sensor)
+def _work(task: FrameTask) -> FrameRecord:
+    """A pool worker's task: :func:`make_frame_task` with this process's :data:`_WORKER`."""
+    assert _WORKER is not None, "runs only in a pool worker (after _init_worker)"
+    return make_frame_task(_WORKER, task)
 
 
 def _remove_stale_temps(out: Path, fids: set[str]) -> None:
@@ -340,37 +361,8 @@ def generate(req: GenerateRequest) -> GenerateSummary:
     t0 = time.perf_counter()
     _check_numbers(req)
     si, sn = req.shard
-    sensor = load_sensor(req.sensor)
-    params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
-    cat_idx = resolve_categories(list(req.categories))
-    cats = sorted(mpcat40_name(c) for c in cat_idx)
-
-    found = find_houses(req.root)
-    unknown = [h for h in req.houses if h not in found]
-    if unknown:
-        raise InputError(f"unknown house {unknown[0]!r} (available: {', '.join(sorted(found))})", req.root)
-    houses: dict[str, House] = {}
-    hashes: dict[str, dict[str, str]] = {}
-    sources: dict[str, str] = {}
-    for hid in req.houses:
-        house = read_house(found[hid], navmesh=req.viewpoints != "regions")
-        if not objects_of(house, cat_idx):
-            have = ", ".join(f"{k} {v}" for k, v in house.objects_by_category().items()) or "no objects"
-            raise InputError(f"house {hid} has no object of class {', '.join(cats)} (it has: {have})",
-                             found[hid].describe(".house"))
-        sources[hid] = resolve_viewpoints(house, req.viewpoints)
-        viewpoint_sampler(house, sources[hid])  # a navmesh without a large enough island fails here, not in a frame
-        houses[hid] = house
-        src = found[hid]
-        used = [s for s in SUFFIXES[src.layout] if s != ".navmesh"] + [".navmesh"] * (sources[hid] == "navmesh")
-        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in used if src.exists(s)}
-
+    plan = _plan(req)
     out = Path(req.out)
-    settings = _settings(req, sensor, params, cats)
-    if "navmesh" in sources.values():  # only then: regions-only runs keep the settings (and resume) they had
-        settings["viewpoint_sources"] = sources
-    fs = FrameSettings(sensor=sensor, viewpoints=params, seed=req.seed, keep_empty=req.keep_empty,
-                       max_attempts=req.max_attempts, viewpoint_source=req.viewpoints)
     existed = out.exists()
     with folder_lock(_shard_lock(out, req.shard), f"mpchair generate --shard {si}/{sn}"):
         others = _others_running(out, req.shard)
@@ -378,87 +370,118 @@ def generate(req: GenerateRequest) -> GenerateSummary:
         if clash:
             raise InputError(f"another mpchair generate (--shard {clash[0][0]}/{clash[0][1]}) is writing this folder; "
                              f"shards running at the same time must share N (here {sn})", out)
-        _check_settings(out, settings, alone=not others)
-        fresh = not _has_records(out)
-        summary = _run(req, out, houses, hashes, fs, settings, cats, cat_idx, t0, fresh, existed)
-    return summary
+        _check_settings(out, plan.settings, alone=not others)
+        return _run(plan, t0=t0, fresh=not _has_records(out), existed=existed)
 
 
-def _run(req: GenerateRequest, out: Path, houses: dict[str, House], hashes: dict, fs: FrameSettings, settings: dict,
-         cats: list[str], cat_idx: frozenset[int], t0: float, fresh: bool, existed: bool) -> GenerateSummary:
-    """Make this shard's missing frames, then (when every frame exists) ImageSets and the manifest."""
-    sn = req.shard[1]
+def _plan(req: GenerateRequest) -> _Plan:
+    """Load the sensor, the classes and the houses of ``req`` (every input check that needs no folder)."""
+    sensor = load_sensor(req.sensor)
+    params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
+    cat_idx = resolve_categories(list(req.categories))
+    cats = tuple(sorted(mpcat40_name(c) for c in cat_idx))
+
+    def check_viewpoints(house: House) -> None:  # a navmesh without a large enough island fails here, not in a frame
+        viewpoint_sampler(house, resolve_viewpoints(house, req.viewpoints))
+
+    houses = load_run_houses(req.root, req.houses, cat_idx, backend=req.backend, navmesh=req.viewpoints != "regions",
+                             check=check_viewpoints)
+    settings = _settings(req, sensor, params, cats)
+    sources = {hid: resolve_viewpoints(h, req.viewpoints) for hid, h in houses.houses.items()}
+    if "navmesh" in sources.values():  # only then: regions-only runs keep the settings (and resume) they had
+        settings["viewpoint_sources"] = sources
+    fs = FrameSettings(sensor=sensor, viewpoints=params, seed=req.seed, keep_empty=req.keep_empty,
+                       max_attempts=req.max_attempts, viewpoint_source=req.viewpoints)
+    return _Plan(req=req, houses=houses, categories=cats, category_ids=cat_idx, settings=settings, frame_settings=fs)
+
+
+def _run(plan: _Plan, *, t0: float, fresh: bool, existed: bool) -> GenerateSummary:
+    """Make this shard's missing frames, then (when every frame exists) ImageSets and the manifest. ``t0``: when the
+    run started (``time.perf_counter``); ``fresh``: the folder held no frame record; ``existed``: nor did it exist."""
+    req = plan.req
+    out = Path(req.out)
     n_total = len(req.houses) * req.frames
-    tasks = [(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
+    tasks = [FrameTask(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
     mine = [tasks[g] for g in shard_frames(n_total, req.shard)]
-    pending = [t for t in mine if not record_path(out, f"{t[0]:06d}").is_file()]
-    _remove_stale_temps(out, {f"{t[0]:06d}" for t in pending})
+    pending = [t for t in mine if not record_path(out, t.fid).is_file()]
+    _remove_stale_temps(out, {t.fid for t in pending})
     resumed = len(mine) - len(pending)
-
-    kept = rejected = 0  # shown on the progress bar (the summary counts come from the records afterwards)
     if pending:
-        warm_up(fs.sensor)  # before forking: the workers inherit the loaded kernels
+        warm_up(plan.frame_settings.sensor)  # before forking: the workers inherit the loaded kernels
     t_frames = time.perf_counter()
+    _make_frames(plan, pending, len(mine), fresh=fresh, existed=existed)
+    made_seconds = time.perf_counter() - t_frames
+
+    complete = all(record_path(out, f"{g:06d}").is_file() for g in range(n_total))
+    splits: dict[str, int] = {}
+    if complete:
+        try:
+            # Shards finishing together take turns (assembly removes temp files a killed assembly left).
+            with wait_lock(out / ".generate-assemble.lock") if req.shard[1] > 1 else contextlib.nullcontext():
+                manifest = _assemble(plan, n_total)
+        except OSError as e:
+            raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
+                                "manifest") from None
+        splits, records = manifest.splits, manifest.frames
+    else:  # this shard's frames, made now or by an earlier run
+        records = tuple(read_frame_record(record_path(out, t.fid)) for t in mine)
+    counts = describe_records(records)
+    made = len(pending)
+    return GenerateSummary(
+        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, nothing_to_make=not made,
+        scope="dataset" if complete else "shard", kept=counts.kept, kept_by_class=counts.kept_by_class,
+        rejected=counts.rejected, points=counts.points, rays=counts.rays, seconds=time.perf_counter() - t0,
+        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits,
+    )  # fmt: skip
+
+
+def _make_frames(plan: _Plan, pending: list[FrameTask], shard_frames_total: int, *, fresh: bool,
+                 existed: bool) -> None:
+    """Make the ``pending`` frames (in worker processes when ``req.workers`` > 1), with a progress bar over the
+    shard's ``shard_frames_total`` frames; a frame that cannot be made on a ``fresh`` folder undoes the run."""
+    req, out = plan.req, Path(plan.req.out)
     from tqdm import tqdm
 
-    bar = tqdm(total=len(mine), initial=resumed, unit="frame", disable=not req.progress, file=sys.stderr,
-               dynamic_ncols=True, desc="generate")
+    bar = tqdm(total=shard_frames_total, initial=shard_frames_total - len(pending), unit="frame",
+               disable=not req.progress, file=sys.stderr, dynamic_ncols=True, desc="generate")
+    kept = rejected = 0  # shown on the progress bar (the summary counts come from the records afterwards)
 
-    def account(rec: dict) -> None:
+    def account(rec: FrameRecord) -> None:
         nonlocal kept, rejected
-        kept += len(rec["kept"])
-        rejected += len(rec["rejected"])
+        kept += len(rec.kept)
+        rejected += len(rec.rejected)
         bar.update(1)
         bar.set_postfix(kept=kept, rejected=rejected, refresh=False)
 
+    worker = FrameWorker(houses=plan.houses.houses, settings=plan.frame_settings, categories=plan.category_ids,
+                         backend=req.backend, out=out, directions=scan_directions(plan.frame_settings.sensor))
+    pooled = req.workers > 1 and len(pending) > 1
     resume = "the frames written so far are kept: run the same command again to resume"
     try:
-        if req.workers == 1 or len(pending) <= 1:
-            _init_state(houses, fs, cat_idx, req.backend, out)
+        if not pooled:
             for task in pending:
-                account(_work(task))
+                account(make_frame_task(worker, task))
         else:
             # Forked workers inherit the parsed houses instead of re-reading them; chunks of 4 frames: one pipe round
             # trip per frame cost the parent ~1 ms of CPU per frame.
             for rec in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
-                                      initargs=(houses, fs, cat_idx, req.backend, out), chunksize=4):
+                                      initargs=(worker,), chunksize=4):
                 account(rec)
     except InputError:
         if fresh:  # these settings cannot make the dataset: leave the folder as it was for the corrected command
-            _undo(out, {f"{t[0]:06d}" for t in pending}, existed, req.shard)
+            _undo(out, {t.fid for t in pending}, existed, req.shard)
         raise
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; {resume}") from None
     except OSError as e:
         raise _with_hint(e, resume) from None
     except Exception as e:
-        if req.workers > 1 and len(pending) > 1:  # a worker's unexpected error: its traceback stayed in the worker
+        if pooled:  # a worker's unexpected error: its traceback stayed in the worker
             raise RunError(f"{out}: a worker process failed: {type(e).__name__}: {e}; stopped the other workers; "
                            f"{resume}") from e
         raise
     finally:
         bar.close()
-    made_seconds = time.perf_counter() - t_frames
-
-    complete = all(record_path(out, f"{g:06d}").is_file() for g in range(n_total))
-    splits_count: dict[str, int] = {}
-    if complete:
-        try:
-            # Shards finishing together take turns (assembly removes temp files a killed assembly left).
-            with wait_lock(out / ".generate-assemble.lock") if sn > 1 else contextlib.nullcontext():
-                splits_count, records = _assemble(out, req, settings, hashes, houses, cats, n_total)
-        except OSError as e:
-            raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
-                                "manifest") from None
-    else:  # this shard's frames, made now or by an earlier run
-        records = [json.loads(record_path(out, f"{t[0]:06d}").read_text(encoding="utf-8")) for t in mine]
-    seconds = time.perf_counter() - t0
-    made = len(pending)
-    return GenerateSummary(
-        out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, nothing_to_make=not made,
-        scope="dataset" if complete else "shard", **describe_records(records), seconds=seconds,
-        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits_count,
-    )  # fmt: skip
 
 
 def shard_frames(n_total: int, shard: tuple[int, int]) -> range:
@@ -476,29 +499,51 @@ def _with_hint(e: OSError, hint: str) -> OSError:
     return type(e)(e.errno, f"{e.strerror or e}; {hint}", e.filename)
 
 
-#: Placeholder of the manifest's frame list while the rest is encoded (see :func:`_assemble`).
-_FRAMES_SLOT = "@@frame records@@"
-
-
-def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, houses: dict[str, House],
-              cats: list[str], n_total: int) -> tuple[dict[str, int], list[dict]]:
-    """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the split sizes and the
-    manifest's frame records."""
+def _assemble(plan: _Plan, n_total: int) -> Manifest:
+    """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the manifest."""
+    out = Path(plan.req.out)
     for p in [out, out / "ImageSets"]:  # temps a killed assembly left behind
         if p.is_dir():
             for q in p.iterdir():
                 if q.name.startswith(".") and q.name.endswith(".tmp"):
                     q.unlink(missing_ok=True)
-    texts = [record_path(out, f"{g:06d}").read_text(encoding="utf-8").strip() for g in range(n_total)]
-    records = [json.loads(t) for t in texts]
+    records = tuple(read_frame_record(record_path(out, f"{g:06d}")) for g in range(n_total))
+    req = plan.req
     splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
     for name, ids in splits.items():
         write_imageset(out / "ImageSets" / f"{name}.txt", ids)
+    manifest = _manifest(plan, records, {k: len(v) for k, v in splits.items()})
+    write_text(out / MANIFEST_NAME, manifest.to_json() + "\n")
+    return manifest
+
+
+def _manifest(plan: _Plan, records: tuple[FrameRecord, ...], splits: dict[str, int]) -> Manifest:
+    """The manifest of the complete dataset: ``records`` every frame's, ``splits`` the split sizes."""
+    req, houses, settings = plan.req, plan.houses, plan.settings
     counts = describe_records(records)
+    return Manifest(
+        format=MANIFEST_FORMAT,
+        command=_command(req, settings["sensor"]["name"], plan.categories),
+        config=settings,
+        versions=houses.versions,
+        seed=req.seed,
+        houses={hid: ManifestHouse(files_sha256=houses.files_sha256[hid], objects_of_class=houses.objects_of_class[hid],
+                                   frames=(p * req.frames, (p + 1) * req.frames - 1))
+                for p, hid in enumerate(req.houses)},
+        conventions=conventions(settings["sensor"]["filters"]["occlusion_cutoffs"]),
+        splits=splits,
+        totals=ManifestTotals(frames=len(records), boxes_kept=counts.kept, boxes_rejected=counts.rejected,
+                              points=int(sum(r.points for r in records))),
+        frames=records,
+    )
+
+
+def _command(req: GenerateRequest, sensor_name: str, cats: tuple[str, ...]) -> tuple[str, ...]:
+    """The ``mpchair generate`` command line that makes this dataset (the root by folder name: no absolute path)."""
     command = ["mpchair", "generate", "--root", Path(req.root).name]
     for h in req.houses:
         command += ["--house", h]
-    command += ["--frames", str(req.frames), "--sensor", settings["sensor"]["name"], "--seed", str(req.seed),
+    command += ["--frames", str(req.frames), "--sensor", sensor_name, "--seed", str(req.seed),
                 "--height", repr(req.height), "--robot-radius", repr(req.robot_radius), "--split-mode", req.split_mode,
                 "--backend", req.backend, "--max-attempts", str(req.max_attempts)]
     for c in cats:
@@ -507,44 +552,10 @@ def _assemble(out: Path, req: GenerateRequest, settings: dict, hashes: dict, hou
         command.append("--keep-empty")
     if req.viewpoints != "auto":
         command += ["--viewpoints", req.viewpoints]
-    manifest = {
-        "format": MANIFEST_FORMAT,
-        "command": command,
-        "config": settings,
-        "versions": _versions(req.backend),
-        "seed": req.seed,
-        "houses": {
-            hid: {"files_sha256": hashes[hid], "objects_of_class": len(objects_of(houses[hid], cats)),
-                  "frames": [p * req.frames, (p + 1) * req.frames - 1]}
-            for p, hid in enumerate(req.houses)
-        },
-        "conventions": {
-            "frame": "sensor: x forward, y left, z up, metres (right-handed; the original was mirrored)",
-            "velodyne": "float32 x, y, z, 1.0 (constant 4th channel: the sensor has no intensity)",
-            "pose": "3x4 row-major sensor -> world (Matterport z-up metres)",
-            "bbox_2d": "projection of the 3D box through P2, clipped to the image; truncation = fraction outside",
-            "occluded": "0 if visible fraction >= {:.2f}, 1 if >= {:.2f}, else 2 (dense grid)".format(
-                *settings["sensor"]["filters"]["occlusion_cutoffs"]),
-            "image_2": "8-bit scan depth: 0 none, else 1 + round(254 * (1 - depth / max_range))",
-            "misses": "rays without a hit (or outside the range limits) are dropped",
-        },
-        "splits": {k: len(v) for k, v in splits.items()},
-        "totals": {"frames": n_total, "boxes_kept": counts["kept"], "boxes_rejected": counts["rejected"],
-                   "points": int(sum(r["points"] for r in records))},
-        "frames": _FRAMES_SLOT,
-    }
-    # One frame record per line, spliced in as written (sorted keys, compact): json's indenting encoder is pure
-    # Python (~0.5 ms per frame, serially after the last frame); the file parses to the same data either way.
-    text = json.dumps(manifest, sort_keys=True, indent=1)
-    slot = json.dumps(_FRAMES_SLOT)
-    if text.count(slot) == 1:
-        text = text.replace(slot, "[\n  " + ",\n  ".join(texts) + "\n ]" if texts else "[]")
-    else:  # the placeholder also occurs in a user-given value: encode the slow way
-        text = json.dumps({**manifest, "frames": records}, sort_keys=True, indent=1)
-    write_text(out / "manifest.json", text + "\n")
-    return manifest["splits"], records
+    return tuple(command)
 
 
 def default_workers() -> int:
     """A sensible default worker count: the CPUs this process may use."""
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+

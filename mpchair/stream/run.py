@@ -22,7 +22,9 @@ import math
 import sys
 import time
 from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -40,20 +42,26 @@ from mpchair.dataset.frame import (
     resolve_viewpoints,
     warm_up,
 )
-from mpchair.dataset.generate import _versions as package_versions
-from mpchair.dataset.generate import sha256_of
+from mpchair.dataset.houses import RunHouses, load_run_houses
 from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.labels.select import apply_scan_points, label_half_fov
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
-from mpchair.matterport.house import House, objects_of, read_house
-from mpchair.matterport.source import SUFFIXES, find_houses
+from mpchair.matterport.house import House
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 from mpchair.stream.episodes import Episode, EpisodeSettings, plan_episode
 from mpchair.stream.freespace import free_space, navmesh_areas
 from mpchair.stream.routes import RouteRules
 from mpchair.stream.unicycle import Limits
-from mpchair.stream.writer import FRAME_DIRS, record_path, sequence_dir, write_sequence_files, write_stream_frame
+from mpchair.stream.writer import (
+    FRAME_DIRS,
+    StreamFrameRecord,
+    read_stream_record,
+    record_path,
+    sequence_dir,
+    write_sequence_files,
+    write_stream_frame,
+)
 
 STREAM_FORMAT = "mpchair-stream/1"
 
@@ -114,6 +122,34 @@ class StreamSummary:
                 f"kept {self.kept}, DontCare {self.dontcare}; {self.points:.0f} points/frame")
 
 
+class StreamTask(NamedTuple):
+    """One frame to make: frame ``index`` of sequence ``sequence``."""
+
+    sequence: str
+    index: int
+
+    @property
+    def fid(self) -> str:
+        """The 6-digit frame id of the file names."""
+        return f"{self.index:06d}"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """A checked ``stream`` run, before it touches the folder: the ``req``, the ``settings`` stored in
+    ``.stream.json`` (and ``stream.json``'s ``config``), the ``sequences`` (name, episode) in order, each house's
+    raycasting scene (``contexts``), the ``sensor``, the run's ``houses`` and the ``categories`` (mpcat40 names,
+    sorted) labelled."""
+
+    req: StreamRequest
+    settings: dict
+    sequences: tuple[tuple[str, Episode], ...]
+    contexts: Mapping[str, HouseContext]
+    sensor: SensorConfig
+    houses: RunHouses
+    categories: tuple[str, ...]
+
+
 def _check_request(req: StreamRequest) -> None:
     if req.episodes < 1:
         raise InputError(f"--episodes must be >= 1, got {req.episodes}")
@@ -134,7 +170,7 @@ def _check_request(req: StreamRequest) -> None:
 
 
 def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, params: ViewpointParams,
-              cats: list[str]) -> dict:
+              cats: tuple[str, ...]) -> dict:
     """The deterministic part of a run (what the output depends on); stored in ``.stream.json`` and ``stream.json``."""
     return {
         "houses": list(req.houses),
@@ -147,7 +183,7 @@ def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, par
         "sensor": to_dict(sensor),
         "viewpoints": to_dict(params),
         "seed": req.seed,
-        "categories": cats,
+        "categories": list(cats),
         "free_space": req.free_space,
         "backend": req.backend,
     }
@@ -175,8 +211,8 @@ def _check_settings(out: Path, settings: dict) -> None:
     write_text(path, text)
 
 
-def _plan(req: StreamRequest, houses: dict[str, House], contexts: dict[str, HouseContext], es: EpisodeSettings,
-          params: ViewpointParams) -> list[tuple[str, Episode]]:
+def _plan_episodes(req: StreamRequest, houses: Mapping[str, House], contexts: Mapping[str, HouseContext],
+                   es: EpisodeSettings, params: ViewpointParams) -> list[tuple[str, Episode]]:
     """``(sequence name, episode)`` for every house and episode; bad houses / impossible routes are InputErrors."""
     width = max(2, len(str(len(req.houses) * req.episodes - 1)))
     plan = []
@@ -200,28 +236,48 @@ def _plan(req: StreamRequest, houses: dict[str, House], contexts: dict[str, Hous
     return plan
 
 
-# Per-process state of pool workers (fork start method: inherited from the parent, never pickled).
-_STATE: dict = {}
+@dataclasses.dataclass(frozen=True)
+class StreamWorker:
+    """What a process that makes stream frames holds: the ``episodes`` by sequence name, each house's raycasting
+    scene (``contexts``), the ``sensor``, its scan ``directions`` (sensor frame unit vectors) and the stream folder
+    ``out``."""
+
+    episodes: Mapping[str, Episode]
+    contexts: Mapping[str, HouseContext]
+    sensor: SensorConfig
+    directions: np.ndarray
+    out: Path
 
 
-def _work(task: tuple[str, int]) -> dict:
-    """Make and write frame ``i`` of sequence ``seq`` (in a worker or in-process); returns its record."""
-    seq, i = task
-    ep: Episode = _STATE["episodes"][seq]
-    ctx: HouseContext = _STATE["contexts"][ep.house]
-    sensor: SensorConfig = _STATE["sensor"]
-    pose = ep.poses[i]
+def make_stream_task(worker: StreamWorker, task: StreamTask) -> StreamFrameRecord:
+    """Make and write one frame at its planned pose (in a pool worker or in-process); returns its record."""
+    ep = worker.episodes[task.sequence]
+    ctx = worker.contexts[ep.house]
+    sensor = worker.sensor
+    pose = ep.poses[task.index]
     dec = label_pose(ctx, sensor, pose)
-    points = cast_scan(sensor, _STATE["dirs"], pose, ctx.raycaster)
+    points = cast_scan(sensor, worker.directions, pose, ctx.raycaster)
     dec = apply_scan_points(dec, points, sensor.filters)
-    return write_stream_frame(_STATE["out"], seq, f"{i:06d}", ctx.house, dec, points, sensor, int(ep.times_us[i]),
-                              dec.dense_rays + len(_STATE["dirs"]))
+    return write_stream_frame(worker.out, task.sequence, task.fid, ctx.house, dec, points, sensor,
+                              int(ep.times_us[task.index]), dec.dense_rays + len(worker.directions))
 
 
-def _init_worker(state: dict) -> None:
+#: The pool worker's state: set once per worker process by :func:`_init_worker` (fork start method: inherited from
+#: the parent, never pickled), never in the parent, which passes its own explicitly.
+_WORKER: StreamWorker | None = None
+
+
+def _init_worker(worker: StreamWorker) -> None:
+    """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.core.heap``)."""
+    global _WORKER
     keep_freed_memory()
-    _STATE.clear()
-    _STATE.update(state)
+    _WORKER = worker
+
+
+def _work(task: StreamTask) -> StreamFrameRecord:
+    """A pool worker's task: :func:`make_stream_task` with this process's :data:`_WORKER`."""
+    assert _WORKER is not None, "runs only in a pool worker (after _init_worker)"
+    return make_stream_task(_WORKER, task)
 
 
 def _remove_stale_temps(out: Path, seqs: list[str]) -> None:
@@ -251,140 +307,108 @@ def stream(req: StreamRequest) -> StreamSummary:
     except ValueError as e:
         raise InputError(str(e)) from None
     cat_idx = resolve_categories(list(req.categories))
-    cats = sorted(mpcat40_name(c) for c in cat_idx)
-    found = find_houses(req.root)
-    unknown = [h for h in req.houses if h not in found]
-    if unknown:
-        raise InputError(f"unknown house {unknown[0]!r} (available: {', '.join(sorted(found)) or 'none'})", req.root)
-    houses: dict[str, House] = {}
+    cats = tuple(sorted(mpcat40_name(c) for c in cat_idx))
     contexts: dict[str, HouseContext] = {}
-    hashes: dict[str, dict[str, str]] = {}
-    for hid in req.houses:
-        house = read_house(found[hid])
-        if not objects_of(house, cat_idx):
-            have = ", ".join(f"{k} {v}" for k, v in house.objects_by_category().items()) or "no objects"
-            raise InputError(f"house {hid} has no object of class {', '.join(cats)} (it has: {have})",
-                             found[hid].describe(".house"))
-        houses[hid] = house
-        contexts[hid] = build_context(house, cat_idx, req.backend, sensor.filters.box_margin)
-        src = found[hid]
-        hashes[hid] = {f"{hid}{s}": sha256_of(src, s) for s in SUFFIXES[src.layout] if src.exists(s)}
-    plan = _plan(req, houses, contexts, es, params)
 
-    out = Path(req.out)
-    settings = _settings(req, sensor, es, params, cats)
-    with folder_lock(out / STREAM_LOCK, "mpchair stream"):
-        return _make(req, out, settings, plan, contexts, sensor, hashes, houses, cats, t0)
+    def build_scene(house: House) -> None:  # right after reading: a house without floor fails before the next is read
+        contexts[house.id] = build_context(house, cat_idx, req.backend, sensor.filters.box_margin)
+
+    houses = load_run_houses(req.root, req.houses, cat_idx, backend=req.backend, hashed="layout", check=build_scene)
+    sequences = _plan_episodes(req, houses.houses, contexts, es, params)
+    plan = _Plan(req=req, settings=_settings(req, sensor, es, params, cats), sequences=tuple(sequences),
+                 contexts=contexts, sensor=sensor, houses=houses, categories=cats)
+    with folder_lock(Path(req.out) / STREAM_LOCK, "mpchair stream"):
+        return _make(plan, t0)
 
 
-def _make(req: StreamRequest, out: Path, settings: dict, plan: list[tuple[str, Episode]],
-          contexts: dict[str, HouseContext], sensor: SensorConfig, hashes: dict, houses: dict[str, House],
-          cats: list[str], t0: float) -> StreamSummary:
-    """Write the stream's missing frames and its summary files (under the folder's lock)."""
-    _check_settings(out, settings)
-    seqs = [s for s, _ in plan]
-    _remove_stale_temps(out, seqs)
-    for seq, ep in plan:
+def _make(plan: _Plan, t0: float) -> StreamSummary:
+    """Write the stream's missing frames and its summary files (under the folder's lock; ``t0``: when the run
+    started, ``time.perf_counter``)."""
+    out = Path(plan.req.out)
+    _check_settings(out, plan.settings)
+    _remove_stale_temps(out, [s for s, _ in plan.sequences])
+    for seq, ep in plan.sequences:
         write_sequence_files(out, seq, ep.times_us, ep.poses)
-    tasks = [(seq, i) for seq, ep in plan for i in range(len(ep.times_us))]
-    pending = [t for t in tasks if not record_path(out, t[0], f"{t[1]:06d}").is_file()]
+    tasks = [StreamTask(seq, i) for seq, ep in plan.sequences for i in range(len(ep.times_us))]
+    pending = [t for t in tasks if not record_path(out, t.sequence, t.fid).is_file()]
     resumed = len(tasks) - len(pending)
-
-    state = {"episodes": dict(plan), "contexts": contexts, "sensor": sensor, "dirs": scan_directions(sensor),
-             "out": out}
     if pending:
-        warm_up(sensor)  # before forking: the workers inherit the loaded kernels
+        warm_up(plan.sensor)  # before forking: the workers inherit the loaded kernels
+    t_frames = time.perf_counter()
+    _make_frames(plan, pending, len(tasks))
+    made_seconds = time.perf_counter() - t_frames
+
+    records = [read_stream_record(record_path(out, t.sequence, t.fid)) for t in tasks]
+    _write_stream_json(plan, records, label_half_fov(plan.sensor.filters, plan.sensor.camera))
+    made = len(pending)
+    return StreamSummary(
+        out=str(out), sequences=len(plan.sequences), frames=len(tasks), made=made, resumed=resumed, complete=True,
+        kept=sum(r.kept for r in records), dontcare=sum(r.dontcare for r in records),
+        points=float(np.mean([r.points for r in records])) if records else 0.0,
+        seconds=time.perf_counter() - t0,
+        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0,
+    )  # fmt: skip
+
+
+def _make_frames(plan: _Plan, pending: list[StreamTask], total: int) -> None:
+    """Make the ``pending`` frames (in worker processes when ``req.workers`` > 1), with a progress bar over the
+    stream's ``total`` frames."""
+    req, out = plan.req, Path(plan.req.out)
+    worker = StreamWorker(episodes=dict(plan.sequences), contexts=plan.contexts, sensor=plan.sensor,
+                          directions=scan_directions(plan.sensor), out=out)
     from tqdm import tqdm
 
-    t_frames = time.perf_counter()
-    bar = tqdm(total=len(tasks), initial=resumed, unit="frame", disable=not req.progress, file=sys.stderr,
+    bar = tqdm(total=total, initial=total - len(pending), unit="frame", disable=not req.progress, file=sys.stderr,
                dynamic_ncols=True, desc="stream")
     try:
         if req.workers == 1 or len(pending) <= 1:
-            _init_worker(state)
             for task in pending:
-                _work(task)
+                make_stream_task(worker, task)
                 bar.update(1)
         else:
             # forked workers inherit the houses and scenes instead of rebuilding them; a worker that dies (the OOM
             # killer) or raises stops the others at once (mpchair.dataset.workers), as in `mpchair generate`
             for _ in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
-                                    initargs=(state,), chunksize=4):
+                                    initargs=(worker,), chunksize=4):
                 bar.update(1)
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "
                        "command again to resume") from None
     finally:
         bar.close()
-    made_seconds = time.perf_counter() - t_frames
-
-    records = [json.loads(record_path(out, s, f"{i:06d}").read_text(encoding="utf-8")) for s, i in tasks]
-    _write_stream_json(out, req, settings, hashes, houses, cats, plan, records,
-                       label_half_fov(sensor.filters, sensor.camera))
-    made = len(pending)
-    return StreamSummary(
-        out=str(out), sequences=len(plan), frames=len(tasks), made=made, resumed=resumed, complete=True,
-        kept=sum(r["kept"] for r in records), dontcare=sum(r["dontcare"] for r in records),
-        points=float(np.mean([r["points"] for r in records])) if records else 0.0,
-        seconds=time.perf_counter() - t0,
-        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0,
-    )  # fmt: skip
 
 
 def _r(x: float, nd: int = 6) -> float:
     return round(float(x), nd)
 
 
-def _write_stream_json(out: Path, req: StreamRequest, settings: dict, hashes: dict, houses: dict[str, House],
-                       cats: list[str], plan: list[tuple[str, Episode]], records: list[dict],
-                       half_fov: float | None) -> None:
+def _write_stream_json(plan: _Plan, records: list[StreamFrameRecord], half_fov: float | None) -> None:
     """``stream.json`` (last): settings, versions, house checksums, the labelled region (``half_fov`` radians or
     ``None``), one entry per sequence, totals, conventions."""
-    by_seq: dict[str, list[dict]] = {}
+    req, settings, filters = plan.req, plan.settings, plan.settings["sensor"]["filters"]
+    by_seq: dict[str, list[StreamFrameRecord]] = {}
     for r in records:
-        by_seq.setdefault(r["sequence"], []).append(r)
-    command = ["mpchair", "stream", "--root", Path(req.root).name]
-    for h in req.houses:
-        command += ["--house", h]
-    command += ["--episodes", str(req.episodes), "--rate", repr(req.rate), "--speed", repr(req.speed),
-                "--turn-rate", repr(req.turn_rate), "--accel", repr(req.accel), "--sensor", settings["sensor"]["name"],
-                "--seed", str(req.seed), "--height", repr(req.height), "--robot-radius", repr(req.robot_radius),
-                "--min-geodesic", repr(req.min_geodesic), "--max-geodesic", repr(req.max_geodesic),
-                "--min-ratio", repr(req.min_ratio), "--free-space", req.free_space, "--backend", req.backend]
-    if req.duration is not None:
-        command += ["--duration", repr(req.duration)]
-    if not req.look_around:
-        command.append("--no-look-around")
-    for c in cats:
-        command += ["--category", c]
+        by_seq.setdefault(r.sequence, []).append(r)
     rejected: Counter[str] = Counter()
     for r in records:
-        rejected.update(r["rejected"])
+        rejected.update(r.rejected)
     doc = {
         "format": STREAM_FORMAT,
-        "command": command,
+        "command": _command(req, settings["sensor"]["name"], plan.categories),
         "config": settings,
-        "versions": package_versions(req.backend),
+        "versions": plan.houses.versions,
         "seed": req.seed,
         "rate_hz": req.rate,
         # the labelled region in numbers (mpchair.geometry.region), so that a reader need not re-derive it
-        "region": {"max_abs_dz": settings["sensor"]["filters"]["max_abs_dz"],
-                   "max_distance": settings["sensor"]["filters"]["max_distance"], "half_fov": half_fov},
+        "region": {"max_abs_dz": filters["max_abs_dz"], "max_distance": filters["max_distance"], "half_fov": half_fov},
         "image_size": [settings["sensor"]["camera"]["width"], settings["sensor"]["camera"]["height"]],
-        "houses": {hid: {"files_sha256": hashes[hid], "objects_of_class": len(objects_of(houses[hid], cats)),
-                         "sequences": [s for s, ep in plan if ep.house == hid]} for hid in req.houses},
-        "sequences": {
-            seq: {"house": ep.house, "episode": ep.index, "level": ep.route.level, "frames": len(ep.times_us),
-                  "duration_s": _r(ep.times_us[-1] / 1e6), "start_xy": [_r(v) for v in ep.route.waypoints[0]],
-                  "goal_xy": [_r(v) for v in ep.route.waypoints[-1]], "start_yaw": _r(ep.start_yaw),
-                  "path_m": _r(ep.route.length), "geodesic_m": _r(ep.route.geodesic),
-                  "euclidean_m": _r(ep.route.euclidean), "kept": sum(r["kept"] for r in by_seq[seq]),
-                  "dontcare": sum(r["dontcare"] for r in by_seq[seq])}
-            for seq, ep in plan
-        },
-        "totals": {"sequences": len(plan), "frames": len(records), "boxes_kept": sum(r["kept"] for r in records),
-                   "dontcare": sum(r["dontcare"] for r in records), "boxes_rejected": dict(sorted(rejected.items())),
-                   "points": int(sum(r["points"] for r in records))},
+        "houses": {hid: {"files_sha256": plan.houses.files_sha256[hid],
+                         "objects_of_class": plan.houses.objects_of_class[hid],
+                         "sequences": [s for s, ep in plan.sequences if ep.house == hid]} for hid in req.houses},
+        "sequences": {seq: _sequence_entry(ep, by_seq[seq]) for seq, ep in plan.sequences},
+        "totals": {"sequences": len(plan.sequences), "frames": len(records), "boxes_kept": sum(r.kept for r in records),
+                   "dontcare": sum(r.dontcare for r in records), "boxes_rejected": dict(sorted(rejected.items())),
+                   "points": int(sum(r.points for r in records))},
         "conventions": {
             "frame": "sensor: x forward, y left, z up, metres (right-handed)",
             "velodyne": "float32 x, y, z, 1.0 (constant 4th channel)",
@@ -395,4 +419,34 @@ def _write_stream_json(out: Path, req: StreamRequest, settings: dict, hashes: di
             "region": "box centre |z| <= max_abs_dz, hypot(x, y) <= max_distance, inside the camera's hfov if fov",
         },
     }
-    write_text(out / "stream.json", json.dumps(doc, sort_keys=True, indent=1) + "\n")
+    write_text(Path(req.out) / "stream.json", json.dumps(doc, sort_keys=True, indent=1) + "\n")
+
+
+def _sequence_entry(ep: Episode, records: list[StreamFrameRecord]) -> dict:
+    """``stream.json``'s entry of one sequence: its house, episode, route (world frame, metres / radians, 6
+    decimals) and box counts over its ``records``."""
+    return {"house": ep.house, "episode": ep.index, "level": ep.route.level, "frames": len(ep.times_us),
+            "duration_s": _r(ep.times_us[-1] / 1e6), "start_xy": [_r(v) for v in ep.route.waypoints[0]],
+            "goal_xy": [_r(v) for v in ep.route.waypoints[-1]], "start_yaw": _r(ep.start_yaw),
+            "path_m": _r(ep.route.length), "geodesic_m": _r(ep.route.geodesic),
+            "euclidean_m": _r(ep.route.euclidean), "kept": sum(r.kept for r in records),
+            "dontcare": sum(r.dontcare for r in records)}  # fmt: skip
+
+
+def _command(req: StreamRequest, sensor_name: str, cats: tuple[str, ...]) -> list[str]:
+    """The ``mpchair stream`` command line that makes this stream (the root by folder name: no absolute path)."""
+    command = ["mpchair", "stream", "--root", Path(req.root).name]
+    for h in req.houses:
+        command += ["--house", h]
+    command += ["--episodes", str(req.episodes), "--rate", repr(req.rate), "--speed", repr(req.speed),
+                "--turn-rate", repr(req.turn_rate), "--accel", repr(req.accel), "--sensor", sensor_name,
+                "--seed", str(req.seed), "--height", repr(req.height), "--robot-radius", repr(req.robot_radius),
+                "--min-geodesic", repr(req.min_geodesic), "--max-geodesic", repr(req.max_geodesic),
+                "--min-ratio", repr(req.min_ratio), "--free-space", req.free_space, "--backend", req.backend]
+    if req.duration is not None:
+        command += ["--duration", repr(req.duration)]
+    if not req.look_around:
+        command.append("--no-look-around")
+    for c in cats:
+        command += ["--category", c]
+    return command
