@@ -43,9 +43,14 @@ from mpchair.core.errors import InputError
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Also write a Rerun recording (.rrd): points, labels, pose and the boxes the detector had at each "
                    "moment, stale and ego-compensated (needs the rerun extra).")
+@click.option("--mcap", "mcap_out", type=click.Path(path_type=Path), default=None,
+              help="Also write a ROS 2 bag (.mcap, for Foxglove or ros2 bag play): the stream's points, tf and labels, "
+                   "and per frame the boxes the detector had, as emitted (/detections/<model>) and ego-compensated "
+                   "(/detections/<model>/ego) (needs the ros extra).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency_log, save_results, offline,
-                latency_ms, mode, schedule, repeats, warmup, threads, device, json_out, rerun_out, quiet) -> None:
+                latency_ms, mode, schedule, repeats, warmup, threads, device, json_out, rerun_out, mcap_out,
+                quiet) -> None:
     """Streaming AP: score each frame of a robot's stream with the latest output the detector had emitted by its
     capture time, pooled over all frames with the KITTI evaluator (Chair, 3D and BEV, IoU 0.5, R40 and R11, every
     box counted).
@@ -56,6 +61,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
                            --checkpoint runs/sparse/last.pt --threads 2 --json sparse-ego.json
       detector stream-eval --data stream/ --oracle --latency-ms 300 --mode raw
       detector stream-eval --data stream/ --results offline/ --latency-ms 120 --rerun stream.rrd
+      detector stream-eval --data stream/ --oracle --latency-ms 300 --mcap oracle.mcap
     """
     from detector.stream import prepare, read_stream, score
     from detector.stream.run import read_latency_log, source_from_options
@@ -72,6 +78,10 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         from mpchair.recording.rerun import check_rerun_path
 
         check_rerun_path(rerun_out)
+    if mcap_out is not None:
+        from mpchair.recording.mcap import check_mcap_path
+
+        check_mcap_path(mcap_out)
     if json_out is not None and str(json_out) != "-" and json_out.suffix.lower() != ".json":
         raise InputError("--json must name a .json file (or '-')", json_out)
     source = source_from_options(config, checkpoint, results, oracle, device, threads)
@@ -90,6 +100,10 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         from detector.stream.rerun import log_stream_eval
 
         log_stream_eval(prep, rerun_out)
+    if mcap_out is not None:
+        from detector.stream.mcap import log_stream_eval as log_stream_eval_bag
+
+        log_stream_eval_bag(prep, mcap_out)
     if json_out is not None and str(json_out) != "-":
         from mpchair.core.atomic import write_text
 

@@ -27,7 +27,13 @@ def _png(path: Path, option: str) -> Path:
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Instead of a picture: write DATASET (a stream or a dataset) as a Rerun recording (.rrd): per frame "
                    "the points, labelled boxes and sensor pose in the house frame (needs the rerun extra).")
-@click.option("--limit", type=int, default=None, help="With --rerun on a dataset: only its first N frames.")
+@click.option("--mcap", "mcap_out", type=click.Path(path_type=Path), default=None,
+              help="Instead of a picture: write DATASET (a stream or a dataset) as a ROS 2 bag (.mcap) for Foxglove or "
+                   "ros2 bag play: per frame /points, /tf, /ground_truth (+ markers); a stream's /trajectory (needs "
+                   "the ros extra).")
+@click.option("--limit", type=int, default=None, help="With --rerun or --mcap on a dataset: only its first N frames.")
+@click.option("--rate", type=float, default=10.0, show_default=True,
+              help="With --mcap on a dataset: frames per second of the bag's timeline (a stream has its own times).")
 @click.option("--results", type=click.Path(path_type=Path), default=None,
               help="Folder of KITTI result files (16 columns): detections drawn in red with scores.")
 @click.option("--3d", "three_d", is_flag=True,
@@ -43,26 +49,33 @@ def _png(path: Path, option: str) -> Path:
                    "the ceiling does not cover the room; nothing on other folders (real KITTI). none: keep every "
                    "point.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
-def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | None, limit: int | None,
-         results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int], extent, zmax: str,
-         as_json: bool) -> None:
+def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | None, mcap_out: Path | None,
+         limit: int | None, rate: float, results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int],
+         extent, zmax: str, as_json: bool) -> None:
     """Picture of one frame of DATASET: bird's-eye view of the scan (coloured by z) with its labelled boxes (green,
     class names) and, with --results, detections (red, dashed, scores). Headless; PNG output. With --rerun, a Rerun
-    recording of a whole stream (mpchair stream) or dataset instead, to watch in the Rerun viewer.
+    recording of a whole stream (mpchair stream) or dataset instead, to watch in the Rerun viewer; with --mcap, a
+    ROS 2 bag of it, to open in Foxglove or replay with ros2 bag play (no ROS install needed to write it).
 
     \b
     Examples:
       mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
       mpchair view dataset/ --frame 3 --out all.png --zmax none # the ceiling too
       mpchair view stream/ --rerun stream.rrd && rerun stream.rrd
+      mpchair view stream/ --mcap stream.mcap && ros2 bag play -s mcap stream.mcap
     """
+    if rerun_out is not None and mcap_out is not None:
+        raise InputError("give --rerun or --mcap, not both")
     if rerun_out is not None:
         _rerun(dataset, rerun_out, limit, as_json, other=frame is not None or out is not None)
+        return
+    if mcap_out is not None:
+        _mcap(dataset, mcap_out, limit, rate, as_json, other=frame is not None or out is not None)
         return
     from mpchair.analysis.render import RenderError, default_zmax, frame_picture
 
     if frame is None or out is None:
-        raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd")
+        raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd, or --mcap OUT.mcap")
     fid = frame
     _png(out, "--out")
     if min(size) < 64:
@@ -115,6 +128,26 @@ def _rerun(dataset: Path, out: Path, limit: int | None, as_json: bool, other: bo
         click.echo(json.dumps(info, indent=1))
     else:
         click.echo(f"wrote {out}: {info['kind']} {dataset}, {info['frames']} frames (open it with: rerun {out})")
+
+
+def _mcap(dataset: Path, out: Path, limit: int | None, rate: float, as_json: bool, other: bool) -> None:
+    """``mpchair view --mcap``: a stream (``stream.json``) or a dataset as a ROS 2 bag."""
+    from mpchair.recording.mcap import check_mcap_path, log_dataset, log_stream
+
+    if other:
+        raise InputError("--mcap writes a bag of the whole folder; leave out --frame / --out")
+    check_mcap_path(out)
+    if limit is not None and limit < 1:
+        raise InputError(f"--limit must be >= 1, got {limit}")
+    is_stream = (Path(dataset) / "stream.json").is_file()
+    info = log_stream(dataset, out) if is_stream else log_dataset(dataset, out, limit, rate)
+    info = {"bag": str(out), "kind": "stream" if is_stream else "dataset", **info}
+    if as_json:
+        click.echo(json.dumps(info, indent=1))
+    else:
+        click.echo(f"wrote {out}: {info['kind']} {dataset}, {info['frames']} frames, "
+                   f"{sum(info['topics'].values())} messages on {len(info['topics'])} topics (open it in Foxglove, "
+                   f"or replay it: ros2 bag play -s mcap {out})")
 
 
 @click.command("view-house", context_settings=_CTX)
