@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fnmatch
+import functools
 import json
 import math
 import os
@@ -215,24 +216,6 @@ def make_frame_task(worker: FrameWorker, task: FrameTask) -> FrameRecord:
         worker.scenes[task.house] = ctx
     result = make_frame(ctx, worker.settings, task.index, worker.directions)
     return write_frame(worker.out, task.fid, ctx.house, task.index, result, worker.settings.sensor)
-
-
-#: The pool worker's state: set once per worker process by :func:`_init_worker` (fork start method: inherited from
-#: the parent, never pickled), never in the parent, which passes its own explicitly.
-_WORKER: FrameWorker | None = None
-
-
-def _init_worker(worker: FrameWorker) -> None:
-    """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.core.heap``)."""
-    global _WORKER
-    keep_freed_memory()
-    _WORKER = worker
-
-
-def _work(task: FrameTask) -> FrameRecord:
-    """A pool worker's task: :func:`make_frame_task` with this process's :data:`_WORKER`."""
-    assert _WORKER is not None, "runs only in a pool worker (after _init_worker)"
-    return make_frame_task(_WORKER, task)
 
 
 def _remove_stale_temps(out: Path, fids: set[str]) -> None:
@@ -464,8 +447,9 @@ def _make_frames(plan: _Plan, pending: list[FrameTask], shard_frames_total: int,
         else:
             # Forked workers inherit the parsed houses instead of re-reading them; chunks of 4 frames: one pipe round
             # trip per frame cost the parent ~1 ms of CPU per frame.
-            for rec in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
-                                      initargs=(worker,), chunksize=4):
+            make = functools.partial(make_frame_task, worker)  # forked workers inherit it: never pickled
+            for rec in imap_unordered(make, pending, min(req.workers, len(pending)), initializer=keep_freed_memory,
+                                      chunksize=4):
                 account(rec)
     except InputError:
         if fresh:  # these settings cannot make the dataset: leave the folder as it was for the corrected command

@@ -38,10 +38,11 @@ import numpy as np
 
 from mpchair.core.atomic import atomic_open
 from mpchair.core.errors import InputError
-from mpchair.geometry import invert_rigid, labels_to_boxes, yaw_matrix
-from mpchair.kitti import frame_paths, read_calib, read_labels, read_poses, read_times, read_velodyne
+from mpchair.geometry import invert_rigid, yaw_matrix
+from mpchair.kitti import frame_paths, read_poses, read_velodyne
 from mpchair.recording import ros2_convert as msg
 from mpchair.recording.ros2_msgs import schema_text
+from mpchair.recording.sources import frame_boxes, read_sequence, read_stream_meta
 
 #: How to get the optional dependency.
 INSTALL_HINT = "install the ros extra: pip install -e '.[ros]' (mcap==1.6.0, mcap-ros2-support==0.6.0)"
@@ -150,16 +151,6 @@ def _tf(bag: Bag, T: np.ndarray, height: float, time_us: int) -> None:
         msg.transform(invert_rigid(B) @ T, time_us, BASE_LINK, SENSOR)]}, time_us)
 
 
-def _frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[str]]:
-    """Sensor-frame boxes and names of a label file's objects (DontCare rows carry no 3D box and are left out)."""
-    if not label_file.is_file():
-        return np.zeros((0, 7)), []
-    objs = read_labels(label_file).objects()
-    if len(objs) == 0:
-        return np.zeros((0, 7)), []
-    return labels_to_boxes(objs, read_calib(calib_file)), [str(n) for n in objs.names]
-
-
 def _log_frame(bag: Bag, velodyne: Path, label: Path, calib: Path, dontcare: Path | None, pose: np.ndarray | None,
                height: float, time_us: int) -> None:
     """One frame's ``/tf`` (with a pose), ``/points`` and ``/ground_truth`` (+ markers)."""
@@ -167,8 +158,8 @@ def _log_frame(bag: Bag, velodyne: Path, label: Path, calib: Path, dontcare: Pat
         _tf(bag, pose, height, time_us)
     bag.write(POINTS, "sensor_msgs/msg/PointCloud2", msg.point_cloud(read_velodyne(velodyne), time_us, SENSOR),
               time_us)
-    boxes, names = _frame_boxes(label, calib)
-    dc = _frame_boxes(dontcare, calib)[0] if dontcare is not None else np.zeros((0, 7))
+    boxes, names = frame_boxes(label, calib)
+    dc = frame_boxes(dontcare, calib)[0] if dontcare is not None else np.zeros((0, 7))
     colors = [LABEL_COLOR] * len(boxes) + [DONTCARE_COLOR] * len(dc)
     write_boxes(bag, GROUND_TRUTH, np.vstack([boxes, dc]), names + ["DontCare"] * len(dc),
                 [1.0] * len(colors), colors, names + [""] * len(dc), time_us)
@@ -212,10 +203,7 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
     """Write the stream folder ``root`` (``mpchair stream``) as the bag ``out``; ``extra`` may add messages for each
     frame. Returns ``{"sequences", "frames", "topics": {topic: messages}}``."""
     root = Path(root)
-    meta_path = root / "stream.json"
-    if not meta_path.is_file():
-        raise InputError("not a complete stream folder (no stream.json)", root)
-    meta = _json(meta_path)
+    meta, meta_path = read_stream_meta(root)
     try:
         names = sorted(meta["sequences"])
         period = _period_us(meta["rate_hz"], "rate_hz")
@@ -238,9 +226,7 @@ def _log_sequence(bag: Bag, d: Path, seq: str, offset_us: int, height: float, ex
                   ) -> tuple[int, int]:
     """Write sequence ``seq`` of folder ``d`` with its times shifted by ``offset_us``; returns its frame count and its
     last stamp (microseconds)."""
-    times, poses = read_times(d / "times.txt"), read_poses(d / "poses.txt")
-    if len(times) != len(poses):
-        raise InputError(f"{len(poses)} poses but {len(times)} capture times", d / "poses.txt")
+    times, poses = read_sequence(d)
     stamps = [int(t) + offset_us for t in times]
     bag.write(TRAJECTORY, "nav_msgs/msg/Path", msg.path(poses, stamps, WORLD), stamps[0])
     for i, t in enumerate(stamps):

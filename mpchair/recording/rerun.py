@@ -20,7 +20,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import errno
-import json
 import os
 import shutil
 import sys
@@ -31,8 +30,8 @@ import numpy as np
 
 from mpchair.core.atomic import atomic_path
 from mpchair.core.errors import InputError
-from mpchair.geometry import labels_to_boxes
-from mpchair.kitti import frame_paths, read_calib, read_labels, read_poses, read_times, read_velodyne
+from mpchair.kitti import frame_paths, read_poses, read_velodyne
+from mpchair.recording.sources import frame_boxes, read_sequence, read_stream_meta
 
 #: How to get the optional dependency.
 INSTALL_HINT = "install the rerun extra: pip install -e '.[rerun]' (rerun-sdk==0.41.0)"
@@ -173,16 +172,6 @@ def recording(out: str | Path) -> Iterator[Recorder]:
         rec.close()
 
 
-def _frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[str]]:
-    """Sensor-frame boxes and names of a label file's objects (DontCare rows carry no 3D box and are left out)."""
-    if not label_file.is_file():
-        return np.zeros((0, 7)), []
-    objs = read_labels(label_file).objects()
-    if len(objs) == 0:
-        return np.zeros((0, 7)), []
-    return labels_to_boxes(objs, read_calib(calib_file)), [str(n) for n in objs.names]
-
-
 FrameHook = Callable[[Recorder, str, str, int], None]
 
 
@@ -190,13 +179,7 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
     """Write the stream folder ``root`` (``mpchair stream``) as a recording ``out``; ``extra(recorder, entity,
     sequence, i)`` may log more under ``entity`` (the sensor) for each frame. Returns ``{"sequences", "frames"}``."""
     root = Path(root)
-    meta_path = root / "stream.json"
-    if not meta_path.is_file():
-        raise InputError("not a complete stream folder (no stream.json)", root)
-    try:
-        names = sorted(json.loads(meta_path.read_text(encoding="utf-8"))["sequences"])
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise InputError(f"malformed stream file ({type(e).__name__})", meta_path) from None
+    names = sorted(read_stream_meta(root)[0]["sequences"])
     frames = 0
     with recording(out) as rec:
         for seq in names:
@@ -206,9 +189,7 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
 
 def _log_sequence(rec: Recorder, d: Path, seq: str, extra: FrameHook | None) -> int:
     """Log sequence ``seq`` of folder ``d``; returns its frame count."""
-    times, poses = read_times(d / "times.txt"), read_poses(d / "poses.txt")
-    if len(times) != len(poses):
-        raise InputError(f"{len(poses)} poses but {len(times)} capture times", d / "poses.txt")
+    times, poses = read_sequence(d)
     rec.path(f"world/{seq}/trajectory", poses[:, :3, 3])
     sensor = f"world/{seq}/sensor"
     for i in range(len(times)):
@@ -216,9 +197,9 @@ def _log_sequence(rec: Recorder, d: Path, seq: str, extra: FrameHook | None) -> 
         rec.time(i, int(times[i]))
         rec.pose(sensor, poses[i])
         rec.points(f"{sensor}/points", read_velodyne(d / "velodyne" / f"{fid}.bin"))
-        boxes, labels = _frame_boxes(d / "label_2" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
+        boxes, labels = frame_boxes(d / "label_2" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
         rec.boxes(f"{sensor}/labels", boxes, GREEN, labels)
-        dc, _ = _frame_boxes(d / "label_dontcare" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
+        dc, _ = frame_boxes(d / "label_dontcare" / f"{fid}.txt", d / "calib" / f"{fid}.txt")
         rec.boxes(f"{sensor}/dontcare", dc, GREY)
         if extra is not None:
             extra(rec, sensor, seq, i)
@@ -244,6 +225,6 @@ def log_dataset(root: str | Path, out: str | Path, limit: int | None = None) -> 
             if pose_file.is_file():
                 rec.pose(sensor, read_poses(pose_file)[0])
             rec.points(f"{sensor}/points", read_velodyne(paths.velodyne))
-            boxes, labels = _frame_boxes(paths.label_2, paths.calib)
+            boxes, labels = frame_boxes(paths.label_2, paths.calib)
             rec.boxes(f"{sensor}/labels", boxes, GREEN, labels)
     return {"frames": len(ids)}

@@ -17,6 +17,7 @@ written.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -262,24 +263,6 @@ def make_stream_task(worker: StreamWorker, task: StreamTask) -> StreamFrameRecor
                               int(ep.times_us[task.index]), dec.dense_rays + len(worker.directions))
 
 
-#: The pool worker's state: set once per worker process by :func:`_init_worker` (fork start method: inherited from
-#: the parent, never pickled), never in the parent, which passes its own explicitly.
-_WORKER: StreamWorker | None = None
-
-
-def _init_worker(worker: StreamWorker) -> None:
-    """Pool initializer: a worker process only makes frames, so it keeps freed memory (``mpchair.core.heap``)."""
-    global _WORKER
-    keep_freed_memory()
-    _WORKER = worker
-
-
-def _work(task: StreamTask) -> StreamFrameRecord:
-    """A pool worker's task: :func:`make_stream_task` with this process's :data:`_WORKER`."""
-    assert _WORKER is not None, "runs only in a pool worker (after _init_worker)"
-    return make_stream_task(_WORKER, task)
-
-
 def _remove_stale_temps(out: Path, seqs: list[str]) -> None:
     """Delete temp files (``.<name>.*.tmp``) a killed run left behind."""
     dirs = [out] + [sequence_dir(out, s) / d for s in seqs for d in FRAME_DIRS] + [sequence_dir(out, s) for s in seqs]
@@ -368,8 +351,9 @@ def _make_frames(plan: _Plan, pending: list[StreamTask], total: int) -> None:
         else:
             # forked workers inherit the houses and scenes instead of rebuilding them; a worker that dies (the OOM
             # killer) or raises stops the others at once (mpchair.dataset.workers), as in `mpchair generate`
-            for _ in imap_unordered(_work, pending, min(req.workers, len(pending)), initializer=_init_worker,
-                                    initargs=(worker,), chunksize=4):
+            make = functools.partial(make_stream_task, worker)  # forked workers inherit it: never pickled
+            for _ in imap_unordered(make, pending, min(req.workers, len(pending)), initializer=keep_freed_memory,
+                                    chunksize=4):
                 bar.update(1)
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "

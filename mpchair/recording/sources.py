@@ -1,0 +1,47 @@
+"""What both recorders (Rerun, ROS 2 / MCAP) read from a stream or dataset folder: the stream's metadata, one
+sequence's times and poses, one frame's boxes. Sensor frame (x forward, y left, z up), metres."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mpchair.core.errors import InputError
+from mpchair.geometry import labels_to_boxes
+from mpchair.kitti import read_calib, read_labels, read_poses, read_times
+
+
+def read_stream_meta(root: Path) -> tuple[dict, Path]:
+    """``(stream.json as a dict, its path)`` of a stream folder; a missing, unreadable or malformed file (no
+    ``sequences`` mapping) is an :class:`InputError` naming it."""
+    path = root / "stream.json"
+    if not path.is_file():
+        raise InputError("not a complete stream folder (no stream.json)", root)
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"malformed stream file ({type(e).__name__})", path) from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("sequences"), dict):
+        raise InputError("malformed stream file (no 'sequences' object)", path)
+    return meta, path
+
+
+def read_sequence(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(times (N,) int64 µs, poses (N,4,4) sensor → world)`` of one sequence folder, of equal length."""
+    times, poses = read_times(folder / "times.txt"), read_poses(folder / "poses.txt")
+    if len(times) != len(poses):
+        raise InputError(f"{len(poses)} poses but {len(times)} capture times", folder / "poses.txt")
+    return times, poses
+
+
+def frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[str]]:
+    """Sensor-frame ``(N,7)`` boxes and names of a label file's objects (DontCare rows carry no 3D box and are left
+    out); no file, no boxes."""
+    if not label_file.is_file():
+        return np.zeros((0, 7)), []
+    objs = read_labels(label_file).objects()
+    if len(objs) == 0:
+        return np.zeros((0, 7)), []
+    return labels_to_boxes(objs, read_calib(calib_file)), [str(n) for n in objs.names]
