@@ -266,16 +266,19 @@ def test_eval_of_device_outputs(device, tmp_path, exact_fp32):
     frame = frames[0]
     pts = torch.from_numpy(frame.points[:, :3].copy())
     with torch.no_grad():
-        on_dev = model.to(device)([pts.to(device)])
-        maps_dev = [m.cpu() for m in on_dev]
-        dets_dev = model.postprocess(*on_dev)[0]
-        maps_cpu = list(model.to(CPU)([pts]))
+        maps_dev = [m.cpu() for m in model.to(device)([pts.to(device)])]
+        model.to(CPU)
+        maps_cpu = list(model([pts]))
         dets_cpu = model.postprocess(*maps_cpu)[0]
+        # post-processing on the device, of the CPU's maps: the same candidates (logits within 1e-7 could swap two
+        # near-equal anchors at the top-k cut), so the same detections up to float32 arithmetic
+        model.to(device)
+        dets_dev = model.postprocess(*(m.to(device) for m in maps_cpu))[0]
     for a, b in zip(maps_dev, maps_cpu):
         torch.testing.assert_close(a, b, **F32)
     assert dets_dev.boxes.device.type == device.type and len(dets_cpu.boxes) > 0
-    assert len(dets_dev.boxes) == len(dets_cpu.boxes)
-    torch.testing.assert_close(dets_dev.boxes.cpu(), dets_cpu.boxes, **F32)
+    for a, b in zip(dets_dev, dets_cpu):
+        torch.testing.assert_close(a.cpu(), b, **F32)
 
     # the ground truth itself as device detections: AP from device tensors == AP from host tensors, and high
     classes = cfg.data.classes
