@@ -24,6 +24,7 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -130,7 +131,9 @@ def cmd_step(args: argparse.Namespace) -> int:
         return 0
     print(f"[{args.name}] {record['command']}", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    proc = subprocess.Popen(args.cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    # its own process group, so that a timeout also ends what it started (torchrun's workers, DataLoader workers)
+    proc = subprocess.Popen(args.cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            start_new_session=True)
     tail: collections.deque = collections.deque(maxlen=40)
     out_lines: list[str] = []
     pumps = [threading.Thread(target=_pump, args=(proc.stdout, sys.stdout, None, out_lines)),
@@ -141,7 +144,7 @@ def cmd_step(args: argparse.Namespace) -> int:
         rc = proc.wait(timeout=min(args.timeout, left))
         timed_out = False
     except subprocess.TimeoutExpired:
-        proc.kill()
+        os.killpg(proc.pid, signal.SIGKILL)
         rc, timed_out = proc.wait(), True
     for t in pumps:
         t.join()

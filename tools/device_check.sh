@@ -17,14 +17,14 @@
 #   --out DIR     results folder (default out/device_check): summary.{json,md}, results/ (one file per step),
 #                 work/ (dataset, configs, training runs: scratch)
 #   --dry-run     the same steps on the CPU with tiny sizes (a few frames and steps, small grids, slim layers):
-#                 tests the script itself in about a minute (tests/test_device_check.py runs it)
+#                 tests the script itself in one to two minutes on 2 cores (tests/test_device_check.py runs it)
 #   --python PY   use this interpreter (it must import torch and the project's dependencies; the tree is put on
 #                 PYTHONPATH) instead of bootstrapping .venv with tools/bootstrap.sh (which needs the package
 #                 registries; with nvidia-smi present it installs the CUDA build of torch)
 #   --data DIR    an existing Matterport-Chair dataset (KITTI layout) instead of making one
 #   --steps LIST  comma-separated subset of tests,data,bench,train,eval,ddp,report (default: all)
 #   --budget S    seconds for the whole check (default 480); a step that would start later is skipped, a running
-#                 one is stopped at it (report always runs)
+#                 one is stopped at it; the report is written all the same
 # Exit status: 0 when every step that ran passed, 1 otherwise (summary.json's "failed" lists them).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -42,7 +42,7 @@ while [ $# -gt 0 ]; do
     --data) DATA=$2; shift 2 ;;
     --steps) STEPS=$2; shift 2 ;;
     --budget) BUDGET=$2; shift 2 ;;
-    -h|--help) sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) echo "error: unknown argument $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -89,9 +89,9 @@ WORKERS=$(nproc 2>/dev/null || echo 2)
 
 want() { [[ ",$STEPS," == *",$1,"* ]]; }
 FAILED=0
-# step_args NAME [--stdout FILE] [--timeout S] -- CMD...: run and record one step (RES/steps/NAME.json); a failure
+# run_step NAME [--stdout FILE] [--timeout S] -- CMD...: run and record one step (RES/steps/NAME.json); a failure
 # is noted and the check goes on, so one run of a lent GPU gathers every result it can
-step_args() { local name=$1; shift; "${DC[@]}" step "$name" --results "$RES" "$@" || FAILED=1; }
+run_step() { local name=$1; shift; "${DC[@]}" step "$name" --results "$RES" "$@" || FAILED=1; }
 
 MACHINE=(--device "$DEVICE")
 [ "$DRY" = 0 ] || MACHINE+=(--dry-run)
@@ -106,7 +106,7 @@ fi
 CFG=$WORK/configs
 
 if want tests; then
-  step_args tests --timeout 300 -- "$PY" -m pytest -q -rs -p no:cacheprovider tests/test_device_paths.py \
+  run_step tests --timeout 300 -- "$PY" -m pytest -q -rs -p no:cacheprovider tests/test_device_paths.py \
     --junitxml "$WORK/tests.xml" "${TESTS[@]}"
   [ -f "$WORK/tests.xml" ] && { "${DC[@]}" tests --junit "$WORK/tests.xml" --out "$RES/tests.json" || true; }
 fi
@@ -114,20 +114,20 @@ fi
 if [ -z "$DATA" ]; then
   DATA=$WORK/dataset
   if want data; then
-    step_args synth --timeout 120 -- "$PY" -m mpchair.cli synth --out "$WORK/houses" --houses "$HOUSES" --seed 0
+    run_step synth --timeout 120 -- "$PY" -m mpchair.cli synth --out "$WORK/houses" --houses "$HOUSES" --seed 0
     HOUSE_ARGS=()
     for h in "$WORK"/houses/v1/scans/*/; do HOUSE_ARGS+=(--house "$(basename "$h")"); done
-    step_args generate --timeout 180 -- "$PY" -m mpchair.cli generate --root "$WORK/houses" "${HOUSE_ARGS[@]}" \
+    run_step generate --timeout 180 -- "$PY" -m mpchair.cli generate --root "$WORK/houses" "${HOUSE_ARGS[@]}" \
       --frames "$FRAMES_PER_HOUSE" --out "$DATA" --seed 0 --workers "$WORKERS" --quiet
   fi
 fi
 
 if want bench; then
-  step_args bench_mpchair --timeout 240 --stdout "$RES/bench_mpchair.md" -- "$PY" -m detector bench \
+  run_step bench_mpchair --timeout 240 --stdout "$RES/bench_mpchair.md" -- "$PY" -m detector bench \
     --config "$CFG/mpchair_dense.yaml" --config "$CFG/mpchair_sparse.yaml" --config "$CFG/mpchair_sparse_exact.yaml" \
     --data "$DATA" --split test "${BENCH[@]}" --device "$DEVICE" --json "$RES/bench_mpchair.json" --markdown \
     --no-progress
-  step_args bench_kitti --timeout 180 --stdout "$RES/bench_kitti.md" -- "$PY" -m detector bench \
+  run_step bench_kitti --timeout 180 --stdout "$RES/bench_kitti.md" -- "$PY" -m detector bench \
     --config "$CFG/kitti_car_dense.yaml" --config "$CFG/kitti_car_sparse.yaml" \
     --config "$CFG/kitti_car_sparse_exact.yaml" --data "$ROOT/tests/data/kitti" --split val "${KITTI_BENCH[@]}" \
     --device "$DEVICE" --json "$RES/bench_kitti.json" --markdown --no-progress
@@ -136,7 +136,7 @@ fi
 if want train; then
   for model in dense sparse sparse_exact; do
     for precision in fp32 autocast; do
-      step_args "train_${model}_${precision}" --timeout 150 -- "${DC[@]}" train --name "$model" \
+      run_step "train_${model}_${precision}" --timeout 150 -- "${DC[@]}" train --name "$model" \
         --config "$CFG/mpchair_$model.yaml" --data "$DATA" --run "$WORK/runs/${model}_$precision" --device "$DEVICE" \
         --precision "$precision" --steps "$TRAIN_STEPS" --out "$RES/train/${model}_$precision.json"
     done
@@ -144,13 +144,13 @@ if want train; then
 fi
 
 if want eval; then
-  step_args eval --timeout 120 --stdout "$RES/eval.json" -- "$PY" -m detector eval --config "$CFG/mpchair_dense.yaml" \
+  run_step eval --timeout 120 --stdout "$RES/eval.json" -- "$PY" -m detector eval --config "$CFG/mpchair_dense.yaml" \
     --data "$DATA" --checkpoint "$WORK/runs/dense_fp32/last.pt" --split val --out "$WORK/eval_dense" \
     --device "$DEVICE" --json
 fi
 
 if want ddp; then
-  step_args ddp --timeout 180 -- "${DC[@]}" ddp --config "$CFG/mpchair_dense.yaml" --data "$DATA" \
+  run_step ddp --timeout 180 -- "${DC[@]}" ddp --config "$CFG/mpchair_dense.yaml" --data "$DATA" \
     --run "$WORK/runs/ddp" --device "$DEVICE" --steps "$DDP_STEPS" --out "$RES/ddp.json"
 fi
 
