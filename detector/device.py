@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import platform
+import time
 from pathlib import Path
 
 import torch
@@ -66,3 +67,110 @@ def machine_info(device: torch.device) -> dict:
         "malloc_env": {k: os.environ.get(k) for k in MALLOC_ENV},
         "allocator": allocator_setting(),
     }
+
+
+# --- what the CUDA path needs beyond the CPU path (issue 32) ------------------------------------------------------
+# On the CPU every helper here is a cheap no-op or a fixed answer, so callers need no ``if device.type == "cuda"``
+# of their own.
+
+#: cuBLAS reproducibility setting torch asks for before it lets a deterministic run use cuBLAS (CUDA >= 10.2).
+CUBLAS_WORKSPACE = ":4096:8"
+
+
+def synchronize(device: torch.device | str) -> None:
+    """Wait until every kernel queued on ``device`` has finished (CUDA); a no-op on the CPU, whose ops return done.
+
+    CUDA kernels run asynchronously: a ``time.perf_counter`` stamp without this measures the launches, not the work.
+    """
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def synced_clock(device: torch.device | str) -> float:
+    """A timer stamp (seconds, ``time.perf_counter``) taken after :func:`synchronize`: the difference of two stamps
+    covers the device work queued between them."""
+    synchronize(device)
+    return time.perf_counter()
+
+
+def autocast_dtype(device: torch.device | str) -> torch.dtype:
+    """The reduced precision ``torch.autocast`` should use on ``device``: bfloat16 on the CPU and on GPUs that compute
+    it natively (NVIDIA Ampere and newer), float16 on older GPUs (e.g. the paper's Turing 2080 Ti).
+
+    float16 training also needs a ``torch.amp.GradScaler`` (its range underflows small gradients); bfloat16 does not
+    (see :func:`needs_grad_scaler`).
+    """
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_bf16_supported(including_emulation=False):
+        return torch.float16
+    return torch.bfloat16
+
+
+def needs_grad_scaler(dtype: torch.dtype) -> bool:
+    """Whether mixed-precision training in ``dtype`` needs loss scaling: float16 only (5 exponent bits)."""
+    return dtype == torch.float16
+
+
+def pin_memory(device: torch.device | str) -> bool:
+    """Whether host batches bound for ``device`` should sit in page-locked memory (``DataLoader(pin_memory=...)``):
+    True for CUDA, where a pinned tensor's ``.to(device, non_blocking=True)`` overlaps the copy with queued kernels;
+    False for the CPU (pinning would be a copy for nothing)."""
+    return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+def reset_peak_memory(device: torch.device | str) -> None:
+    """Start a new peak for :func:`peak_memory_bytes`: CUDA's allocator peak on a GPU; on the CPU the process's peak
+    resident set (Linux ``VmHWM``, reset through ``/proc/self/clear_refs``; where that is refused the peak keeps
+    counting from the process start)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+        return
+    try:
+        with open("/proc/self/clear_refs", "w") as f:  # a kernel control file, not data: no atomic write
+            f.write("5")
+    except OSError:
+        pass
+
+
+def peak_memory_bytes(device: torch.device | str) -> int | None:
+    """Peak memory since :func:`reset_peak_memory` (bytes): on a GPU the most its tensors held at once
+    (``torch.cuda.max_memory_allocated``); on the CPU the process's peak resident set (``VmHWM``, tensors and
+    everything else). None where the platform does not say (no ``/proc``)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return int(torch.cuda.max_memory_allocated(dev))
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # the kernel reports kB
+    except OSError:
+        pass
+    return None
+
+
+class deterministic:  # lower case: used like a function, ``with deterministic(): ...``
+    """Context manager: torch's deterministic algorithms on, for bit-identical reruns on CUDA too.
+
+    On the CPU the project's kernels are deterministic anyway. On CUDA the float ``index_add_`` of the sparse
+    convolutions and the backward of every gather (``features[rows]``) accumulate with atomics, whose order differs
+    from run to run; under this context torch uses its sorted, deterministic versions (slower), cuDNN picks
+    deterministic algorithms, and an op without a deterministic version raises ``RuntimeError`` instead of running.
+    cuBLAS needs ``CUBLAS_WORKSPACE_CONFIG`` set before its first use in the process: set here to
+    :data:`CUBLAS_WORKSPACE` unless it is set already. The previous mode is restored on exit.
+    """
+
+    def __enter__(self) -> deterministic:
+        import os
+
+        self._previous = (torch.are_deterministic_algorithms_enabled(),
+                          torch.is_deterministic_algorithms_warn_only_enabled())
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", CUBLAS_WORKSPACE)
+        torch.use_deterministic_algorithms(True)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        enabled, warn_only = self._previous
+        torch.use_deterministic_algorithms(enabled, warn_only=warn_only)

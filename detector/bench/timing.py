@@ -24,6 +24,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from detector.device import synchronize
 from detector.models import PointPillars
 
 #: Component keys in table order (``total`` last).
@@ -41,12 +42,6 @@ TITLES: dict[str, str] = {
     "bbox_extract": "BBox Extract",
     "total": "Total",
 }
-
-
-def sync_device(device: torch.device) -> None:
-    """Wait for ``device``'s queued kernels (CUDA), so that a stamp taken next includes them; a no-op on the CPU."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def page_faults() -> int:
@@ -68,26 +63,26 @@ def time_frame(model: PointPillars, points: np.ndarray, device: torch.device) ->
     """Run one frame (``points`` (N, C) float32, sensor frame) through the stages with a stamp after each:
     ``({component: ms}, detections)``."""
     stamps = []
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     pts = torch.from_numpy(points).to(device)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     voxels = model.voxelize([pts])
     features, coords = model.pillar_net(voxels)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     x = model.feature_net(features, coords, voxels.batch_size)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     x, active = model.backbone_neck(x)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     out = model.head(x, active)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     dets = model.postprocess(out.cls, out.reg, out.dir)
-    sync_device(device)
+    synchronize(device)
     stamps.append(time.perf_counter())
     return stamps_to_ms(stamps), int(sum(int(d.boxes.shape[0]) for d in dets))
 
@@ -107,16 +102,16 @@ def time_shared(models: Sequence[PointPillars], points: Sequence[np.ndarray], de
     ms = np.zeros((k, len(SHARED)))
     outs: dict[int, object] = {}
     for j in order:
-        sync_device(device)
+        synchronize(device)
         t0 = time.perf_counter()
         outs[j] = models[j].head(*necks[j])
-        sync_device(device)
+        synchronize(device)
         ms[j, 0] = (time.perf_counter() - t0) * 1e3
     for j in order:
         out = outs[j]
-        sync_device(device)
+        synchronize(device)
         t0 = time.perf_counter()
         models[j].postprocess(out.cls, out.reg, out.dir)
-        sync_device(device)
+        synchronize(device)
         ms[j, 1] = (time.perf_counter() - t0) * 1e3
     return ms

@@ -23,13 +23,13 @@ class Batch:
     def __len__(self) -> int:
         return len(self.frame_ids)
 
-    def to(self, device: torch.device | str) -> Batch:
-        """The same batch on ``device``."""
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> Batch:
+        """The same batch on ``device`` (``non_blocking``: overlap the copy from pinned memory with queued kernels)."""
         return Batch(
             self.frame_ids,
-            tuple(p.to(device) for p in self.points),
-            tuple(b.to(device) for b in self.boxes),
-            tuple(l.to(device) for l in self.labels),
+            tuple(p.to(device, non_blocking=non_blocking) for p in self.points),
+            tuple(b.to(device, non_blocking=non_blocking) for b in self.boxes),
+            tuple(l.to(device, non_blocking=non_blocking) for l in self.labels),
         )
 
 

@@ -101,6 +101,8 @@ class SparseExactHead(AnchorHead):
         # Gather the active sites' feature vectors: (N_active, C), rows in (b, y, x) order.
         bi, yi, xi = torch.nonzero(active, as_tuple=True)
         feats = x[bi, :, yi, xi]
-        out = bias[None, :, None, None].expand(b, -1, h, w).clone()  # (B, O, H, W), planar like the dense head's
-        out[bi, :, yi, xi] = F.linear(feats, weight, bias)
+        vals = F.linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's convs
+        # (B, O, H, W), planar like the dense head's, in the dtype the convs would give (bias rounded as theirs is)
+        out = bias.to(vals.dtype)[None, :, None, None].expand(b, -1, h, w).clone()
+        out[bi, :, yi, xi] = vals
         return self.split(out.permute(0, 2, 3, 1))

@@ -57,11 +57,12 @@ class SlotDataset(torch.utils.data.Dataset):
         return self.base.sample(epoch, slot, frame)
 
 
-def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int) -> Iterator[Batch]:
-    """The collated batches of ``keys`` (one list of keys per step), loaded by ``workers`` processes (0: this one)."""
+def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int, pin: bool = False) -> Iterator[Batch]:
+    """The collated batches of ``keys`` (one list of keys per step), loaded by ``workers`` processes (0: this one);
+    ``pin``: in page-locked memory, for a fast non-blocking copy to a GPU (:func:`detector.device.pin_memory`)."""
     if not keys:
         return iter(())
     loader = torch.utils.data.DataLoader(
-        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers
+        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers, pin_memory=pin
     )
     return iter(loader)

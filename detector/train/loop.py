@@ -23,6 +23,7 @@ from detector.checkpoint import Checkpoint, save_checkpoint
 from detector.config import ExperimentConfig, Precision, load_experiment
 from detector.data import GTDatabase, KittiDataset, TrainingSet
 from detector.data.experiment import augment_options, open_split
+from detector.device import pin_memory
 from detector.infer import evaluate_model
 from detector.models import Losses, build_model
 from detector.train.data_order import epoch_frames, rank_batches, rank_loader
@@ -332,7 +333,7 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
                unit="step", disable=not run.show_bars, dynamic_ncols=True, leave=False)
     sums, steps, last_loss, stopped = ZERO_LOSSES, 0, None, False
     t_epoch = time.perf_counter()
-    for batch in rank_loader(keys, base, tc.num_workers):
+    for batch in rank_loader(keys, base, tc.num_workers, pin=pin_memory(settings.device)):
         if run.reached_max_steps(at.step):
             stopped = True
             break

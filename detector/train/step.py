@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from detector.data import Batch
+from detector.device import pin_memory, synchronize
 from detector.models import HeadOutput, Losses, PointPillars, compute_loss
 from detector.train.distributed import all_reduce_sum
 
@@ -91,7 +92,7 @@ def train_step(batch: Batch, parts: ModelAndOptimiser, settings: StepSettings, *
     """Train on this rank's ``batch`` of global step ``step + 1`` in epoch ``epoch + 1`` (both counted from 0 here,
     from 1 in messages). A non-finite loss or gradient norm raises :class:`TrainingError` before the weights change
     (every rank sees the same all-reduced values and stops at the same step)."""
-    batch = batch.to(settings.device)
+    batch = batch.to(settings.device, non_blocking=pin_memory(settings.device))
     loss, logged, num_pos = _forward_losses(batch, parts, settings)
     if not math.isfinite(logged.total):
         raise TrainingError(
@@ -111,4 +112,5 @@ def train_step(batch: Batch, parts: ModelAndOptimiser, settings: StepSettings, *
     optimizer.step()
     if parts.scheduler is not None and step + 1 < settings.total_steps:
         parts.scheduler.step()  # not past the last step, so a finished run keeps the final lr
+    synchronize(settings.device)  # CUDA queues the optimiser's kernels: the step's time must include them
     return StepStats(losses=logged, grad_norm=grad_norm, num_pos=num_pos, lr=lr, beta1=beta1)
