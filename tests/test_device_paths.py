@@ -201,14 +201,14 @@ def _train_step(cfg_path, device: torch.device, autocast: torch.dtype | None = N
         preds = model(points)
     losses = model.loss(type(preds)(*(p.float() for p in preds)), boxes, labels)
     opt.zero_grad()
-    (scaler.scale(losses["total"]) if scaler else losses["total"]).backward()
+    (scaler.scale(losses.total) if scaler else losses.total).backward()
     if scaler:
         scaler.unscale_(opt)
     grads = [p.grad for p in model.parameters() if p.grad is not None]
     norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
     scaler.step(opt) if scaler else opt.step()
     synchronize(device)
-    return {"loss": losses["total"].item(), "num_pos": int(model.targets(boxes, labels).pos.sum()), "grad_norm": norm,
+    return {"loss": losses.total.item(), "num_pos": int(model.targets(boxes, labels).pos.sum()), "grad_norm": norm,
             "finite": all(bool(torch.isfinite(g).all()) for g in grads), "grads": len(grads),
             "moved": max(float((p.detach() - b).abs().max()) for p, b in zip(model.parameters(), before)),
             "params": sum(1 for p in model.parameters() if p.requires_grad)}
