@@ -33,10 +33,6 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 
 def _keep(x):
     """A copy of an engine-call argument; a shared origin (a stride-0 view, see ``raycast._ray_origins``) is kept as

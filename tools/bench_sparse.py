@@ -48,8 +48,6 @@ import numpy as np
 import torch
 from torch import nn
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from detector.bench import COMPONENTS, time_frame  # noqa: E402
 from detector.models import build_model, load_experiment  # noqa: E402
 from detector.models.backbone import SecondBackbone  # noqa: E402
