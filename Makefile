@@ -24,6 +24,6 @@ reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)
 
 # Streaming AP (sAP) of make reproduce's trained models on a robot driving through its houses (docs/streaming.md);
-# `make reproduce-stream SCALE=small` is a few-minute check.
+# `make reproduce-stream SCALE=small` is a few-minute check. Both scripts are front-ends of detector/reproduce/.
 reproduce-stream: venv
 	$(BIN)/python tools/reproduce_stream.py --scale $(SCALE)

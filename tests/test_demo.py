@@ -15,8 +15,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _demo(*args) -> subprocess.CompletedProcess:
-    # As `make demo` runs it: the script by path (it puts the checkout on sys.path itself), from another folder.
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # As `make demo` runs it: the script by path with the venv's python, from another folder. The script does not put
+    # the checkout on sys.path (the venv has the package installed in editable mode); PYTHONPATH names this checkout
+    # so that its code is the one run even where the venv's editable install points at another checkout.
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run([sys.executable, str(ROOT / "tools" / "demo.py"), *map(str, args)], capture_output=True,
                           text=True, env=env, cwd="/", timeout=600)
 

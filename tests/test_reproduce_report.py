@@ -1,9 +1,10 @@
-"""tools/reproduce.py: the recipe's commands, its time accounting (a training resumed after an interruption counts all
-of its epochs), its AP report (Overall and the reference's Open3D-ML metric first, then Easy / Moderate / Hard), and
-the report written from the outputs of real (tiny) runs of those commands."""
+"""detector.reproduce (``tools/reproduce.py``): the recipe's commands, its time accounting (a training resumed after
+an interruption counts all of its epochs), its AP report (Overall and the reference's Open3D-ML metric first, then
+Easy / Moderate / Hard), and the report written from the outputs of real (tiny) runs of those commands."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shlex
@@ -12,15 +13,16 @@ from pathlib import Path
 
 import pytest
 from helpers_detector import make_tiny_dataset, write_test_config
-from helpers_tools import load_tool
 
+from detector.reproduce import steps
+from detector.reproduce.cli import main
+from detector.reproduce.report import targets_section, write_report
+from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16, model_epochs
+from detector.reproduce.status import status_lines
+from detector.reproduce.training import elapsed_seconds
 from mpchair.kitti import read_imageset
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _reproduce():
-    return load_tool("reproduce")
 
 
 def _metrics(run: Path, epoch_seconds: list[float]) -> None:
@@ -43,7 +45,7 @@ def test_elapsed_counts_resumed_training_by_its_epochs(tmp_path: Path) -> None:
     (out / "commands.log").write_text("\n".join(log) + "\n")
     _metrics(out / "runs" / "dense", [190.0] * 5)  # 950 s: less than its logged command (start-up, periodic eval)
     _metrics(out / "runs" / "sparse", [120.0] * 5)  # 600 s: the cut part is in the epochs, not in the log
-    total, train = _reproduce()._elapsed((out / "commands.log").read_text(), out / "runs")
+    total, train = elapsed_seconds((out / "commands.log").read_text(), out / "runs")
     assert train == {"dense": 1000.0, "sparse": 600.0}
     assert total == 60.0 + 1000.0 + 600.0 + 30.0
 
@@ -66,13 +68,12 @@ def test_status_shows_each_step_and_where_training_stands(tmp_path: Path, capsys
     its run folder's lock right now."""
     from mpchair.core.lock import folder_lock
 
-    reproduce = _reproduce()
     out = tmp_path / "w"
     (out / "dataset" / "ImageSets").mkdir(parents=True)
     (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
     (out / "dataset" / "manifest.json").write_text("{}")
     run = _started_run(out, "dense", steps=6)
-    assert reproduce.main(["--status", "--out", str(out)]) == 0
+    assert main(["--status", "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"{out}:" and "  synth     0 of 1 outputs" in lines and "  generate  done" in lines
     assert "  train     0 of 2 outputs" in lines
@@ -80,11 +81,11 @@ def test_status_shows_each_step_and_where_training_stands(tmp_path: Path, capsys
            "resumes it)" in lines
     assert "    sparse: not started" in lines
     with folder_lock(run / ".train.lock", "detector train"):
-        text = "\n".join(reproduce.status_lines(out))
+        text = "\n".join(status_lines(out))
     assert "dense: step 6 / 10 (epoch 2 of 2), 1.50 s/step lately -> ~6 s left; running now" in text
     (run / "done").write_text("trained\n")
-    assert "    dense: trained" in reproduce.status_lines(out)
-    assert reproduce.status_lines(tmp_path / "none") == [f"{tmp_path / 'none'}: no reproduction here yet"]
+    assert "    dense: trained" in status_lines(out)
+    assert status_lines(tmp_path / "none") == [f"{tmp_path / 'none'}: no reproduction here yet"]
 
 
 def test_a_run_resumes_in_the_precision_it_started_with(tmp_path: Path, capsys) -> None:
@@ -92,8 +93,7 @@ def test_a_run_resumes_in_the_precision_it_started_with(tmp_path: Path, capsys) 
     train would refuse the changed config); a run not yet started takes the scale's."""
     out = tmp_path / "w"
     _started_run(out, "dense", steps=3, precision="fp32")
-    assert _reproduce().main(["--dry-run", "--scale", "small", "--steps", "train", "--precision", "bf16", "--out",
-                              str(out)]) == 0
+    assert main(["--dry-run", "--scale", "small", "--steps", "train", "--precision", "bf16", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     train = [ln for ln in printed.splitlines() if " train " in ln and ln.startswith("$ ")]
     assert "--resume" in train[0] and train[0].endswith("--precision fp32") and "/runs/dense " in train[0]
@@ -104,33 +104,31 @@ def test_a_run_resumes_in_the_precision_it_started_with(tmp_path: Path, capsys) 
 def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
     """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, dense 16 epochs and sparse 20
     (the paper's 250 / 200 ratio), bf16 where the CPU computes it natively, else fp32."""
-    reproduce = _reproduce()
-    assert reproduce.main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
+    assert main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
     lines = capsys.readouterr().out.splitlines()
     synth = [ln for ln in lines if " synth " in ln]
     generate = [ln for ln in lines if " generate " in ln]
     train = [ln for ln in lines if " train " in ln]
     assert len(synth) == 1 and "--houses 8" in synth[0]
     assert len(generate) == 1 and "--frames 625" in generate[0]
-    auto = "bf16" if reproduce.cpu_has_native_bf16() else "fp32"
+    auto = "bf16" if cpu_has_native_bf16() else "fp32"
     assert len(train) == 2 and f"--epochs 16 --precision {auto}" in train[0] and "dense_cpu" in train[0]
     assert f"--epochs 20 --precision {auto}" in train[1] and "sparse_cpu" in train[1]
 
     # a flag overrides the scale's precision; the quick scale keeps the configs' precision
-    assert reproduce.main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
+    assert main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
     assert len(train) == 2 and train[0].endswith("--epochs 16 --precision fp32")
     assert train[1].endswith("--epochs 20 --precision fp32")
-    assert reproduce.main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
+    assert main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
     assert len(train) == 2 and train[0].endswith("--epochs 2") and train[1].endswith("--epochs 3")
 
 
 def test_quick_scale_report_stays_in_its_work_folder(tmp_path: Path, capsys) -> None:
     """Only ``--scale full`` replaces the committed docs/results.md; a small run writes <work folder>/results.md."""
-    reproduce = _reproduce()
     committed = (ROOT / "docs" / "results.md").read_bytes()
-    assert reproduce.main(["--scale", "small", "--steps", "report", "--out", str(tmp_path / "small")]) == 0
+    assert main(["--scale", "small", "--steps", "report", "--out", str(tmp_path / "small")]) == 0
     report = (tmp_path / "small" / "results.md").read_text()
     assert report.startswith("# Results") and "`tools/reproduce.py --scale small`" in report
     assert f"wrote {tmp_path.resolve() / 'small' / 'results.md'}" in capsys.readouterr().out
@@ -142,17 +140,15 @@ def test_train_step_shows_each_epoch_as_it_runs(tmp_path: Path, capfd, monkeypat
     """The train step runs ``detector train --no-progress`` as a child process, and its plan, estimate and per-epoch
     lines reach the terminal (it was silent for minutes). Here the sparse model's training only (the dense one is
     marked done), with the slim test model on a tiny dataset, renamed as the recipe's CPU config."""
-    reproduce = _reproduce()
     configs = tmp_path / "configs"
     configs.mkdir()
     write_test_config(configs / "mpchair_sparse_cpu.yaml", model=dict(backbone="sparse"), train=dict(batch_size=2))
-    monkeypatch.setattr(reproduce, "CONFIGS", configs)
+    monkeypatch.setattr(steps, "CONFIGS", configs)
     out = tmp_path / "reproduce-small"
     make_tiny_dataset(out / "dataset", n_frames=6, seed=1)  # 3 steps per epoch
     (out / "runs" / "dense").mkdir(parents=True)
     (out / "runs" / "dense" / "done").write_text("trained\n")
-    assert reproduce.main(["--scale", "small", "--steps", "train", "--epochs", "1", "--threads", "1", "--out",
-                           str(out)]) == 0
+    assert main(["--scale", "small", "--steps", "train", "--epochs", "1", "--threads", "1", "--out", str(out)]) == 0
     lines = capfd.readouterr().out.splitlines()
     # the sparse model trains ceil(1.25 x 1) = 2 epochs; its lines follow its command line, as they come
     (start,) = [i for i, ln in enumerate(lines) if ln.startswith("$ ") and " train " in ln]
@@ -168,14 +164,13 @@ def test_train_step_shows_each_epoch_as_it_runs(tmp_path: Path, capfd, monkeypat
 
 def test_auto_precision_reads_the_cpu_flags(tmp_path: Path) -> None:
     """bf16 only where the CPU has native bfloat16 (AVX512-BF16 or AMX-BF16); missing cpuinfo means fp32."""
-    reproduce = _reproduce()
     amd = tmp_path / "amd"
     amd.write_text("processor : 0\nflags : fpu sse4_2 avx avx2 fma\n")
     intel = tmp_path / "spr"
     intel.write_text("processor : 0\nflags : fpu avx2 avx512f avx512_bf16 amx_tile amx_bf16\n")
-    assert not reproduce.cpu_has_native_bf16(amd)
-    assert reproduce.cpu_has_native_bf16(intel)
-    assert not reproduce.cpu_has_native_bf16(tmp_path / "missing")
+    assert not cpu_has_native_bf16(amd)
+    assert cpu_has_native_bf16(intel)
+    assert not cpu_has_native_bf16(tmp_path / "missing")
 
 
 def _kitti_json(easy: float, overall: float, n: int = 100) -> dict:
@@ -194,7 +189,6 @@ def _kitti_json(easy: float, overall: float, n: int = 100) -> dict:
 def test_report_leads_with_overall_and_the_reference_metric(tmp_path: Path) -> None:
     """The detection section and the targets open with Overall (R40, R11) and Open3D-ML's mAP for both models, then
     Easy / Moderate / Hard; the paper's numbers sit beside Overall."""
-    reproduce = _reproduce()
     out = tmp_path / "reproduce-small"
     res = out / "results"
     for m, easy, overall, o3d in (("dense", 60.0, 70.0, (81.5, 79.25)), ("sparse", 58.0, 68.0, (77.0, 75.5))):
@@ -203,7 +197,7 @@ def test_report_leads_with_overall_and_the_reference_metric(tmp_path: Path) -> N
         (res / f"eval_{m}" / "open3d_ml.json").write_text(json.dumps(
             {"protocol": "open3d-ml", "Chair": {"bev": o3d[0], "3d": o3d[1]}, "num_gt": {"Chair": 100}}))
     report_path = tmp_path / "results.md"
-    reproduce.write_report(report_path, out, res, "small", reproduce.SCALES["small"])
+    write_report(report_path, out, res, "small", SCALES["small"])
     text = report_path.read_text()
     lines = text.splitlines()
 
@@ -239,7 +233,6 @@ def test_report_leads_with_overall_and_the_reference_metric(tmp_path: Path) -> N
 
 def test_report_reads_metrics_without_overall_or_open3d_ml(tmp_path: Path) -> None:
     """A metrics.json written before the Overall level (and no open3d_ml.json) still gives a report, with n/a."""
-    reproduce = _reproduce()
     out = tmp_path / "reproduce-small"
     res = out / "results"
     old = _kitti_json(60.0, 70.0)
@@ -248,7 +241,7 @@ def test_report_reads_metrics_without_overall_or_open3d_ml(tmp_path: Path) -> No
     del old["num_gt_overall"]
     (res / "eval_dense").mkdir(parents=True)
     (res / "eval_dense" / "metrics.json").write_text(json.dumps(old))
-    reproduce.write_report(tmp_path / "results.md", out, res, "small", reproduce.SCALES["small"])
+    write_report(tmp_path / "results.md", out, res, "small", SCALES["small"])
     text = (tmp_path / "results.md").read_text()
     assert "| dense | n/a | n/a | n/a | n/a | n/a | n/a |" in text and "| sparse | not run | | | | | |" in text
     assert "| dense | 63.00 / 64.00 / 65.00 |" in text and "Valid GT chairs: Easy 50, Moderate 56, Hard 60." in text
@@ -260,7 +253,6 @@ def test_a_full_scale_run_cut_short_says_so(tmp_path: Path) -> None:
     schedule keeps the plain wording."""
     import yaml
 
-    reproduce = _reproduce()
     out = tmp_path / "reproduce-full"
     (out / "dataset" / "ImageSets").mkdir(parents=True)
     (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
@@ -270,9 +262,9 @@ def test_a_full_scale_run_cut_short_says_so(tmp_path: Path) -> None:
             (out / "runs" / m).mkdir(parents=True, exist_ok=True)
             (out / "runs" / m / "config.yaml").write_text(yaml.safe_dump(
                 {"train": {"epochs": epochs, "samples_per_epoch": spe, "batch_size": 2}}))
-        sc = reproduce.dataclasses.replace(reproduce.SCALES["full"], epochs=1)
-        reproduce.write_report(tmp_path / "results.md", out, out / "results", "full", sc,
-                               notes=["The two trainings ran one after the other."])
+        sc = dataclasses.replace(SCALES["full"], epochs=1)
+        write_report(tmp_path / "results.md", out, out / "results", "full", sc,
+                     notes=["The two trainings ran one after the other."])
         return (tmp_path / "results.md").read_text()
 
     text = runs((1, 4), (1, 5))
@@ -294,9 +286,8 @@ def test_a_full_scale_run_cut_short_says_so(tmp_path: Path) -> None:
 
 
 def test_eval_step_also_runs_the_reference_metric_on_the_same_result_files(tmp_path: Path, capsys) -> None:
-    reproduce = _reproduce()
     out = tmp_path / "small"
-    assert reproduce.main(["--dry-run", "--scale", "small", "--steps", "eval", "--out", str(out)]) == 0
+    assert main(["--dry-run", "--scale", "small", "--steps", "eval", "--out", str(out)]) == 0
     evals = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ") and " eval " in ln]
     assert len(evals) == 4
     for m, (kitti, o3d) in zip(("dense", "sparse"), (evals[:2], evals[2:])):
@@ -312,17 +303,16 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
     from detector.cli import main as detector_main
     from mpchair.cli import main as mpchair_main
 
-    reproduce = _reproduce()
     out = tmp_path / "reproduce-small"
     data = make_tiny_dataset(out / "dataset", n_frames=4, seed=1)
     res, runs = out / "results", out / "runs"
-    epochs = reproduce.model_epochs(2)  # dense 2, sparse 3 (the recipe's 1.25 ratio)
+    epochs = model_epochs(2)  # dense 2, sparse 3 (the recipe's 1.25 ratio)
     # score threshold 0: the scores of so short a run stay under the default 0.1 (no AP, empty result files)
     cfg = {m: write_test_config(tmp_path / f"{m}.yaml", model=dict(backbone=m, score_thr=0.0),
                                 train=dict(batch_size=2, epochs=epochs[m], eval_every=1)) for m in ("dense", "sparse")}
 
     def run(prog: str, *args, stdout: Path | None = None) -> None:
-        """Run a console script in this process and log it as tools/reproduce.py's Runner does."""
+        """Run a console script in this process and log it as detector.reproduce's Runner does."""
         t = time.perf_counter()
         with pytest.raises(SystemExit) as e:
             (mpchair_main if prog == "mpchair" else detector_main)([str(a) for a in args])
@@ -354,9 +344,9 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
     run("detector", "viz-sparsity", "--config", cfg["sparse"], "--data", data, "--index", "0", "--split", "test",
         "--out", res / "viz", "--json", stdout=res / "viz.json")
 
-    sc = reproduce.Scale(houses=1, frames_per_house=4, epochs=2, bench_frames=1, bench_trials=1, ops_frames=2)
+    sc = Scale(houses=1, frames_per_house=4, epochs=2, bench_frames=1, bench_trials=1, ops_frames=2)
     report_path = tmp_path / "docs" / "results.md"
-    reproduce.write_report(report_path, out, res, "small", sc)
+    write_report(report_path, out, res, "small", sc)
     report = report_path.read_text()
     lines = report.splitlines()
 
@@ -428,12 +418,11 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
 def test_shared_components_show_the_ratio_of_per_frame_medians_beside_the_means(tmp_path: Path) -> None:
     """A few-ms shared component is judged by two numbers: the ratio of means (which one hiccup moves) and the ratio of
     the per-frame medians, from the bench JSON's ``median_frame_ms``."""
-    reproduce = _reproduce()
     dense, sparse = _bench_row("dense", 1000.0, 50.0), _bench_row("sparse", 250.0, 55.0)
     dense["median_frame_ms"] = {**{k: 1.0 for k in dense["components"]}, "head": 50.0, "bbox_extract": 8.0}
     sparse["median_frame_ms"] = {**{k: 1.0 for k in sparse["components"]}, "head": 47.5, "bbox_extract": 6.0}
     (tmp_path / "bench_reuse.json").write_text(json.dumps({"models": [dense, sparse]}))
-    rows = reproduce._summary(tmp_path)
+    rows = targets_section(tmp_path)
     assert "| sparse / dense, head time (same code), allocator reuse | 0.9 - 1.1 | 1.10x (median 0.95x) |" in rows
     bbox = "| sparse / dense, bbox_extract time (same code), allocator reuse | 0.9 - 1.1 |"
     assert bbox + " 1.00x (median 0.75x) |" in rows
@@ -442,12 +431,11 @@ def test_shared_components_show_the_ratio_of_per_frame_medians_beside_the_means(
 def test_head_and_bbox_extract_are_judged_back_to_back_when_the_bench_timed_them_so(tmp_path: Path) -> None:
     """In the per-frame pipeline Head and BBox Extract follow each model's own backbone, so with the bench's
     back-to-back timing in the JSON the 0.9 - 1.1 target moves to that row; Feature Extract keeps its target."""
-    reproduce = _reproduce()
     dense, sparse = _bench_row("dense", 1000.0, 50.0), _bench_row("sparse", 250.0, 55.0)
     dense["back_to_back"] = {"head": {"mean_ms": 50.0, "std_ms": 0.1}, "bbox_extract": {"mean_ms": 2.0, "std_ms": 0.0}}
     sparse["back_to_back"] = {"head": {"mean_ms": 51.0, "std_ms": 0.1}, "bbox_extract": {"mean_ms": 1.9, "std_ms": 0.0}}
     (tmp_path / "bench_default.json").write_text(json.dumps({"models": [dense, sparse]}))
-    rows = reproduce._summary(tmp_path)
+    rows = targets_section(tmp_path)
     assert "| sparse / dense, head time in the per-frame pipeline, allocator default | - | 1.10x |" in rows
     assert "| sparse / dense, head time back to back (same code), allocator default | 0.9 - 1.1 | 1.02x |" in rows
     bbox = "| sparse / dense, bbox_extract time back to back (same code), allocator default | 0.9 - 1.1 | 0.95x |"
@@ -466,8 +454,7 @@ def _bench_row(name: str, total: float, head: float, peer: str | None = None) ->
 def test_bench_step_runs_the_peer_and_the_report_shows_it(tmp_path: Path, capsys) -> None:
     """The bench step asks for the Open3D-ML peer row; the targets table shows peer / ours total-time ratios and the
     shared components' sparse / dense ratios."""
-    reproduce = _reproduce()
-    assert reproduce.main(["--dry-run", "--scale", "small", "--steps", "bench", "--out", str(tmp_path / "s")]) == 0
+    assert main(["--dry-run", "--scale", "small", "--steps", "bench", "--out", str(tmp_path / "s")]) == 0
     bench = [ln for ln in capsys.readouterr().out.splitlines() if " bench " in ln]
     assert len(bench) == 2 and all(ln.endswith("--peer open3d-ml > " + ln.split(" > ")[-1]) for ln in bench)
     assert bench[1].startswith("$ MALLOC_MMAP_MAX_=0")
@@ -476,10 +463,40 @@ def test_bench_step_runs_the_peer_and_the_report_shows_it(tmp_path: Path, capsys
     models = [_bench_row("dense", 1000.0, 50.0), _bench_row("sparse", 250.0, 55.0),
               _bench_row("sparse+sparse_head", 100.0, 2.0), _bench_row("open3d-ml", 1200.0, 150.0, "open3d-ml")]
     (res / "bench_default.json").write_text(json.dumps({"models": models}))
-    rows = "\n".join(reproduce._summary(res))
+    rows = "\n".join(targets_section(res))
     peer = "| open3d-ml (Open3D-ML's dense) / "
     assert peer + "dense, total time, allocator default | >= 1 (ours no slower) | 1.20x |" in rows
     assert "| open3d-ml (Open3D-ML's dense) / sparse, total time, allocator default | - | 4.80x |" in rows
     assert "open3d-ml (Open3D-ML's dense) / sparse+sparse_head, total time" in rows
     assert "| sparse / dense, head time (same code), allocator default | 0.9 - 1.1 | 1.10x |" in rows
     assert "dense / open3d-ml" not in rows and "sparse+sparse_head / dense, head" not in rows
+
+
+def test_readers_tolerate_missing_files_and_keys(tmp_path: Path) -> None:
+    """The typed readers of the step outputs: a file not written (or empty) reads as None, a key a file lacks as None
+    or empty, and a torn last line of metrics.jsonl is skipped."""
+    from detector.reproduce import results
+
+    res = tmp_path / "results"
+    (res / "eval_dense").mkdir(parents=True)
+    (res / "eval_dense" / "metrics.json").write_text("")  # a cut write
+    (res / "eval_sparse").mkdir()
+    (res / "eval_sparse" / "metrics.json").write_text(json.dumps(_kitti_json(60.0, 70.0)))
+    ev = results.read_eval_outputs(res)
+    assert list(ev.kitti) == ["sparse"] and not ev.open3d_ml
+    sparse = ev.kitti["sparse"]
+    assert sparse.levels("3d", "R40") == (60.0, 61.0, 62.0) and sparse.overall("bev", "R11") == 72.5
+    assert sparse.num_gt == (50, 56, 60) and sparse.num_gt_overall == 100
+    assert sparse.levels("nope", "R40") is None and sparse.overall("3d", "R20") is None
+    assert results.KittiMetrics.from_json({}).num_gt is None
+    assert results.read_bench(res / "bench_default.json") is None and results.read_density(res / "x.json") is None
+    assert results.read_manifest(tmp_path / "dataset").houses == ()
+    bench = results.BenchOutput.from_json({"models": [_bench_row("dense", 10.0, 2.0),
+                                                      _bench_row("o3d", 12.0, 3.0, peer="open3d-ml")]})
+    assert list(bench.ours()) == ["dense"] and list(bench.peers()) == ["o3d"]
+    assert bench.ours()["dense"].mean_ms["total"] == 10.0 and not bench.ours()["dense"].back_to_back_ms
+    run = _started_run(tmp_path / "w", "dense", steps=3)
+    cfg = results.read_run_config(run)
+    assert cfg is not None and (cfg.epochs, cfg.batch_size, cfg.precision, cfg.output_shape) == (2, 2, "fp32", None)
+    assert results.read_run_config(tmp_path / "w" / "runs" / "sparse") is None
+    assert [r.step for r in results.step_records(run)] == [1, 2, 3] and results.eval_records(run) == []

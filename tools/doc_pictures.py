@@ -22,8 +22,6 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script: mpchair.core.atomic from this checkout
-    sys.path.insert(0, str(ROOT))
 # The console script installed next to this interpreter: the venv's mpchair, not whatever is first on PATH.
 MPCHAIR = Path(sys.executable).with_name("mpchair")
 KITTI = "tests/data/kitti"  # the 6 vendored real KITTI frames, relative to ROOT (docs/stats.md quotes this path)

@@ -1,0 +1,16 @@
+"""``make reproduce`` and ``make reproduce-stream`` as a package: the paper's experiment end to end, CPU-sized.
+
+It drives the ``mpchair`` and ``detector`` commands as subprocesses (each command line printed, run and logged) and
+writes its reports from their output files; it imports only the floor of ``mpchair`` (``mpchair.core``,
+``mpchair.kitti``) and ``detector``. ``tools/reproduce.py`` and ``tools/reproduce_stream.py`` are its front-ends.
+
+    scales    the sizes of each scale (houses, frames, epochs, bench trials) and the bf16 detection
+    runner    runs and logs command lines (``commands.log``)
+    steps     each step's command lines and the files that mark it done (``step_outputs``)
+    results   typed readers of every file the steps write that the report reads
+    training  what the work folder's trainings were: schedules, precision, seconds
+    report    ``docs/results.md`` from those records
+    status    ``--status``: where a work folder stands
+    cli       ``main(argv)`` of ``tools/reproduce.py``
+    stream/   the streaming reproduction (``tools/reproduce_stream.py``, ``docs/streaming.md``)
+"""

@@ -1,0 +1,286 @@
+"""Typed readers of the files the reproduction's steps write and its report reads back.
+
+Each record is a small frozen dataclass with an explicit ``from_json`` (or ``from_yaml``); a ``read_*`` function
+returns ``None`` (or an empty list) for a file that does not exist, and a key a file lacks reads as ``None`` (or an
+empty mapping), so a report of a partial run names what is missing instead of failing. APs are percent, times
+milliseconds unless a name says seconds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: The eval step's second output per model (``results/eval_<model>/``): ``detector eval --protocol open3d-ml --json``.
+OPEN3D_ML_JSON = "open3d_ml.json"
+MODELS = ("dense", "sparse")
+
+
+def read_text(path: Path) -> str | None:
+    """The text of ``path``, None when it does not exist."""
+    return path.read_text() if path.exists() else None
+
+
+def _read_json(path: Path) -> dict | None:
+    """The JSON object in ``path``, None when the file does not exist or is empty."""
+    text = read_text(path)
+    return json.loads(text) if text else None
+
+
+# --- detector eval: the KITTI protocol (metrics.json, and each validation record of a training's metrics.jsonl) -------
+@dataclass(frozen=True)
+class KittiAP:
+    """Chair's AP of one KITTI metric (``bev``, ``3d``, ...): per difficulty (Easy, Moderate, Hard) and over every
+    chair (the Overall level), by recall variant (``R40``, ``R11``); a variant the file lacks is absent."""
+
+    levels: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
+    overall: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, block: dict | None) -> KittiAP:
+        block = block or {}
+        levels = {r: tuple(v) for r, v in block.items() if r != "overall" and isinstance(v, list) and v}
+        return cls(levels=levels, overall=dict(block.get("overall") or {}))
+
+
+@dataclass(frozen=True)
+class KittiMetrics:
+    """Chair's KITTI AP by metric (``bev``, ``3d``, ...) and its valid GT counts: Easy / Moderate / Hard
+    (``num_gt``) and Overall (``num_gt_overall``); None where the file has none (one written before the Overall
+    level existed has no ``overall`` APs and no ``num_gt_overall``)."""
+
+    ap: Mapping[str, KittiAP]
+    num_gt: tuple[int, ...] | None = None
+    num_gt_overall: int | None = None
+
+    @classmethod
+    def from_json(cls, d: dict) -> KittiMetrics:
+        chair = d.get("Chair") or {}
+        counts = (d.get("num_gt") or {}).get("Chair")
+        return cls(ap={k: KittiAP.from_json(v) for k, v in chair.items() if isinstance(v, dict)},
+                   num_gt=tuple(counts) if counts else None,
+                   num_gt_overall=(d.get("num_gt_overall") or {}).get("Chair"))
+
+    def levels(self, kind: str, recall: str) -> tuple[float, ...] | None:
+        """Easy / Moderate / Hard AP of metric ``kind`` and recall variant ``recall`` (None when absent)."""
+        return self.ap.get(kind, KittiAP()).levels.get(recall)
+
+    def overall(self, kind: str, recall: str) -> float | None:
+        """The Overall level's AP of metric ``kind`` and recall variant ``recall`` (None when absent)."""
+        return self.ap.get(kind, KittiAP()).overall.get(recall)
+
+
+# --- detector eval --protocol open3d-ml (open3d_ml.json) --------------------------------------------------------------
+@dataclass(frozen=True)
+class Open3dMlMetrics:
+    """Open3D-ML's mAP (the reference's own metric) of Chair by metric (``bev``, ``3d``)."""
+
+    ap: Mapping[str, float]
+
+    @classmethod
+    def from_json(cls, d: dict) -> Open3dMlMetrics:
+        return cls(ap=dict(d.get("Chair") or {}))
+
+    def get(self, kind: str) -> float | None:
+        """The mAP of metric ``kind`` (None when absent)."""
+        return self.ap.get(kind)
+
+
+@dataclass(frozen=True)
+class EvalOutputs:
+    """The eval step's outputs that exist, by model: KITTI ``metrics.json`` and Open3D-ML ``open3d_ml.json``."""
+
+    kitti: Mapping[str, KittiMetrics]
+    open3d_ml: Mapping[str, Open3dMlMetrics]
+
+
+def read_eval_outputs(res: Path) -> EvalOutputs:
+    """The eval step's outputs under results folder ``res`` (``eval_<model>/``)."""
+    kitti = {m: KittiMetrics.from_json(d) for m in MODELS if (d := _read_json(res / f"eval_{m}" / "metrics.json"))
+             is not None}
+    o3d = {m: Open3dMlMetrics.from_json(d) for m in MODELS if (d := _read_json(res / f"eval_{m}" / OPEN3D_ML_JSON))
+           is not None}
+    return EvalOutputs(kitti=kitti, open3d_ml=o3d)
+
+
+# --- detector bench --json (bench_<allocator>.json) -------------------------------------------------------------------
+@dataclass(frozen=True)
+class BenchTiming:
+    """One timed model of a bench JSON: mean ms per frame by component (``feature_extract``, ..., ``total``); the
+    per-frame medians and the back-to-back means of the shared components where the bench recorded them (else
+    empty); ``peer``: the peer implementation's name for a peer row (Open3D-ML's), None for ours."""
+
+    name: str
+    peer: str | None
+    mean_ms: Mapping[str, float]
+    median_frame_ms: Mapping[str, float] = field(default_factory=dict)
+    back_to_back_ms: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, d: dict) -> BenchTiming:
+        return cls(name=d["name"], peer=d.get("peer") or None,
+                   mean_ms={k: v["mean_ms"] for k, v in d["components"].items()},
+                   median_frame_ms=dict(d.get("median_frame_ms") or {}),
+                   back_to_back_ms={k: v["mean_ms"] for k, v in (d.get("back_to_back") or {}).items()})
+
+
+@dataclass(frozen=True)
+class BenchOutput:
+    """The models of one ``detector bench --json`` output, in its order."""
+
+    models: tuple[BenchTiming, ...]
+
+    @classmethod
+    def from_json(cls, d: dict) -> BenchOutput:
+        return cls(models=tuple(BenchTiming.from_json(m) for m in d["models"]))
+
+    def ours(self) -> dict[str, BenchTiming]:
+        """Our models (not the peer rows), by name."""
+        return {m.name: m for m in self.models if not m.peer}
+
+    def peers(self) -> dict[str, BenchTiming]:
+        """The peer rows, by name."""
+        return {m.name: m for m in self.models if m.peer}
+
+
+def read_bench(path: Path) -> BenchOutput | None:
+    """A bench JSON (None when the bench step did not write it)."""
+    d = _read_json(path)
+    return None if d is None else BenchOutput.from_json(d)
+
+
+# --- mpchair stats --density --json (density.json) --------------------------------------------------------------------
+@dataclass(frozen=True)
+class DensitySummary:
+    """The summary of D (the fraction of non-empty pillars per frame) that the report quotes: the values of
+    ``median``, ``min`` and ``max`` the stats JSON has, as it wrote them, in that order."""
+
+    values: Mapping[str, float]
+
+    @classmethod
+    def from_json(cls, d: dict) -> DensitySummary:
+        s = d.get("summary", d)
+        return cls(values={k: s[k] for k in ("median", "min", "max") if k in s})
+
+
+def read_density(path: Path) -> DensitySummary | None:
+    """``density.json`` of the stats step (None when absent or empty)."""
+    d = _read_json(path)
+    return None if d is None else DensitySummary.from_json(d)
+
+
+# --- mpchair generate (dataset/manifest.json) -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Manifest:
+    """What the report quotes of a dataset's manifest: its house ids."""
+
+    houses: tuple[str, ...]
+
+    @classmethod
+    def from_json(cls, d: dict) -> Manifest:
+        return cls(houses=tuple(d.get("houses") or ()))
+
+
+def read_manifest(dataset: Path) -> Manifest:
+    """``dataset/manifest.json`` (no houses when absent)."""
+    return Manifest.from_json(_read_json(dataset / "manifest.json") or {})
+
+
+# --- detector train (RUN/config.yaml, RUN/metrics.jsonl) --------------------------------------------------------------
+@dataclass(frozen=True)
+class RunConfig:
+    """What the report and ``--status`` quote of the experiment a run was trained with (``RUN/config.yaml`` as
+    ``detector train`` wrote it): its ``train`` schedule and the ``model`` grid (None: not in the file)."""
+
+    epochs: int | None = None
+    samples_per_epoch: int | None = None
+    batch_size: int | None = None
+    precision: str | None = None
+    schedule: str | None = None
+    lr: float | None = None
+    output_shape: tuple[int, ...] | None = None  # (nx, ny) pillars
+    point_cloud_range: tuple[float, ...] | None = None  # x, y, z min, then max, metres, sensor frame
+
+    @classmethod
+    def from_yaml(cls, d: dict) -> RunConfig:
+        t, m = d.get("train") or {}, d.get("model") or {}
+        grid, rng = m.get("output_shape"), m.get("point_cloud_range")
+        return cls(epochs=t.get("epochs"), samples_per_epoch=t.get("samples_per_epoch"),
+                   batch_size=t.get("batch_size"), precision=t.get("precision"), schedule=t.get("schedule"),
+                   lr=t.get("lr"), output_shape=None if grid is None else tuple(grid),
+                   point_cloud_range=None if rng is None else tuple(rng))
+
+
+def read_run_config(run: Path) -> RunConfig | None:
+    """The config a run folder was trained with, None when it has none (not trained yet)."""
+    import yaml
+
+    text = read_text(run / "config.yaml")
+    return RunConfig.from_yaml(yaml.safe_load(text) or {}) if text else None
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """A training step of metrics.jsonl: its number (from 1), epoch (None if not recorded) and wall seconds."""
+
+    step: int
+    epoch: int | None
+    time_s: float
+
+    @classmethod
+    def from_json(cls, d: dict) -> StepRecord:
+        return cls(step=d["step"], epoch=d.get("epoch"), time_s=d["time_s"])
+
+
+@dataclass(frozen=True)
+class EpochRecord:
+    """A finished epoch of metrics.jsonl: its number (from 1) and wall seconds."""
+
+    epoch: int
+    time_s: float
+
+    @classmethod
+    def from_json(cls, d: dict) -> EpochRecord:
+        return cls(epoch=d["epoch"], time_s=d["time_s"])
+
+
+@dataclass(frozen=True)
+class EvalRecord:
+    """A validation during training (metrics.jsonl): the epoch after which it ran, and its KITTI AP."""
+
+    epoch: int
+    metrics: KittiMetrics
+
+    @classmethod
+    def from_json(cls, d: dict) -> EvalRecord:
+        return cls(epoch=d["epoch"], metrics=KittiMetrics.from_json(d))
+
+
+def _records(run: Path, kind: str) -> list[dict]:
+    """A run folder's metrics.jsonl records of one ``kind``, in order; none without the file, and without the torn
+    last line a killed run may leave."""
+    found = []
+    for line in (read_text(run / "metrics.jsonl") or "").splitlines():
+        with contextlib.suppress(ValueError):
+            record = json.loads(line)
+            if record.get("kind") == kind:
+                found.append(record)
+    return found
+
+
+def step_records(run: Path) -> list[StepRecord]:
+    """The training steps of a run folder's metrics.jsonl, in order."""
+    return [StepRecord.from_json(r) for r in _records(run, "step")]
+
+
+def epoch_records(run: Path) -> list[EpochRecord]:
+    """The finished epochs of a run folder's metrics.jsonl, in order."""
+    return [EpochRecord.from_json(r) for r in _records(run, "epoch")]
+
+
+def eval_records(run: Path) -> list[EvalRecord]:
+    """The validations of a run folder's metrics.jsonl, in order."""
+    return [EvalRecord.from_json(r) for r in _records(run, "eval")]

@@ -1,0 +1,48 @@
+"""``--status``: where the reproduction in a work folder stands: each step's outputs, and each model's training step
+of its total, recent pace, time left, and whether a process trains it right now."""
+
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+
+from detector.reproduce.results import MODELS, read_run_config, step_records
+from detector.reproduce.steps import step_outputs
+from detector.reproduce.training import trained_schedules
+
+
+def train_status(out: Path, model: str) -> str:
+    """One line on a model's training in work folder ``out``: trained, not started, or at step s of N with its recent
+    pace and the time left, and whether a process is training it right now (its run folder's lock is held)."""
+    from detector.train import format_duration
+    from mpchair.core.lock import held
+
+    run = out / "runs" / model
+    if (run / "done").exists():
+        return f"{model}: trained"
+    schedule = trained_schedules(out)[model]  # (epochs, samples per epoch) of the run's config
+    steps = step_records(run)
+    if schedule is None or not steps:
+        return f"{model}: not started"
+    epochs, samples = schedule
+    total = epochs * (samples // read_run_config(run).batch_size)
+    pace = statistics.median(r.time_s for r in steps[-200:])
+    now = steps[-1]
+    running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"
+    return (f"{model}: step {now.step:,} / {total:,} (epoch {now.epoch} of {epochs}), {pace:.2f} s/step "
+            f"lately -> ~{format_duration(pace * (total - now.step))} left; {running}")
+
+
+def status_lines(out: Path) -> list[str]:
+    """Where the reproduction in work folder ``out`` stands: each step's outputs (:func:`step_outputs`) and each
+    model's training progress."""
+    if not out.is_dir():
+        return [f"{out}: no reproduction here yet"]
+    lines = [f"{out}:"]
+    for step, files in step_outputs(out).items():
+        paths = list(files.values())
+        have = sum(p.exists() for p in paths)
+        lines.append(f"  {step:<9} {'done' if have == len(paths) else f'{have} of {len(paths)} outputs'}")
+        if step == "train":
+            lines += [f"    {train_status(out, m)}" for m in MODELS]
+    return lines

@@ -1,0 +1,256 @@
+"""The reproduction's steps before the report: each one's ``mpchair`` / ``detector`` command lines, run through a
+:class:`~detector.reproduce.runner.Runner`, and the files that mark it done (:func:`step_outputs`).
+
+A step whose outputs exist is skipped unless ``force``; paths are those of the work folder (``houses/``,
+``dataset/``, ``runs/<model>/``, ``results/``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from detector.reproduce.results import MODELS, OPEN3D_ML_JSON, read_run_config
+from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
+from detector.reproduce.scales import Scale, model_epochs
+from mpchair.core.atomic import write_text
+
+STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "ops", "viz", "report")
+#: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).
+CONFIGS = ROOT / "configs" / "models"
+
+
+def house_ids(houses_dir: Path) -> list[str]:
+    """Ids of the synthetic houses under ``houses_dir`` (``v1/scans/<id>``)."""
+    scans = houses_dir / "v1" / "scans"
+    return sorted(p.name for p in scans.iterdir() if p.is_dir()) if scans.is_dir() else []
+
+
+def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
+    """The files that mark each step done in work folder ``out`` (the runner skips a step that has them, ``--status``
+    lists them), by step, then by what each file is for (a model, an allocator, a protocol)."""
+    res, runs = out / "results", out / "runs"
+    return {
+        "synth": {"houses": out / "houses" / "v1" / "scans"},
+        "generate": {"dataset": out / "dataset" / "manifest.json"},
+        "stats": {"density": res / "density.json"},
+        "train": {m: runs / m / "done" for m in MODELS},
+        "eval": {f"{m} {protocol}": res / f"eval_{m}" / name for m in MODELS
+                 for protocol, name in (("kitti", "metrics.json"), ("open3d-ml", OPEN3D_ML_JSON))},
+        "bench": {alloc: res / f"bench_{alloc}.json" for alloc in ("default", "reuse")},
+        "ops": {"ops": res / "ops.json"},
+        "viz": {"panel": res / "viz" / "panel.png"},
+    }
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One invocation's choices: the work folder, the scale (with the command line's overrides applied), the steps
+    asked for, torch threads, generate workers, seed, and whether to redo done steps or only print the commands."""
+
+    out: Path
+    scale: Scale
+    steps: tuple[str, ...]
+    threads: int = 2
+    workers: int = 2
+    seed: int = 0
+    force: bool = False
+    dry_run: bool = False
+
+    @property
+    def houses(self) -> Path:
+        return self.out / "houses"
+
+    @property
+    def data(self) -> Path:
+        return self.out / "dataset"
+
+    @property
+    def runs(self) -> Path:
+        return self.out / "runs"
+
+    @property
+    def res(self) -> Path:
+        return self.out / "results"
+
+    def todo(self, step: str, *outputs: Path) -> bool:
+        """Whether ``step`` runs now (asked for, and not all of its ``outputs`` there unless forced); says which."""
+        if step not in self.steps:
+            return False
+        if not self.force and outputs and all(o.exists() for o in outputs):
+            print(f"[{step}] outputs exist, skipped ({', '.join(str(o) for o in outputs)})")
+            return False
+        print(f"[{step}]", flush=True)
+        return True
+
+
+def _tool(name: str) -> str:
+    return str(BIN / name)
+
+
+def _config(name: str) -> str:
+    """Path of ``configs/models/<name>.yaml`` (``mpchair_dense_cpu``, ...)."""
+    return str(CONFIGS / f"{name}.yaml")
+
+
+def _threads(plan: Plan) -> list[str]:
+    return ["--threads", str(plan.threads)]
+
+
+def _checkpoints(plan: Plan) -> list[str]:
+    """The trained weights of the dense and the sparse model (which need not exist yet)."""
+    return [str(plan.runs / m / "last.pt") for m in MODELS]
+
+
+def run_synth(plan: Plan, r: Runner) -> None:
+    """``mpchair synth``: the scale's synthetic houses (Matterport3D release format)."""
+    if plan.todo("synth", step_outputs(plan.out)["synth"]["houses"]):
+        r.run([_tool("mpchair"), "synth", "--out", str(plan.houses), "--houses", str(plan.scale.houses), "--seed",
+               str(plan.seed)])
+
+
+def run_generate(plan: Plan, r: Runner) -> None:
+    """``mpchair generate``: the dataset of every house (mp3d-depth90 sensor, seeded per-frame split)."""
+    if plan.todo("generate", step_outputs(plan.out)["generate"]["dataset"]):
+        ids = house_ids(plan.houses) or [f"<house ids from {plan.houses}>"]
+        cmd = [_tool("mpchair"), "generate", "--root", str(plan.houses), "--frames", str(plan.scale.frames_per_house),
+               "--out", str(plan.data), "--sensor", "mp3d-depth90", "--seed", str(plan.seed), "--workers",
+               str(plan.workers), "--quiet"]
+        for h in ids:
+            cmd += ["--house", h]
+        r.run(cmd)
+
+
+def run_stats(plan: Plan, r: Runner) -> None:
+    """``mpchair stats --density``: D per test frame at the paper's 768 x 512 geometry, its plot and its JSON."""
+    density = step_outputs(plan.out)["stats"]["density"]
+    if plan.todo("stats", density):
+        cmd = [_tool("mpchair"), "stats", "--density", str(plan.data), "--config", _config("mpchair_dense"), "--split",
+               "test"]
+        r.run([*cmd, "--plot", str(plan.res / "density.png")])
+        r.run([*cmd, "--json"], stdout=density)
+
+
+def train_command(plan: Plan, model: str) -> list[str]:
+    """``detector train`` of one model's CPU config: the scale's epochs and precision, ``--resume`` for a cut run
+    (in the precision it started with: a session on another CPU may resolve ``auto`` to the other one, and detector
+    train refuses a changed config)."""
+    # no bars (they would fill a log), but detector train still prints its estimate and one line per epoch, which
+    # pass through (the Runner leaves the child's stdout alone)
+    cmd = [_tool("detector"), "train", "--config", _config(f"mpchair_{model}_cpu"), "--data", str(plan.data),
+           "--out", str(plan.runs / model), *_threads(plan), "--no-progress"]
+    if plan.scale.epochs is not None:
+        cmd += ["--epochs", str(model_epochs(plan.scale.epochs)[model])]
+    precision = plan.scale.precision
+    if (plan.runs / model / "last.pt").exists() and not plan.force:
+        cmd.append("--resume")
+        cfg = read_run_config(plan.runs / model)
+        started = cfg.precision if cfg else None
+        if started and precision and started != precision:
+            print(f"[train] {model}: resuming in {started}, the precision this run started with (not {precision})")
+            precision = started
+    if precision is not None:
+        cmd += ["--precision", precision]
+    return cmd
+
+
+def run_train(plan: Plan, r: Runner) -> None:
+    """``detector train``: the dense, then the sparse model; ``RUN/done`` marks a training that returned."""
+    for m in MODELS:
+        done = step_outputs(plan.out)["train"][m]
+        # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly
+        if plan.todo("train", done):
+            # glibc otherwise returns every large freed tensor to the OS and page-faults it back in on the next step
+            # (measured 0.45 -> 0.33 s per CPU step of mpchair_dense_cpu.yaml); results are unaffected.
+            r.run(train_command(plan, m), env=REUSE_ENV)
+            if not plan.dry_run:
+                write_text(done, "trained\n")
+
+
+def run_eval(plan: Plan, r: Runner) -> None:
+    """``detector eval`` of each model on the val split: the KITTI protocol, then the reference's own metric
+    (Open3D-ML's mAP, as its reference computed it) on the same result files."""
+    outputs = step_outputs(plan.out)["eval"]
+    for m in MODELS:
+        ev = plan.res / f"eval_{m}"
+        kitti_ran = plan.todo("eval", outputs[f"{m} kitti"])
+        if kitti_ran:
+            r.run([_tool("detector"), "eval", "--config", _config(f"mpchair_{m}_cpu"), "--data", str(plan.data),
+                   "--checkpoint", str(plan.runs / m / "last.pt"), "--split", "val", "--out", str(ev),
+                   *_threads(plan)])
+        if kitti_ran or plan.todo("eval", outputs[f"{m} open3d-ml"]):
+            r.run([_tool("detector"), "eval", "--labels", str(plan.data / "training" / "label_2"), "--results",
+                   str(ev / "data"), "--split", str(plan.data / "ImageSets" / "val.txt"), "--classes", "Chair",
+                   "--protocol", "open3d-ml", "--json"], stdout=outputs[f"{m} open3d-ml"])
+
+
+def peer_available(dry_run: bool) -> bool:
+    """Whether ``detector bench --peer open3d-ml`` can run here (Open3D-ML importable); says so when it cannot.
+
+    A dry run only looks for the ``open3d`` package (importing Open3D-ML takes seconds)."""
+    import importlib.util
+
+    if dry_run:
+        return importlib.util.find_spec("open3d") is not None
+    from detector.bench.peer import open3d_ml_pointpillars
+    from mpchair.core.errors import InputError
+
+    try:
+        open3d_ml_pointpillars()
+    except InputError as e:
+        print(f"[bench] no Open3D-ML peer row: {e}", flush=True)
+        return False
+    return True
+
+
+def bench_command(plan: Plan, json_out: Path, peer: bool) -> list[str]:
+    """``detector bench`` at the paper's 768 x 512 of dense, sparse and sparse with the exact sparse head (the
+    trained weights once both exist), with Open3D-ML's own PointPillars as the peer row if ``peer``."""
+    # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
+    cmd = [_tool("detector"), "bench", "--config", _config("mpchair_dense"), "--config", _config("mpchair_sparse"),
+           "--config", _config("mpchair_sparse_exact"), "--data", str(plan.data), "--split", "test", "--frames",
+           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json",
+           str(json_out), "--markdown"]
+    # the peer row: Open3D-ML's own PointPillars with the dense model's architecture, grid and weights
+    if peer:
+        cmd += ["--peer", "open3d-ml"]
+    ckpts = _checkpoints(plan)
+    if all(Path(c).exists() for c in ckpts):
+        for c in (*ckpts, ckpts[1]):
+            cmd += ["--checkpoint", c]
+    return cmd
+
+
+def run_bench(plan: Plan, r: Runner) -> None:
+    """``detector bench`` under the default allocator and the reuse setting (its table to ``bench_<alloc>.md``)."""
+    outputs = step_outputs(plan.out)["bench"]
+    peer = None
+    for alloc, env in (("default", {}), ("reuse", REUSE_ENV)):
+        if plan.todo("bench", outputs[alloc]):
+            peer = peer_available(plan.dry_run) if peer is None else peer
+            r.run(bench_command(plan, outputs[alloc], peer), env=env or None, stdout=plan.res / f"bench_{alloc}.md")
+
+
+def run_ops(plan: Plan, r: Runner) -> None:
+    """``detector ops``: exact MACs of the sparse config against Table I's bound at 768 x 512."""
+    ops = step_outputs(plan.out)["ops"]["ops"]
+    if plan.todo("ops", ops):
+        r.run([_tool("detector"), "ops", "--config", _config("mpchair_sparse"), "--data", str(plan.data), "--split",
+               "test", "--frames", str(plan.scale.ops_frames), "--out", str(ops), "--markdown"],
+              stdout=plan.res / "ops.md")
+
+
+def run_viz(plan: Plan, r: Runner) -> None:
+    """``detector viz-sparsity``: the paper's Figs. 3-4 at 768 x 512 (trained weights once both exist)."""
+    if plan.todo("viz", step_outputs(plan.out)["viz"]["panel"]):
+        # the test split's first frame (its ids are a seeded sample, so frame 000000 need not be in it)
+        cmd = [_tool("detector"), "viz-sparsity", "--config", _config("mpchair_sparse"), "--data", str(plan.data),
+               "--index", "0", "--split", "test", "--out", str(plan.res / "viz"), "--json"]
+        ckpts = _checkpoints(plan)
+        if all(Path(c).exists() for c in ckpts):
+            cmd += ["--dense-checkpoint", ckpts[0], "--sparse-checkpoint", ckpts[1]]
+        r.run(cmd, stdout=plan.res / "viz.json")
+
+
+#: The steps before the report, in the order they run.
+COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_ops, run_viz)

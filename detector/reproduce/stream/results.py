@@ -1,0 +1,121 @@
+"""Typed readers of what the streaming reproduction's report reads: ``detector stream-eval --json`` summaries (and
+the measuring run's ``measure.json``, a summary too) and ``mpchair stream``'s ``stream.json``. AP in percent, times
+in milliseconds; a file that does not exist reads as None, a key a summary lacks as None."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, eval_dir, stream_dir, stream_name
+
+#: (model or ``oracle@<model>``, speed m/s, rate Hz, mode ``raw`` / ``ego``) of one scored run.
+RunKey = tuple[str, float, float, str]
+
+
+@dataclass(frozen=True)
+class Machine:
+    """The machine the latencies were measured on (``detector.bench.machine_info``'s fields the report quotes)."""
+
+    cpu: str
+    torch_threads: int
+    torch: str
+    allocator: str
+
+    @classmethod
+    def from_json(cls, d: dict) -> Machine:
+        return cls(cpu=d["cpu"], torch_threads=d["torch_threads"], torch=d["torch"], allocator=d["allocator"])
+
+
+@dataclass(frozen=True)
+class Stats:
+    """Summary statistics of one per-frame quantity (None: not in the summary)."""
+
+    mean: float | None = None
+    median: float | None = None
+    p95: float | None = None
+
+    @classmethod
+    def from_json(cls, d: dict | None) -> Stats:
+        d = d or {}
+        return cls(mean=d.get("mean"), median=d.get("median"), p95=d.get("p95"))
+
+
+def _chair_r40(block: dict | None) -> Mapping[str, float] | None:
+    """Chair's AP R40 by metric (``3d``, ``bev``) of an AP block of a summary, None when it was not scored."""
+    if block is None:
+        return None
+    return {k: v.get("R40") for k, v in block["Chair"].items() if isinstance(v, dict)}
+
+
+@dataclass(frozen=True)
+class StreamSummary:
+    """One ``detector stream-eval --json`` summary: streaming AP (``sap``) and offline AP (every frame through the
+    model; None when not computed) as Chair's R40 by metric; latency, staleness (ms and frames), the fraction of
+    frames processed; the latency repeats and the machine when the latencies were measured here (else None)."""
+
+    sap: Mapping[str, float] | None
+    offline_ap: Mapping[str, float] | None
+    latency_ms: Stats
+    staleness_ms: Stats
+    staleness_frames: Stats
+    frames_processed: float
+    repeats: int | None = None
+    machine: Machine | None = None
+
+    @classmethod
+    def from_json(cls, d: dict, machine: dict | None = None) -> StreamSummary:
+        """``machine``: the measuring run's machine, for a summary scored from its saved outputs (which has none)."""
+        found = d.get("machine", machine)
+        return cls(sap=_chair_r40(d.get("sAP")), offline_ap=_chair_r40(d.get("offline_AP")),
+                   latency_ms=Stats.from_json(d.get("latency_ms")), staleness_ms=Stats.from_json(d.get("staleness_ms")),
+                   staleness_frames=Stats.from_json(d.get("staleness_frames")),
+                   frames_processed=d.get("frames_processed"), repeats=d.get("repeats"),
+                   machine=Machine.from_json(found) if found else None)
+
+    def ap(self, metric: str = "3d", offline: bool = False) -> float | None:
+        """sAP (or, ``offline``, the offline AP) of ``metric``, R40; None when not scored."""
+        block = self.offline_ap if offline else self.sap
+        return None if block is None else block.get(metric)
+
+
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def read_summary(path: Path, machine: dict | None = None) -> StreamSummary | None:
+    """The stream-eval summary in ``path`` (None when absent); ``machine`` as in :meth:`StreamSummary.from_json`."""
+    d = _read_json(path)
+    return None if d is None else StreamSummary.from_json(d, machine)
+
+
+def read_runs(out: Path, points: list[tuple[float, float]]) -> dict[RunKey, StreamSummary]:
+    """Every scored run of work folder ``out``: each model on each point's stream in each mode (with the machine its
+    latencies were measured on), then the oracle at each model's latency on the headline stream (``oracle@<model>``)."""
+    runs: dict[RunKey, StreamSummary] = {}
+    for v, f in points:
+        for m in MODELS:
+            ev = eval_dir(out, v, f, m)
+            measured = _read_json(ev / "measure.json")
+            for mode in MODES:
+                summary = read_summary(ev / f"{mode}.json", (measured or {}).get("machine"))
+                if summary is not None:
+                    runs[(m, v, f, mode)] = summary
+    for m in MODELS:
+        for mode in MODES:
+            summary = read_summary(eval_dir(out, *HEADLINE, f"oracle-at-{m}") / f"{mode}.json")
+            if summary is not None:
+                runs[(f"oracle@{m}", *HEADLINE, mode)] = summary
+    return runs
+
+
+def stream_frames(out: Path, points: list[tuple[float, float]]) -> dict[str, int]:
+    """Frames of each point's stream that exists (its ``stream.json`` totals), by stream folder name."""
+    found = {}
+    for v, f in points:
+        meta = _read_json(stream_dir(out, v, f) / "stream.json")
+        if meta is not None:
+            found[stream_name(v, f)] = meta["totals"]["frames"]
+    return found
