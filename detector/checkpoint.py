@@ -20,8 +20,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from detector.config import experiment_from_dict
-from detector.models import ExperimentConfig, PointPillars, build_model
+from detector.config import ExperimentConfig, experiment_from_dict
+from detector.models import PointPillars, build_model
 from mpchair.core.atomic import write_bytes
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError

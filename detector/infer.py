@@ -21,11 +21,12 @@ from torch import nn
 from tqdm import tqdm
 
 from detector.checkpoint import load_model
+from detector.config import ExperimentConfig, load_experiment
 from detector.data import Frame, KittiDataset
 from detector.data.experiment import augment_options, open_split
 from detector.data.pipeline import make_eval_sample
 from detector.device import use_device
-from detector.models import Detections, ExperimentConfig, load_experiment
+from detector.models import Detections
 from mpchair.core.atomic import write_text
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels

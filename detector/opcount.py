@@ -39,7 +39,8 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from detector.models import ExperimentConfig, ModelConfig, build_model, load_experiment
+from detector.config import ExperimentConfig, ModelConfig, load_experiment
+from detector.models import build_model
 from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d
 from detector.sparse.conv import GEMM_MIN_FILL
 from detector.sparse.indices import down_table, up_table, wide_down_table

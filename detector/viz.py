@@ -24,8 +24,9 @@ import torch
 from torch import nn
 
 from detector.checkpoint import load_model
+from detector.config import ExperimentConfig, load_experiment
 from detector.data.experiment import load_eval_frames, open_split
-from detector.models import ExperimentConfig, PointPillars, load_experiment
+from detector.models import PointPillars
 from mpchair.core.atomic import write_bytes
 from mpchair.core.errors import InputError
 from mpchair.kitti import imageset_path

@@ -15,9 +15,9 @@ from helpers_detector import make_tiny_dataset
 from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
 from detector.checkpoint import Checkpoint, load_model, save_checkpoint
 from detector.cli import cli, main
-from detector.config import pseudoimage_geometry
+from detector.config import load_experiment, pseudoimage_geometry
 from detector.data.experiment import load_eval_frames
-from detector.models import build_model, load_experiment
+from detector.models import build_model
 from mpchair.geometry import frame_density
 
 DENSE = "configs/models/mpchair_dense_smoke.yaml"

@@ -23,7 +23,8 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_config
 
-from detector.models import build_model, load_experiment
+from detector.config import load_experiment
+from detector.models import build_model
 from detector.train import train
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from helpers_detector import IMAGE_SIZE, make_frame, make_tiny_dataset, write_test_config
 from test_sparse_ops import TOL, at_sites, make_tensor
 
+from detector.config import load_experiment
 from detector.data import KittiDataset
 from detector.device import (
     autocast_dtype,
@@ -34,7 +35,7 @@ from detector.device import (
 )
 from detector.eval import evaluate
 from detector.infer import detections_to_labels, evaluate_model
-from detector.models import Detections, build_model, load_experiment
+from detector.models import Detections, build_model
 from detector.models.assign import axis_aligned_iou, nearest_bev
 from detector.models.voxelizer import voxelize
 from detector.ops import rotated_iou_bev, rotated_nms

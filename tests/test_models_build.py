@@ -9,8 +9,8 @@ import pytest
 import torch
 from test_sparse_backbone import dense_reference, randomise_norms
 
-from detector.config import ModelConfig, check_model_config
-from detector.models import build_model, load_experiment
+from detector.config import ModelConfig, check_model_config, load_experiment
+from detector.models import build_model
 from detector.models.box_coder import decode_boxes
 from detector.models.sparse_backbone import SparseBackboneNeck
 from mpchair.core.config import to_dict

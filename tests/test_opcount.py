@@ -12,7 +12,8 @@ import torch
 from helpers_detector import make_tiny_dataset
 
 from detector.cli import main
-from detector.models import build_model, load_experiment
+from detector.config import load_experiment
+from detector.models import build_model
 from detector.opcount import count_dataset, dense_counts, format_counts, frame_counts, sparse_counts, table1
 
 SMOKE = "configs/models/mpchair_sparse_smoke.yaml"

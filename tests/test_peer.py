@@ -20,8 +20,8 @@ import detector.bench.peer as peer_mod
 from detector.bench import COMPONENTS, ratio_rows
 from detector.checkpoint import load_model
 from detector.cli import main
+from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
-from detector.models import load_experiment
 from mpchair.core.errors import InputError
 
 pytest.importorskip("open3d.ml.torch", reason="Open3D-ML (the project's open3d extra) is not installed")

@@ -189,7 +189,8 @@ def test_model_with_measured_latency(streams, tmp_path):
     import torch
 
     from detector.checkpoint import Checkpoint, save_checkpoint
-    from detector.models import build_model, load_experiment
+    from detector.config import load_experiment
+    from detector.models import build_model
 
     _, still = streams
     cfg_path = write_test_config(tmp_path / "tiny.yaml", model=dict(point_cloud_range=[0.0, -4.8, -2.0, 6.4, 4.8, 2.0],

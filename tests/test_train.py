@@ -16,9 +16,10 @@ from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_confi
 
 from detector.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from detector.cli import main
+from detector.config import load_experiment
 from detector.eval import all_ap_zero, evaluate_folders
 from detector.infer import evaluate_checkpoint
-from detector.models import Losses, build_model, load_experiment
+from detector.models import Losses, build_model
 from detector.train import epoch_frames, rank_batches, train
 from detector.train.step import all_reduce_losses
 from mpchair.core.errors import InputError
@@ -220,7 +221,7 @@ def test_bf16_training_autocasts_the_forward_and_keeps_fp32_state(data, tmp_path
 
 
 def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():
-    from detector.models import load_experiment
+    from detector.config import load_experiment
 
     configs = ROOT / "configs" / "models"
     for name in ("mpchair_dense_cpu", "mpchair_sparse_cpu"):

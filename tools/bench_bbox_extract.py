@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 
 from detector.checkpoint import load_model
+from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
-from detector.models import load_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ("dense", "sparse")

@@ -49,8 +49,9 @@ import torch
 from torch import nn
 
 from detector.bench.timing import COMPONENTS, time_frame
+from detector.config import load_experiment
 from detector.device import MALLOC_REUSE
-from detector.models import build_model, load_experiment
+from detector.models import build_model
 from detector.models.backbone import SecondBackbone
 from detector.models.head import AnchorHead, SparseExactHead
 from detector.models.neck import SecondFPN

@@ -42,10 +42,10 @@ from tqdm import tqdm
 from detector.bench import peer as open3d_peer
 from detector.bench.timing import COMPONENTS, SHARED, page_faults, time_frame, time_shared
 from detector.checkpoint import load_model
-from detector.config import pseudoimage_geometry
+from detector.config import ExperimentConfig, load_experiment, pseudoimage_geometry
 from detector.data.experiment import EvalFrame, load_eval_frames
 from detector.device import machine_info, use_device
-from detector.models import ExperimentConfig, PointPillars, load_experiment
+from detector.models import PointPillars
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
 

@@ -80,9 +80,9 @@ class ModelRunner:
 
     def __init__(self, config: str | Path, checkpoint: str | Path, device: str = "cpu", threads: int | None = None):
         from detector.checkpoint import load_model
+        from detector.config import load_experiment
         from detector.data.experiment import augment_options
         from detector.device import use_device
-        from detector.models import load_experiment
 
         self.device = use_device(device, threads)
         self.cfg = load_experiment(config)
