@@ -89,7 +89,7 @@ def _shared_component_rows(bench: BenchOutput, name: str, alloc: str) -> list[st
 
     Beside the ratio of means, the ratio of per-frame medians, which one VM hiccup in a few-ms component cannot move.
     Head and BBox Extract follow each model's own backbone in the per-frame pipeline, whose leftover machine state
-    they pay for (detector/bench.py): their target applies to the back-to-back timing."""
+    they pay for (detector/bench/timing.py): their target applies to the back-to-back timing."""
     ours = bench.ours()
     model, dense = ours[name], ours["dense"]
     rows = []
