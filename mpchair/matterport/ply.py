@@ -246,7 +246,8 @@ def _to_mesh(arrays: dict, elements: list[_Element], path: str) -> PlyMesh:
     if not {"x", "y", "z"} <= set(vnames):
         raise InputError("PLY vertex element lacks x, y, z", path, by_name["vertex"].lineno)
     vertices = np.empty((len(v), 3), dtype=np.float64)
-    vertices[:, 0], vertices[:, 1], vertices[:, 2] = v["x"], v["y"], v["z"]
+    with np.errstate(invalid="ignore"):  # a NaN or out-of-range value is reported just below, in words
+        vertices[:, 0], vertices[:, 1], vertices[:, 2] = v["x"], v["y"], v["z"]
     if not np.isfinite(vertices).all():
         bad = int(np.flatnonzero(~np.isfinite(vertices).all(axis=1))[0])
         raise InputError(f"vertex {bad} has a non-finite coordinate", path, by_name["vertex"].lineno)

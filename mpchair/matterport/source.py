@@ -18,9 +18,11 @@ decompressed.
 
 from __future__ import annotations
 
+import lzma
 import os
 import re
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -106,8 +108,10 @@ class HouseSource:
                 _check_member(info, where)
                 with zf.open(info) as f:
                     return _read_capped(f, info.file_size, suffix, where)
-        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError, NotImplementedError) as e:
-            raise InputError(f"cannot read zip archive: {e}", self.zip_path) from None
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError, NotImplementedError, zlib.error,
+                lzma.LZMAError) as e:  # a corrupt member's deflate / lzma stream raises its codec's own error
+            raise InputError(f"cannot read zip archive: {' '.join(str(e).split())[:200]}", self.describe(suffix)) \
+                from None
 
 
 #: Compression methods Python's zipfile decompresses (stored, deflate, bzip2, lzma).
