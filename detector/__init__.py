@@ -1,9 +1,11 @@
 """detector: dense PointPillars vs Sparse PointPillars on KITTI-format data (mpchair output or real KITTI).
 
-Stages, one folder each: ``data/`` (KITTI dataset, augmentation, GT database, collate), ``models/`` (voxelizer,
-pillar net, backbones, neck, anchors, coder, assignment, losses, head, builder), ``sparse/`` (pure-PyTorch sparse
-tensors and convolutions), ``ops/`` (exact rotated IoU and NMS), ``eval/`` (the KITTI protocol). Imports the shared
-floor of ``mpchair`` (``geometry``, ``kitti``, ``errors``, ``atomic``, ``config``) and nothing else of it.
+``config`` (the experiment schema), ``device``, ``data/`` (KITTI dataset, augmentation, GT database, collate, a
+config's view of the data), ``sparse/`` (pure-PyTorch sparse tensors and convolutions), ``ops/`` (exact rotated IoU
+and NMS), ``eval/`` (the KITTI protocol), ``models/`` (voxelizer to head, one builder), ``checkpoint`` (the one model
+loader), ``infer``, ``train/``, ``bench/``, ``stream/`` (streaming AP), ``reproduce/`` (``make reproduce``) and
+``commands/``. Imports the shared floor of ``mpchair`` (``core``, ``kitti``, ``geometry``, ``recording``) and nothing
+else of it (``docs/design.md``, ``tests/test_layout.py``).
 """
 
 __version__ = "0.1.0"
