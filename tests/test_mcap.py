@@ -16,12 +16,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers_recordings import make_recording_inputs
 
-from mpchair.dataset.generate import GenerateRequest, generate
 from mpchair.geometry import labels_to_boxes, wrap_angle
 from mpchair.kitti import read_calib, read_labels, read_poses, read_times, velodyne_rows
-from mpchair.stream import StreamRequest, stream
-from mpchair.synth import synthesize_house, write_house
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAME_TOPICS = ("/points", "/tf", "/ground_truth", "/ground_truth/markers")
@@ -30,14 +28,7 @@ FRAME_TOPICS = ("/points", "/tf", "/ground_truth", "/ground_truth/markers")
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory):
     """A stream (2 episodes, 6 frames each at 1 Hz) and a 3-frame dataset of one synthetic house."""
-    base = tmp_path_factory.mktemp("mcap")
-    house = synthesize_house(7, levels=1)
-    write_house(base / "houses", house)
-    stream(StreamRequest(root=base / "houses", houses=(house.id,), episodes=2, out=base / "stream", rate=1.0,
-                         duration=5.0, look_around=False, min_geodesic=3.0, seed=2, progress=False))
-    generate(GenerateRequest(root=base / "houses", houses=(house.id,), frames=3, out=base / "dataset", seed=2,
-                             progress=False))
-    return base
+    return make_recording_inputs(tmp_path_factory.mktemp("mcap"))
 
 
 def _main(module: str, *args: str) -> None:

@@ -10,10 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-
-from mpchair.dataset.generate import GenerateRequest, generate
-from mpchair.stream import StreamRequest, stream
-from mpchair.synth import synthesize_house, write_house
+from helpers_recordings import make_recording_inputs
 
 rr = pytest.importorskip("rerun")
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,14 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory):
-    base = tmp_path_factory.mktemp("rerun")
-    house = synthesize_house(7, levels=1)
-    write_house(base / "houses", house)
-    stream(StreamRequest(root=base / "houses", houses=(house.id,), episodes=2, out=base / "stream", rate=1.0,
-                         duration=5.0, look_around=False, min_geodesic=3.0, seed=2, progress=False))
-    generate(GenerateRequest(root=base / "houses", houses=(house.id,), frames=3, out=base / "dataset", seed=2,
-                             progress=False))
-    return base
+    """A stream (2 episodes, 6 frames each at 1 Hz) and a 3-frame dataset of one synthetic house."""
+    return make_recording_inputs(tmp_path_factory.mktemp("rerun"))
 
 
 def _rows(path: Path) -> Counter:

@@ -42,7 +42,7 @@ from mpchair.geometry import invert_rigid, yaw_matrix
 from mpchair.kitti import frame_paths, read_poses, read_velodyne
 from mpchair.recording import ros2_convert as msg
 from mpchair.recording.ros2_msgs import schema_text
-from mpchair.recording.sources import frame_boxes, read_sequence, read_stream_meta
+from mpchair.recording.sources import dataset_frame_ids, frame_boxes, read_sequence, read_stream_meta
 
 #: How to get the optional dependency.
 INSTALL_HINT = "install the ros extra: pip install -e '.[ros]' (mcap==1.6.0, mcap-ros2-support==0.6.0)"
@@ -245,12 +245,7 @@ def log_dataset(root: str | Path, out: str | Path, limit: int | None = None, rat
     ``/points`` and ``/ground_truth``. Returns ``{"frames", "topics": {topic: messages}}``."""
     root = Path(root)
     period = _period_us(rate_hz, "--rate")
-    velodyne = root / "training" / "velodyne"
-    if not velodyne.is_dir():
-        raise InputError("not a KITTI-format dataset (no training/velodyne)", root)
-    ids = sorted(p.stem for p in velodyne.glob("*.bin"))[:limit]
-    if not ids:
-        raise InputError("the dataset has no frames", velodyne)
+    ids = dataset_frame_ids(root, limit)
     manifest = root / "manifest.json"
     height = _sensor_height(_json(manifest), manifest) if manifest.is_file() else 0.0
     with bag_file(out) as bag:

@@ -31,7 +31,7 @@ import numpy as np
 from mpchair.core.atomic import atomic_path
 from mpchair.core.errors import InputError
 from mpchair.kitti import frame_paths, read_poses, read_velodyne
-from mpchair.recording.sources import frame_boxes, read_sequence, read_stream_meta
+from mpchair.recording.sources import dataset_frame_ids, frame_boxes, read_sequence, read_stream_meta
 
 #: How to get the optional dependency.
 INSTALL_HINT = "install the rerun extra: pip install -e '.[rerun]' (rerun-sdk==0.41.0)"
@@ -210,12 +210,7 @@ def log_dataset(root: str | Path, out: str | Path, limit: int | None = None) -> 
     """Write the first ``limit`` frames (all: ``None``) of a ``generate`` dataset ``root`` as a recording ``out``:
     each frame's pose (``training/pose``), scan and labels under ``world/frames``. Returns ``{"frames"}``."""
     root = Path(root)
-    velodyne = root / "training" / "velodyne"
-    if not velodyne.is_dir():
-        raise InputError("not a KITTI-format dataset (no training/velodyne)", root)
-    ids = sorted(p.stem for p in velodyne.glob("*.bin"))[:limit]
-    if not ids:
-        raise InputError("the dataset has no frames", velodyne)
+    ids = dataset_frame_ids(root, limit)
     sensor = "world/frames/sensor"
     with recording(out) as rec:
         for n, fid in enumerate(ids):

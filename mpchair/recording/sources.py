@@ -45,3 +45,15 @@ def frame_boxes(label_file: Path, calib_file: Path) -> tuple[np.ndarray, list[st
     if len(objs) == 0:
         return np.zeros((0, 7)), []
     return labels_to_boxes(objs, read_calib(calib_file)), [str(n) for n in objs.names]
+
+
+def dataset_frame_ids(root: Path, limit: int | None = None) -> list[str]:
+    """The first ``limit`` (all: None) frame ids of a ``generate`` dataset, in order; no ``training/velodyne`` or no
+    frame is an :class:`InputError`."""
+    velodyne = root / "training" / "velodyne"
+    if not velodyne.is_dir():
+        raise InputError("not a KITTI-format dataset (no training/velodyne)", root)
+    ids = sorted(p.stem for p in velodyne.glob("*.bin"))[:limit]
+    if not ids:
+        raise InputError("the dataset has no frames", velodyne)
+    return ids
