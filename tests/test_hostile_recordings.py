@@ -75,3 +75,23 @@ def test_the_same_recording_is_written_where_there_is_room(inputs, tmp_path):
         res, _ = _cli("view", inputs / what, "--rerun", out)
         assert res.returncode == 0, res.stderr
         assert out.stat().st_size > 256 << 10  # larger than the tiny disk
+
+
+def test_a_stream_on_a_full_disk_names_the_file_and_resumes(inputs, tiny_disk):
+    """``mpchair stream`` onto a full disk: one line naming the file and how to resume, exit 2; with room, the same
+    command finishes the stream."""
+    hid = next((inputs / "houses").rglob("*.house")).stem
+    cmd = ("stream", "--root", inputs / "houses", "--house", hid, "--episodes", 1, "--duration", 2, "--out",
+           tiny_disk / "st", "--quiet")
+    st = os.statvfs(tiny_disk)
+    (tiny_disk / "filler").write_bytes(b"\0" * (st.f_bavail * st.f_frsize - (16 << 10)))
+    res, _ = _cli(*cmd)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0].startswith(f"error: {tiny_disk / 'st'}/") and "No space left on device" in lines[0]
+    assert "run the same command again to resume" in lines[0]
+    (tiny_disk / "filler").unlink()
+    subprocess.run(["mount", "-o", "remount,size=8m", str(tiny_disk)], check=True)
+    res, _ = _cli(*cmd)
+    assert res.returncode == 0, res.stderr
+    assert (tiny_disk / "st" / "stream.json").is_file()

@@ -358,6 +358,9 @@ def _make_frames(plan: _Plan, pending: list[StreamTask], total: int) -> None:
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "
                        "command again to resume") from None
+    except OSError as e:  # a full disk, a lost permission: what is written is whole (temp + rename), so it resumes
+        raise type(e)(e.errno, f"{e.strerror or e}; the frames written so far are kept: free the space (or fix the "
+                      "cause) and run the same command again to resume", e.filename) from None
     finally:
         bar.close()
 
