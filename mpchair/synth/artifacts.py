@@ -79,8 +79,12 @@ def _surface_holes(parts: list[Part], style, realism: Realism, rng: np.random.Ge
         return
     pick = rng.choice(len(cent), size=n, p=area / area.sum())
     discs = np.column_stack([cent[pick], rng.uniform(*realism.hole_radius, n)])
+    gone = in_discs(cent, discs)
+    start = 0
     for p in shell:
-        _drop(p, in_discs(face_centres(p.v, p.f), discs))
+        m = len(p.f)
+        _drop(p, gone[start : start + m])
+        start += m
 
 
 def _cut_boxes(parts: list[Part], style, kinds: tuple[str, ...], boxes: list[tuple[np.ndarray, np.ndarray]]) -> None:

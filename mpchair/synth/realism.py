@@ -112,9 +112,9 @@ CLEAN = Realism(name="clean")
 #: Calibrated so that ``mpchair generate --height 1.25 --robot-radius 0.1`` with ``mp3d-depth90`` meets the original
 #: dataset's density and filter statistics (docs/matterport.md, "Realism").
 DEFAULT = Realism(
-    name="default", room_scale=1.3, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
-    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.3,
-    chair_ghosts=0.1, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
+    name="default", room_scale=1.15, open_plan=0.4, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
+    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
+    chair_ghosts=0.5, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
 )  # fmt: skip
 
 REALISM_PRESETS: dict[str, Realism] = {"clean": CLEAN, "default": DEFAULT}
@@ -189,10 +189,15 @@ def face_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def in_discs(points: np.ndarray, discs: np.ndarray) -> np.ndarray:
     """(N,) bool: ``points`` (N,3) within any sphere of ``discs`` (K,4) [x, y, z, radius]."""
-    if len(discs) == 0:
-        return np.zeros(len(points), dtype=bool)
-    d = np.linalg.norm(points[:, None, :] - discs[None, :, :3], axis=2)
-    return (d <= discs[None, :, 3]).any(axis=1)
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(points), dtype=bool)
+    if len(discs) == 0 or len(points) == 0:
+        return out
+    tree = cKDTree(points)
+    for idx in tree.query_ball_point(discs[:, :3], discs[:, 3]):
+        out[np.asarray(idx, dtype=np.int64)] = True
+    return out
 
 
 def vertex_noise(points: np.ndarray, amplitude: float, rng: np.random.Generator) -> np.ndarray:
