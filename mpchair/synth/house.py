@@ -6,7 +6,10 @@ ceiling slabs, optionally a second level reached by a straight stair through a f
 unreconstructed hole in a top-level ceiling. Rooms are furnished by type (dining, kitchen, living, office, bedroom,
 bath, hallway): tables with chairs around them (some pushed under), sofas, cabinets, beds, stools, benches and chairs
 of five styles against walls or free-standing at random yaw. A few junk fragments are left unlabelled. The house is
-then rotated by a random yaw and shifted by a random offset, so nothing is axis-aligned to the world.
+then rotated by a random yaw and shifted by a random offset, so nothing is axis-aligned to the world. A
+:class:`~mpchair.synth.realism.Realism` other than ``CLEAN`` then adds clutter, door leaves and open-plan openings
+(:func:`_add_clutter`, from the realism stream) and, after every object's true box is measured, reconstruction
+artifacts (:func:`mpchair.synth.artifacts.apply_artifacts`).
 
 :func:`synthesize_house` returns a :class:`SyntheticHouse`: the records, the mesh with its per-face fields and the
 ground-truth objects (with the aligned boxes they were built with); :meth:`SyntheticHouse.files` encodes the four
@@ -612,8 +615,11 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
     if n_levels not in (1, 2):
         raise ValueError("levels must be 1 or 2")
     nc, nr = int(rng.integers(2, 4)), 2
-    cw = rng.uniform(3.4, 5.2, nc) * realism.room_scale
-    rd = rng.uniform(3.4, 4.8, nr) * realism.room_scale
+    cw = rng.uniform(3.4, 5.2, nc)
+    rd = rng.uniform(3.4, 4.8, nr)
+    if realism.room_size > 0:  # larger rooms, of about the same mean size in every house (steadier scan density)
+        k = realism.room_size / float(np.mean(np.concatenate([cw, rd])))
+        cw, rd = cw * k, rd * k
     stair_cell = (int(rng.integers(nc)), int(rng.integers(nr)))
     if n_levels == 2 and max(cw[stair_cell[0]], rd[stair_cell[1]]) < 4.2:
         cw[stair_cell[0]] = rng.uniform(4.2, 4.8)

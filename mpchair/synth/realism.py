@@ -30,8 +30,9 @@ class Realism:
     """Named, seeded knobs of MP3D-like reconstruction artifacts and clutter (lengths in metres; rates are
     probabilities per item unless said otherwise). All zero (:data:`CLEAN`): today's clean procedural houses.
 
-    * ``room_scale``: rooms are this much larger across (real MP3D homes are bigger than the 3.4-5.2 m procedural
-      rooms: longer sightlines, sparser far points, higher pseudo-image density).
+    * ``room_size``: when > 0, every house's rooms are scaled to this mean width (m; the procedural rooms are
+      3.4-5.2 m, mean ~4.2). Real MP3D homes are bigger: longer sightlines, sparser far points, a higher pseudo-image
+      density; one mean size for every house keeps that density steady from house to house.
     * ``open_plan``: per door between two rooms, a wide opening (1.6 m up to the wall less 1.2 m) instead.
     * ``cell``: walls, floors and ceilings are re-meshed as grids of this cell size when any surface knob is on (real
       meshes are dense; noise, waves and holes need vertices to act on).
@@ -59,7 +60,7 @@ class Realism:
     """
 
     name: str = "custom"
-    room_scale: float = 1.0
+    room_size: float = 0.0
     open_plan: float = 0.0
     cell: float = 0.25
     vertex_noise: float = 0.0
@@ -89,8 +90,8 @@ class Realism:
                   "chair_ghosts", "unlabelled_parts", "doors"):  # fmt: skip
             if getattr(self, k) > 1:
                 raise ValueError(f"realism {k} is a probability, got {getattr(self, k)}")
-        if self.cell <= 0 or self.wave_length <= 0 or self.room_scale <= 0:
-            raise ValueError("realism cell, wave_length and room_scale must be > 0")
+        if self.cell <= 0 or self.wave_length <= 0 or self.room_size < 0:
+            raise ValueError("realism cell and wave_length must be > 0, room_size >= 0")
         if not 0 <= self.open_plan <= 1:
             raise ValueError(f"realism open_plan is a probability, got {self.open_plan}")
 
@@ -112,7 +113,7 @@ CLEAN = Realism(name="clean")
 #: Calibrated so that ``mpchair generate --height 1.25 --robot-radius 0.1`` with ``mp3d-depth90`` meets the original
 #: dataset's density and filter statistics (docs/matterport.md, "Realism").
 DEFAULT = Realism(
-    name="default", room_scale=1.15, open_plan=0.4, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
+    name="default", room_size=4.9, open_plan=0.4, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
     mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
     chair_ghosts=0.5, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
 )  # fmt: skip
