@@ -88,10 +88,10 @@ def test_clean_is_todays_houses_byte_for_byte(tmp_path: Path) -> None:
 
 
 def test_same_seed_same_bytes_and_labels_stay_exact(tmp_path: Path) -> None:
-    write_synthetic_houses(tmp_path / "a", 2, 9)
-    write_synthetic_houses(tmp_path / "b", 2, 9)
+    write_synthetic_houses(tmp_path / "a", 1, 9)
+    write_synthetic_houses(tmp_path / "b", 1, 9)
     assert _tree_digest(tmp_path / "a") == _tree_digest(tmp_path / "b")
-    write_synthetic_houses(tmp_path / "c", 2, 10)
+    write_synthetic_houses(tmp_path / "c", 1, 10)
     assert _tree_digest(tmp_path / "c") != _tree_digest(tmp_path / "a")
     # Every object's box is its true box: the same house without artifacts (same layout, same clutter) has it too.
     no_artifacts = Realism(room_size=DEFAULT.room_size, open_plan=DEFAULT.open_plan, clutter=DEFAULT.clutter,
@@ -146,7 +146,7 @@ def test_hole_over_a_chair_makes_in_box_fraction_reject_a_box_the_clean_house_ke
             b, rc_holey = _decide(holey, pose, rc_holey)
             if b[k][0] == "in_box_fraction":
                 found.append((k, a[k], b[k]))
-        if len(found) >= 2:
+        if found:
             break
     assert found, "no frame where a chair hole rejects a box the clean house keeps"
     for _, kept, rejected in found:

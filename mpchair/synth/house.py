@@ -518,6 +518,10 @@ def _add_clutter(scene: _Scene, rooms: list[_Room], portals, realism: Realism, r
             style, raw, parts = "stool", "chair", fu.stool_chair(rng)
             if _chair_room_left(scene) and _place_free(scene, room, rng, raw, style, parts) is None:
                 _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
+        # More chairs against walls (dining and office kinds): bigger rooms fit more lounge chairs, and these keep the
+        # mean chair box at MP3D's (0.96 x 0.67 x 0.88 m).
+        for _ in range(count(0.7)):
+            _wall_chair(scene, room, rng, str(rng.choice(["dining", "dining", "office"])))
         for _ in range(count(2.0)):
             raw = str(rng.choice(["box", "basket", "vase", "lamp"]))
             _place_wall(scene, room, rng, raw, "object", fu.small_object(rng), gap=float(rng.uniform(0.0, 0.3)))
