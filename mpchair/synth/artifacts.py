@@ -163,14 +163,19 @@ def _chair_hole(scene, k: int, room, truth, realism: Realism, rng: np.random.Gen
     parts.append(Part(tv, tf[keep], _new_segment(scene, k, o.region), truth=False))
 
 
-def _ghost(scene, k: int, room, rng: np.random.Generator, parts: list[Part]) -> None:
-    """A small floating fragment somewhere in chair ``k``'s room carrying its label (a split object)."""
+def _ghost(scene, k: int, room, truth, realism: Realism, rng: np.random.Generator, parts: list[Part]) -> None:
+    """A small floating fragment ``ghost_distance`` beside chair ``k``'s box carrying its label (a split object: a
+    piece mis-registered from another scan). Near the chair: the label filters' dense regions grow with the distance."""
     o = scene.objs[k]
-    x0, y0, x1, y1 = room.rect
-    c = np.array([rng.uniform(x0 + 0.2, x1 - 0.2), rng.uniform(y0 + 0.2, y1 - 0.2), room.z + rng.uniform(0.4, 2.0)])
+    lo, hi = truth[k]
+    ang = rng.uniform(0, 2 * math.pi)
     s = rng.uniform(0.08, 0.3, 3)
-    if np.linalg.norm(c[:2] - o.frame_pos[:2]) < 1.2:
-        return
+    reach = float(np.hypot(*(hi[:2] - lo[:2]))) / 2 + s.max() / 2 + rng.uniform(*realism.ghost_distance)
+    local = np.array([(lo[0] + hi[0]) / 2 + reach * math.cos(ang), (lo[1] + hi[1]) / 2 + reach * math.sin(ang),
+                      rng.uniform(0.2, 1.6)])  # fmt: skip
+    c = rotate_z(local[None], o.frame_yaw)[0] + o.frame_pos
+    x0, y0, x1, y1 = room.rect
+    c[:2] = np.clip(c[:2], [x0 + 0.2, y0 + 0.2], [x1 - 0.2, y1 - 0.2])  # inside the chair's room, not through a wall
     parts.append(Part(*cbox(*c, *s), _new_segment(scene, k, o.region), truth=False))
 
 
@@ -201,7 +206,7 @@ def _object_artifacts(parts: list[Part], scene, rooms, truth, realism: Realism, 
             if rng.random() < realism.chair_holes:
                 _chair_hole(scene, k, room_of[o.region], truth, realism, rng, parts)
             if rng.random() < realism.chair_ghosts:
-                _ghost(scene, k, room_of[o.region], rng, parts)
+                _ghost(scene, k, room_of[o.region], truth, realism, rng, parts)
 
 
 def _fragments(parts: list[Part], scene, rooms, realism: Realism, rng: np.random.Generator) -> None:

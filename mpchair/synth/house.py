@@ -58,7 +58,7 @@ from mpchair.synth import furniture as fu
 from mpchair.synth.artifacts import apply_artifacts
 from mpchair.synth.navmesh import navmesh_polygons, walkable_polygons
 from mpchair.synth.primitives import Mesh, box, cbox, rect_minus_rect, rotate_z
-from mpchair.synth.realism import DEFAULT, Realism, realism_rng
+from mpchair.synth.realism import CLEAN, DEFAULT, Realism, realism_rng
 
 #: Raw categories used (category_mapping index, raw name with spaces, mpcat40 index). Indices below 2000 are the
 #: real ``category_mapping.tsv`` rows named in the format notes; rows from 2001 on are synthetic stand-ins for
@@ -112,7 +112,7 @@ class SyntheticHouse:
 
     ``material_id``/``segment_id``/``category_id`` are the per-face ``.ply`` fields; ``mismatched_faces`` faces carry a
     deliberately wrong ``category_id`` (annotation drift, as in real data) so the reader's cross-check has something to
-    find; ``unlabelled_faces`` belong to no object.
+    find; ``unlabelled_faces`` belong to no object; ``realism`` is the realism it was built with.
     """
 
     id: str
@@ -131,6 +131,7 @@ class SyntheticHouse:
     global_offset: np.ndarray
     mismatched_faces: int
     unlabelled_faces: int
+    realism: Realism = CLEAN
 
     def files(self) -> dict[str, bytes]:
         """The four ``house_segmentations`` files as ``{suffix: bytes}`` (``.house``, ``.ply``, ``.fsegs.json``,
@@ -950,7 +951,7 @@ def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed
         id=house_id, seed=seed, house_file=hf, vertices=vertices, faces=faces, material_id=material_id,
         segment_id=segment_id, category_id=category_id, colors=colors, objects=tuple(objects),
         seg_groups=tuple(groups), n_levels=n_levels, global_yaw=gyaw, global_offset=goff,
-        mismatched_faces=len(drift), unlabelled_faces=int(np.count_nonzero(face_obj < 0)),
+        mismatched_faces=len(drift), unlabelled_faces=int(np.count_nonzero(face_obj < 0)), realism=realism,
     )  # fmt: skip
 
 
@@ -1051,7 +1052,7 @@ def subdivide_house(house: SyntheticHouse, times: int) -> SyntheticHouse:
         category_id=per_face[2], colors=np.rint(colors).astype(house.colors.dtype), objects=house.objects,
         seg_groups=house.seg_groups, n_levels=house.n_levels, global_yaw=house.global_yaw,
         global_offset=house.global_offset, mismatched_faces=house.mismatched_faces * 4**times,
-        unlabelled_faces=house.unlabelled_faces * 4**times,
+        unlabelled_faces=house.unlabelled_faces * 4**times, realism=house.realism,
     )
 
 

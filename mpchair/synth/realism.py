@@ -50,8 +50,8 @@ class Realism:
       through and around it (``bleed_width`` deep): MP3D's label image disagrees with its geometry there, so hits
       labelled chair land outside its box (the "holes" filter, ``in_box_fraction``, and with a hidden chair
       ``points_in_box``).
-    * ``chair_ghosts``: per chair, a small floating fragment elsewhere in the room carrying the chair's label (a split
-      object: reflections and mis-registered scans).
+    * ``chair_ghosts`` / ``ghost_distance``: per chair, a small floating fragment this far (m) beside its box carrying
+      the chair's label (a split object: a piece mis-registered from another scan).
     * ``unlabelled_parts``: per piece of furniture with several parts, one part in segment -1 (fragmentary objects).
     * ``fragments``: extra small floating unlabelled fragments per room.
     * ``clutter``: how many clutter items a room gets (plants, shelving, counters, cushions, objects on tables and
@@ -75,6 +75,7 @@ class Realism:
     chair_holes: float = 0.0
     bleed_width: tuple[float, float] = (0.1, 0.45)
     chair_ghosts: float = 0.0
+    ghost_distance: tuple[float, float] = (0.8, 3.0)
     unlabelled_parts: float = 0.0
     fragments: float = 0.0
     clutter: float = 0.0
@@ -114,8 +115,8 @@ CLEAN = Realism(name="clean")
 #: dataset's density and filter statistics (docs/matterport.md, "Realism").
 DEFAULT = Realism(
     name="default", room_size=4.9, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
-    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.12,
-    chair_ghosts=0.5, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
+    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
+    chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
 )  # fmt: skip
 
 REALISM_PRESETS: dict[str, Realism] = {"clean": CLEAN, "default": DEFAULT}
