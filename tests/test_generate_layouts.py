@@ -15,6 +15,7 @@ from mpchair.dataset.manifest import read_manifest
 from mpchair.matterport import find_houses, read_house
 from mpchair.scan.navmesh import NavmeshSampler, island_labels, snap_points
 from mpchair.synth import synthesize_house, write_house
+from mpchair.synth.realism import CLEAN
 
 FRAMES = 2
 
@@ -22,7 +23,7 @@ FRAMES = 2
 @pytest.fixture(scope="module")
 def roots(tmp_path_factory):
     base = tmp_path_factory.mktemp("layouts")
-    house = synthesize_house(7, levels=1)
+    house = synthesize_house(7, levels=1, realism=CLEAN)  # flat floors: navmesh points lie on the mesh floor
     write_house(base / "release", house)
     write_house(base / "habitat", house, layout="habitat", zip_files=True)
     return base, house

@@ -19,6 +19,7 @@ from mpchair.matterport.navmesh import POLY_DISABLED, encode_navmesh, read_navme
 from mpchair.scan.navmesh import NavmeshSampler, island_labels, island_radii, snap_points
 from mpchair.scan.viewpoints import ViewpointParams, viewpoint_stream
 from mpchair.synth import synthesize_house, write_house
+from mpchair.synth.realism import CLEAN
 
 # Two unit quads sharing an edge (one island, the second 0.1 m higher at its far side), a triangle far away (a second
 # island) and a zero-area triangle (unusable). World frame, z up.
@@ -116,7 +117,7 @@ def test_bad_navmesh_files_give_one_clean_error() -> None:
 @pytest.fixture(scope="module")
 def habitat_house(tmp_path_factory):
     root = tmp_path_factory.mktemp("nav")
-    syn = synthesize_house(7, levels=1)
+    syn = synthesize_house(7, levels=1, realism=CLEAN)  # flat floors: the navmesh lies on the mesh floor exactly
     write_house(root, syn, layout="habitat")
     return root / "mp3d" / syn.id, syn
 

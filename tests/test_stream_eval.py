@@ -24,6 +24,7 @@ from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Labels, write_labels
 from mpchair.stream import StreamRequest, stream
 from mpchair.synth import synthesize_house, write_house
+from mpchair.synth.realism import CLEAN
 
 ROOT = Path(__file__).resolve().parents[1]
 PERIOD_MS = 500.0  # the streams below run at 2 Hz
@@ -33,7 +34,7 @@ PERIOD_MS = 500.0  # the streams below run at 2 Hz
 def streams(tmp_path_factory):
     """A moving stream (2 episodes) and a still one (the robot stands for 4 s) of one synthetic house, at 2 Hz."""
     base = tmp_path_factory.mktemp("streams")
-    house = synthesize_house(7, levels=1)
+    house = synthesize_house(7, levels=1, realism=CLEAN)  # the exact ground-truth counts below are this house's
     write_house(base / "houses", house)
     common = dict(root=base / "houses", houses=(house.id,), rate=2.0, progress=False)
     stream(StreamRequest(episodes=2, out=base / "moving", seed=1, **common))

@@ -1,4 +1,7 @@
-"""Synthetic houses: written in the release format, read back exactly, deterministic, and plausible homes."""
+"""Synthetic houses: written in the release format, read back exactly, deterministic, and plausible homes.
+
+These tests are about the procedural recipe itself (watertight chairs tight in their boxes, one ceiling hole, the five
+chair styles), so they ask for ``realism=CLEAN``; the realism model has its own tests (test_synth_realism.py)."""
 
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ from shapely.ops import unary_union
 from mpchair.geometry import bev_polygons, points_in_boxes
 from mpchair.matterport import find_houses, read_house
 from mpchair.synth import plan_houses, synthesize_house, write_house, write_synthetic_houses
+from mpchair.synth.realism import CLEAN
 
 SEED = 11
 N = 2
@@ -24,10 +28,10 @@ N = 2
 @pytest.fixture(scope="module")
 def written(tmp_path_factory) -> tuple[Path, list]:
     root = tmp_path_factory.mktemp("synth")
-    ids = write_synthetic_houses(root, N, SEED)
+    ids = write_synthetic_houses(root, N, SEED, realism=CLEAN)
     plan = plan_houses(N, SEED)
     assert ids == [p[0] for p in plan]
-    built = [synthesize_house(hs, hid, levels=lv) for hid, hs, lv in plan]
+    built = [synthesize_house(hs, hid, levels=lv, realism=CLEAN) for hid, hs, lv in plan]
     return root, built
 
 
@@ -90,7 +94,7 @@ def test_release_format_records(written) -> None:
 
 def test_same_seed_same_bytes_and_zip_layout(tmp_path: Path, written) -> None:
     root, _ = written
-    write_synthetic_houses(tmp_path / "again", N, SEED)
+    write_synthetic_houses(tmp_path / "again", N, SEED, realism=CLEAN)
     assert _digest(tmp_path / "again") == _digest(root)
     write_synthetic_houses(tmp_path / "z1", 1, SEED, zip_files=True)
     write_synthetic_houses(tmp_path / "z2", 1, SEED, zip_files=True)
@@ -142,7 +146,7 @@ def test_chair_sizes_match_matterport_mean() -> None:
     # boxes equal what the reader derives from the O records (round-trip test above), so no files are written.
     sizes: dict[str, list[np.ndarray]] = {}
     for hid, hs, lv in plan_houses(40, SEED):
-        for o in synthesize_house(hs, hid, levels=lv).objects:
+        for o in synthesize_house(hs, hid, levels=lv, realism=CLEAN).objects:
             if o.mpcat40_index == 3:
                 sizes.setdefault(o.style, []).append(o.aligned_box[3:6])
     allsizes = np.concatenate([np.stack(v) for v in sizes.values()])
@@ -190,7 +194,7 @@ def test_mesh_has_a_hole_rays_escape_through(houses) -> None:
 def test_subdivided_house_has_the_same_surfaces_objects_and_labels(tmp_path):
     from mpchair.synth import subdivide_house
 
-    base = synthesize_house(5, levels=1)
+    base = synthesize_house(5, levels=1, realism=CLEAN)
     fine = subdivide_house(base, 2)
     assert len(fine.faces) == 16 * len(base.faces)
     # Children of face f are faces 16 f .. 16 f + 15: same labels, and together exactly f's area, inside f's plane.

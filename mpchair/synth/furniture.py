@@ -209,3 +209,74 @@ def bench(rng: np.random.Generator) -> list[Part]:
 def chair_rail(length: float) -> list[Part]:
     """A chair rail (moulding along a wall at seat-back height; mpcat40 ``misc`` despite the name), along +y."""
     return [(0, *cbox(0.01, 0, 0.9, 0.02, length, 0.06))]
+
+
+# ---------------------------------------------------------------------------------------------------- clutter
+# Extra categories of the realism model (mpchair.synth.realism ``clutter`` / ``doors``); never used by clean houses.
+
+
+def stool_chair(rng: np.random.Generator) -> list[Part]:
+    """Stool-like chair (a backless seat on four splayed-in legs, labelled chair in MP3D; about 0.42 x 0.4 x 0.6 m)."""
+    w, d, sh = _u(rng, 0.36, 0.46), _u(rng, 0.36, 0.46), _u(rng, 0.45, 0.68)
+    parts = _legs(d, w, sh - 0.04, 0.035)
+    parts.append((1, *cbox(0, 0, sh - 0.02, d, w, 0.04)))
+    parts.append((0, *cbox(0, 0, sh * 0.35, d - 0.07, 0.02, 0.02)))  # a stretcher between the legs
+    return parts
+
+
+def plant(rng: np.random.Generator) -> list[Part]:
+    """Potted plant: a pot and a leafy crown of a few overlapping blocks (0.3-0.6 m across, 0.4-1.6 m tall)."""
+    r, h = _u(rng, 0.12, 0.25), _u(rng, 0.4, 1.6)
+    pot_h = min(0.45, 0.25 * h + 0.1)
+    parts: list[Part] = [(0, *cylinder(0, 0, 0.0, pot_h, r, segments=10))]
+    for _ in range(int(rng.integers(2, 5))):
+        s = _u(rng, 0.6, 1.3) * r * 1.6
+        c = rng.uniform(-0.5, 0.5, 2) * r
+        z0 = _u(rng, pot_h, pot_h + 0.5 * (h - pot_h))
+        parts.append((1, *cbox(c[0], c[1], (z0 + h) / 2, s, s, h - z0)))
+    return parts
+
+
+def shelving(rng: np.random.Generator) -> list[Part]:
+    """Open shelving against a wall (back at local -x): two sides, a back, 3-6 shelves and rows of books."""
+    d, w, h = _u(rng, 0.28, 0.4), _u(rng, 0.7, 1.5), _u(rng, 0.9, 2.1)
+    n = max(2, int(h / 0.36))
+    parts: list[Part] = [(0, *cbox(-d / 2 + 0.01, 0, h / 2, 0.02, w, h))]
+    for sy in (-1, 1):
+        parts.append((0, *cbox(0, sy * (w / 2 - 0.01), h / 2, d, 0.02, h)))
+    for k in range(n + 1):
+        z = 0.02 + k * (h - 0.04) / n
+        parts.append((0, *cbox(0, 0, z, d, w - 0.04, 0.02)))
+        if k < n and rng.random() < 0.8:
+            bw = _u(rng, 0.2, 0.9) * (w - 0.06)
+            bh = min(_u(rng, 0.15, 0.3), (h - 0.04) / n - 0.04)
+            y = _u(rng, -(w - 0.06 - bw) / 2, (w - 0.06 - bw) / 2)
+            parts.append((1, *cbox(-0.02, y, z + 0.01 + bh / 2, d * 0.75, bw, bh)))
+    return parts
+
+
+def counter(rng: np.random.Generator) -> list[Part]:
+    """Kitchen counter against a wall (back at local -x): a base run with a slightly overhanging top (0.9 m high)."""
+    d, w, h = _u(rng, 0.58, 0.66), _u(rng, 1.2, 2.6), _u(rng, 0.88, 0.94)
+    return [(0, *cbox(-0.02, 0, (h - 0.04) / 2, d - 0.04, w, h - 0.04)), (1, *cbox(0, 0, h - 0.02, d, w + 0.02, 0.04))]
+
+
+def small_object(rng: np.random.Generator) -> list[Part]:
+    """A small object (box, bowl, vase, lamp, basket: mpcat40 ``objects``), 0.06-0.45 m."""
+    if rng.random() < 0.4:
+        r, h = _u(rng, 0.04, 0.15), _u(rng, 0.06, 0.4)
+        return [(0, *cylinder(0, 0, 0.0, h, r, segments=8))]
+    sx, sy, sz = _u(rng, 0.08, 0.45), _u(rng, 0.08, 0.4), _u(rng, 0.05, 0.35)
+    return [(0, *cbox(0, 0, sz / 2, sx, sy, sz))]
+
+
+def cushion(rng: np.random.Generator) -> list[Part]:
+    """A cushion lying on a seat (0.35-0.55 m square, 0.1-0.16 m thick)."""
+    s, t = _u(rng, 0.35, 0.55), _u(rng, 0.1, 0.16)
+    return [(0, *cbox(0, 0, t / 2, s, s * _u(rng, 0.85, 1.0), t))]
+
+
+def door_leaf(width: float, height: float) -> list[Part]:
+    """A door leaf hinged at the local origin, extending along +x (``width``), 0.04 m thick, with a handle."""
+    return [(0, *cbox(width / 2, 0, height / 2, width, 0.04, height)),
+            (0, *cbox(width - 0.08, 0, 1.0, 0.03, 0.14, 0.03))]  # fmt: skip

@@ -6,7 +6,10 @@ ceiling slabs, optionally a second level reached by a straight stair through a f
 unreconstructed hole in a top-level ceiling. Rooms are furnished by type (dining, kitchen, living, office, bedroom,
 bath, hallway): tables with chairs around them (some pushed under), sofas, cabinets, beds, stools, benches and chairs
 of five styles against walls or free-standing at random yaw. A few junk fragments are left unlabelled. The house is
-then rotated by a random yaw and shifted by a random offset, so nothing is axis-aligned to the world.
+then rotated by a random yaw and shifted by a random offset, so nothing is axis-aligned to the world. A
+:class:`~mpchair.synth.realism.Realism` other than ``CLEAN`` then adds clutter, door leaves and open-plan openings
+(:func:`_add_clutter`, from the realism stream) and, after every object's true box is measured, reconstruction
+artifacts (:func:`mpchair.synth.artifacts.apply_artifacts`).
 
 :func:`synthesize_house` returns a :class:`SyntheticHouse`: the records, the mesh with its per-face fields and the
 ground-truth objects (with the aligned boxes they were built with); :meth:`SyntheticHouse.files` encodes the four
@@ -52,8 +55,10 @@ from mpchair.matterport.jsonfiles import encode_fsegs, encode_semseg
 from mpchair.matterport.navmesh import encode_navmesh
 from mpchair.matterport.ply import encode_ply, encode_semantic_ply
 from mpchair.synth import furniture as fu
+from mpchair.synth.artifacts import apply_artifacts
 from mpchair.synth.navmesh import navmesh_polygons, walkable_polygons
 from mpchair.synth.primitives import Mesh, box, cbox, rect_minus_rect, rotate_z
+from mpchair.synth.realism import CLEAN, DEFAULT, Realism, realism_rng
 
 #: Raw categories used (category_mapping index, raw name with spaces, mpcat40 index). Indices below 2000 are the
 #: real ``category_mapping.tsv`` rows named in the format notes; rows from 2001 on are synthetic stand-ins for
@@ -69,7 +74,15 @@ CATEGORY_ROWS: tuple[tuple[int, str, int], ...] = (
     (2011, "coffee table", 5), (2012, "stool", 19), (2013, "bar stool", 19), (2014, "ottoman", 19), (2015, "sofa", 10),
     (2016, "couch", 10), (2017, "cabinet", 7), (2018, "kitchen cabinet", 7), (2019, "bed", 11), (2020, "bench", 34),
 )  # fmt: skip
-_MAPPING = {name: (idx, mp) for idx, name, mp in CATEGORY_ROWS}
+#: Raw categories only the realism model's clutter uses (synthetic rows, appended to the C records of houses that have
+#: them, so clean houses keep their category table).
+CLUTTER_ROWS: tuple[tuple[int, str, int], ...] = (
+    (2021, "door", 4), (2022, "plant", 14), (2023, "potted plant", 14), (2024, "bookshelf", 31), (2025, "shelves", 31),
+    (2026, "kitchen counter", 26), (2027, "cushion", 8), (2028, "pillow", 8), (2029, "box", 39), (2030, "vase", 39),
+    (2031, "basket", 39), (2032, "lamp", 39), (2033, "bowl", 39),
+)  # fmt: skip
+_MAPPING = {name: (idx, mp) for idx, name, mp in CATEGORY_ROWS + CLUTTER_ROWS}
+_CLUTTER_RAWS = frozenset(name for _, name, _ in CLUTTER_ROWS)
 
 WALL_T = 0.12  # wall thickness
 SLAB = 0.1  # floor / ceiling slab thickness
@@ -99,7 +112,7 @@ class SyntheticHouse:
 
     ``material_id``/``segment_id``/``category_id`` are the per-face ``.ply`` fields; ``mismatched_faces`` faces carry a
     deliberately wrong ``category_id`` (annotation drift, as in real data) so the reader's cross-check has something to
-    find; ``unlabelled_faces`` belong to no object.
+    find; ``unlabelled_faces`` belong to no object; ``realism`` is the realism it was built with.
     """
 
     id: str
@@ -118,6 +131,7 @@ class SyntheticHouse:
     global_offset: np.ndarray
     mismatched_faces: int
     unlabelled_faces: int
+    realism: Realism = CLEAN
 
     def files(self) -> dict[str, bytes]:
         """The four ``house_segmentations`` files as ``{suffix: bytes}`` (``.house``, ``.ply``, ``.fsegs.json``,
@@ -157,6 +171,10 @@ class _Obj:
     frame_yaw: float  # house frame yaw of the object's own axes (aligned box is computed in this frame)
     frame_pos: np.ndarray
     segs: list[int] = field(default_factory=list)
+
+    @property
+    def mpcat40(self) -> int:
+        return _MAPPING[self.raw][1]
 
 
 @dataclass
@@ -423,6 +441,103 @@ def _furnish(scene: _Scene, room: _Room, rng: np.random.Generator) -> None:
         _wall_chair(scene, room, rng, "folding" if rng.random() < 0.5 else None)
 
 
+# ------------------------------------------------------------------------------------------------ clutter
+
+
+def _top_of(scene: _Scene, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Object ``k``'s parts' extent ``(lo, hi)`` in its own frame (for things put on top of it)."""
+    o = scene.objs[k]
+    verts = np.vstack([v for v, _, s in scene.parts if s in o.segs])
+    local = rotate_z(verts - o.frame_pos, -o.frame_yaw)
+    return local.min(axis=0), local.max(axis=0)
+
+
+def _put_on(scene: _Scene, k: int, rng: np.random.Generator, raw: str, style: str, parts: list[fu.Part],
+            margin: float = 0.05, top: float | None = None) -> None:
+    """Put ``parts`` on object ``k``'s top (or at local height ``top``), inside its footprint less ``margin``."""
+    o = scene.objs[k]
+    lo, hi = _top_of(scene, k)
+    plo, phi = _local_bounds(parts)
+    half = (phi[:2] - plo[:2]) / 2 + margin
+    if np.any(hi[:2] - lo[:2] < 2 * half):
+        return
+    c = rng.uniform(lo[:2] + half, hi[:2] - half)
+    pos = rotate_z(np.array([[c[0], c[1], 0.0]]), o.frame_yaw)[0, :2] + o.frame_pos[:2]
+    z = o.frame_pos[2] + (hi[2] if top is None else top)
+    scene.add(raw, o.region, style, parts, o.frame_yaw + float(rng.uniform(-0.4, 0.4)), pos, z)
+
+
+def _door_leaves(scene: _Scene, rooms: list[_Room], portals, realism: Realism, rng: np.random.Generator) -> None:
+    """An open door leaf in a door opening (``realism.doors`` per door), swung 65-95 deg into one of its rooms, in the
+    free zone kept in front of every door."""
+    for a, b, (lo, hi) in portals:
+        if rng.random() >= realism.doors:
+            continue
+        region = a if b < 0 or rng.random() < 0.5 else b
+        room = rooms[region]
+        across = 0 if hi[0] - lo[0] < hi[1] - lo[1] else 1  # the wall's thin axis
+        along = 1 - across
+        rc = (room.rect[across] + room.rect[across + 2]) / 2
+        into = 1.0 if rc > (lo[across] + hi[across]) / 2 else -1.0
+        hinge = np.zeros(2)
+        hinge[across] = hi[across] if into > 0 else lo[across]
+        hinge[along] = lo[along] + 0.02
+        theta = math.radians(float(rng.uniform(65, 95)))
+        d = np.zeros(2)
+        d[along], d[across] = math.cos(theta), into * math.sin(theta)
+        width, height = hi[along] - lo[along] - 0.04, hi[2] - lo[2] - 0.02
+        if width > 1.0:  # an open-plan opening, not a door
+            continue
+        scene.add("door", region, "door", fu.door_leaf(width, height), math.atan2(d[1], d[0]), hinge, room.z)
+
+
+def _add_clutter(scene: _Scene, rooms: list[_Room], portals, realism: Realism, rng: np.random.Generator) -> None:
+    """The realism model's clutter (``realism.clutter`` scales the counts) and door leaves, drawn from ``rng``."""
+    if realism.doors > 0:
+        _door_leaves(scene, rooms, portals, realism, rng)
+    if realism.clutter <= 0:
+        return
+
+    def count(mean: float) -> int:
+        return int(rng.poisson(mean * realism.clutter))
+
+    for room in rooms:
+        if room.label == "s":
+            continue
+        lab = room.label
+        n_objs = len(scene.objs)
+        for _ in range(count(1.0)):
+            raw = str(rng.choice(["plant", "potted plant"]))
+            _place_wall(scene, room, rng, raw, "plant", fu.plant(rng), gap=0.05)
+        for _ in range(count(0.9 if lab in ("l", "f", "o", "b", "h") else 0.3)):
+            _place_wall(scene, room, rng, str(rng.choice(["bookshelf", "shelves"])), "shelving", fu.shelving(rng),
+                        gap=0.01)  # fmt: skip
+        if lab == "k":
+            for _ in range(1 + count(1.0)):
+                _place_wall(scene, room, rng, "kitchen counter", "counter", fu.counter(rng), gap=0.0)
+        for _ in range(count(0.3 if lab in ("k", "d", "h", "o") else 0.1)):
+            style, raw, parts = "stool", "chair", fu.stool_chair(rng)
+            if _chair_room_left(scene) and _place_free(scene, room, rng, raw, style, parts) is None:
+                _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
+        # More chairs against walls (dining and office kinds): bigger rooms fit more lounge chairs, and these keep the
+        # mean chair box at MP3D's (0.96 x 0.67 x 0.88 m).
+        for _ in range(count(0.7)):
+            _wall_chair(scene, room, rng, str(rng.choice(["dining", "dining", "office"])))
+        for _ in range(count(2.0)):
+            raw = str(rng.choice(["box", "basket", "vase", "lamp"]))
+            _place_wall(scene, room, rng, raw, "object", fu.small_object(rng), gap=float(rng.uniform(0.0, 0.3)))
+        # Things on tables, counters, cabinets and beds (their tops, not the floor).
+        hosts = [k for k in range(n_objs) if scene.objs[k].region == room.region
+                 and scene.objs[k].style in ("table", "counter", "cabinet", "bed")]  # fmt: skip
+        for k in hosts:
+            for _ in range(count(1.5 if scene.objs[k].style != "bed" else 1.0)):
+                if scene.objs[k].style == "bed":
+                    _put_on(scene, k, rng, str(rng.choice(["cushion", "pillow"])), "cushion", fu.cushion(rng), 0.1)
+                else:
+                    _put_on(scene, k, rng, str(rng.choice(["box", "vase", "lamp", "bowl"])), "object",
+                            fu.small_object(rng))  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------------------ structure
 
 
@@ -490,12 +605,15 @@ def make_house_id(rng: np.random.Generator) -> str:
     return "".join(_ID_CHARS[int(k)] for k in rng.integers(0, len(_ID_CHARS), 11))
 
 
-def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | None = None) -> SyntheticHouse:
-    """Build one procedural house from ``seed`` (see module docstring). ``levels`` forces 1 or 2 levels.
+def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | None = None,
+                     realism: Realism = DEFAULT) -> SyntheticHouse:
+    """Build one procedural house from ``seed`` (see module docstring). ``levels`` forces 1 or 2 levels; ``realism``
+    sets the reconstruction artifacts and clutter (:mod:`mpchair.synth.realism`; ``CLEAN``: none).
 
-    Deterministic: the same ``seed``, ``house_id`` and ``levels`` give the same house, bit for bit.
+    Deterministic: the same ``seed``, ``house_id``, ``levels`` and ``realism`` give the same house, bit for bit.
     """
     rng = np.random.default_rng(seed)
+    rrng = realism_rng(seed)
     if house_id is None:
         house_id = make_house_id(rng)
     n_levels = int(levels) if levels is not None else int(rng.integers(1, 3))
@@ -504,6 +622,9 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
     nc, nr = int(rng.integers(2, 4)), 2
     cw = rng.uniform(3.4, 5.2, nc)
     rd = rng.uniform(3.4, 4.8, nr)
+    if realism.room_size > 0:  # larger rooms, of about the same mean size in every house (steadier scan density)
+        k = realism.room_size / float(np.mean(np.concatenate([cw, rd])))
+        cw, rd = cw * k, rd * k
     stair_cell = (int(rng.integers(nc)), int(rng.integers(nr)))
     if n_levels == 2 and max(cw[stair_cell[0]], rd[stair_cell[1]]) < 4.2:
         cw[stair_cell[0]] = rng.uniform(4.2, 4.8)
@@ -591,7 +712,12 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
             ops: list[_Opening] = []
             if len(cells) == 2 or k == entry:
                 u = float(rng.uniform(a0 + 0.6 + DOOR_W / 2, a1 - 0.6 - DOOR_W / 2))
-                ops.append(_Opening(u - DOOR_W / 2, u + DOOR_W / 2, 0.0, DOOR_H, "door"))
+                dw = DOOR_W
+                if len(cells) == 2 and realism.open_plan > 0 and rrng.random() < realism.open_plan:
+                    # Open plan: a wide opening instead of a door (long sightlines into the next room).
+                    dw = float(rrng.uniform(1.6, length - 1.2))
+                    u = float(rrng.uniform(a0 + 0.6 + dw / 2, a1 - 0.6 - dw / 2))
+                ops.append(_Opening(u - dw / 2, u + dw / 2, 0.0, DOOR_H, "door"))
             elif rng.random() < 0.7:
                 ww = float(rng.uniform(1.0, min(1.8, length - 1.4)))
                 u = float(rng.uniform(a0 + 0.6 + ww / 2, a1 - 0.6 - ww / 2))
@@ -672,12 +798,28 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
         s = rng.uniform(0.05, 0.2, 3)
         scene.add_junk(room.region, [cbox(*c, *s)])
 
-    return _finish(scene, rooms, portals, rng, house_id, int(seed), n_levels, ceil_h)
+    _add_clutter(scene, rooms, portals, realism, rrng)
+    return _finish(scene, rooms, portals, rng, house_id, int(seed), n_levels, ceil_h, realism, rrng)
+
+
+def _true_extents(scene: _Scene) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per object, ``(lo, hi)`` of its parts in its own frame (x along ``frame_yaw``, origin ``frame_pos``): the true
+    box, measured before any reconstruction artifact."""
+    part_vert_seg = np.concatenate([np.full(len(v), s, dtype=np.int64) for v, _, s in scene.parts])
+    house_verts = np.vstack([v for v, _, _ in scene.parts])
+    out = []
+    for o in scene.objs:
+        local = rotate_z(house_verts[np.isin(part_vert_seg, o.segs)] - o.frame_pos, -o.frame_yaw)
+        out.append((local.min(axis=0), local.max(axis=0)))
+    return out
 
 
 def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed: int, n_levels: int,
-            ceil_h: float) -> SyntheticHouse:  # fmt: skip
-    """Apply the global pose and turn the scene into records, mesh arrays and ground truth."""
+            ceil_h: float, realism: Realism, rrng: np.random.Generator) -> SyntheticHouse:  # fmt: skip
+    """Apply the artifacts and the global pose and turn the scene into records, mesh arrays and ground truth."""
+    truth = _true_extents(scene)
+    if not realism.is_clean:
+        scene.parts = apply_artifacts(scene, rooms, truth, realism, rrng, wall_t=WALL_T, slab=SLAB)
     gyaw = float(rng.uniform(0, 2 * math.pi))
     goff = np.array([rng.uniform(-25, 25), rng.uniform(-25, 25), rng.uniform(-1.5, 1.5)])
 
@@ -700,7 +842,8 @@ def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed
     face_seg = np.concatenate([np.full(len(f), s, dtype=np.int64) for _, f, s in scene.parts])
 
     # Categories: C records sorted by category_mapping index.
-    rows = sorted(CATEGORY_ROWS)
+    used_clutter = any(o.raw in _CLUTTER_RAWS for o in scene.objs)
+    rows = sorted(CATEGORY_ROWS + (CLUTTER_ROWS if used_clutter else ()))
     c_of_raw = {name: k for k, (_, name, _) in enumerate(rows)}
     categories = tuple(CategoryRecord(k, idx, name, mp, mpcat40_name(mp)) for k, (idx, name, mp) in enumerate(rows))
 
@@ -726,11 +869,8 @@ def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed
     tri = vertices[faces]
     areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     part_vert_seg = np.concatenate([np.full(n, s, dtype=np.int64) for n, (_, _, s) in zip(counts, scene.parts)])
-    house_verts = np.vstack([v for v, _, _ in scene.parts])
     for k, o in enumerate(scene.objs):
-        mask = np.isin(part_vert_seg, o.segs)
-        local = rotate_z(house_verts[mask] - o.frame_pos, -o.frame_yaw)
-        lo, hi = local.min(axis=0), local.max(axis=0)
+        lo, hi = truth[k]
         ext = hi - lo
         centre = rotate_z(((lo + hi) / 2)[None], o.frame_yaw)[0] + o.frame_pos
         yaw = o.frame_yaw if ext[0] >= ext[1] else o.frame_yaw + math.pi / 2
@@ -811,7 +951,7 @@ def _finish(scene: _Scene, rooms: list[_Room], portals, rng, house_id: str, seed
         id=house_id, seed=seed, house_file=hf, vertices=vertices, faces=faces, material_id=material_id,
         segment_id=segment_id, category_id=category_id, colors=colors, objects=tuple(objects),
         seg_groups=tuple(groups), n_levels=n_levels, global_yaw=gyaw, global_offset=goff,
-        mismatched_faces=len(drift), unlabelled_faces=int(np.count_nonzero(face_obj < 0)),
+        mismatched_faces=len(drift), unlabelled_faces=int(np.count_nonzero(face_obj < 0)), realism=realism,
     )  # fmt: skip
 
 
@@ -912,23 +1052,24 @@ def subdivide_house(house: SyntheticHouse, times: int) -> SyntheticHouse:
         category_id=per_face[2], colors=np.rint(colors).astype(house.colors.dtype), objects=house.objects,
         seg_groups=house.seg_groups, n_levels=house.n_levels, global_yaw=house.global_yaw,
         global_offset=house.global_offset, mismatched_faces=house.mismatched_faces * 4**times,
-        unlabelled_faces=house.unlabelled_faces * 4**times,
+        unlabelled_faces=house.unlabelled_faces * 4**times, realism=house.realism,
     )
 
 
 def write_synthetic_houses(
     out_root: str | Path, n: int, seed: int, zip_files: bool = False, progress=None, subdivide: int = 0,
-    layout: str = "release",
+    layout: str = "release", realism: Realism = DEFAULT,
 ) -> list[str]:
     """Write ``n`` synthetic houses (seeded by ``seed``) under ``out_root`` in the download ``layout`` (``release``:
     ``v1/scans/<id>/...``; ``habitat``: ``mp3d/<id>/...``, with ``zip_files`` one ``mp3d_habitat.zip`` for all);
     return their ids. ``progress`` is an optional callable invoked once per house (e.g. a tqdm ``update``);
-    ``subdivide`` splits every triangle into 4 that many times (:func:`subdivide_house`).
+    ``subdivide`` splits every triangle into 4 that many times (:func:`subdivide_house`); ``realism`` sets the
+    reconstruction artifacts and clutter (:mod:`mpchair.synth.realism`).
     """
     ids = []
     members: dict[str, bytes] = {}
     for hid, hs, levels in plan_houses(n, seed):
-        house = subdivide_house(synthesize_house(hs, hid, levels=levels), subdivide)
+        house = subdivide_house(synthesize_house(hs, hid, levels=levels, realism=realism), subdivide)
         if layout == "habitat" and zip_files:
             members.update(_habitat_members(house))
         else:

@@ -4,8 +4,8 @@ Recast voxelises the scene and keeps floor where an agent of height ``agent_heig
 ``max_climb`` and ``agent_radius`` away from obstacles. The synthetic houses are made of closed convex parts (boxes,
 prisms), so the same rules fit in a few polygon operations:
 
-1. **floor**: the upward faces of ``floor`` objects, grouped by height (one group per level; the stair opening is a
-   hole in the upper floor);
+1. **floor**: the upward faces of ``floor`` objects, grouped by height (one group per level, :func:`_levels_of`; the
+   stair opening is a hole in the upper floor);
 2. **obstacles**: every connected part of the mesh that reaches into ``(floor + max_climb, floor + agent_height)``
    blocks its convex footprint (walls beside doors, furniture, stair steps; door lintels and ceilings do not);
 3. **walkable** = floor − obstacles, eroded by ``agent_radius``; constrained-Delaunay triangles of it become the
@@ -25,6 +25,18 @@ from scipy.sparse.csgraph import connected_components
 from mpchair.matterport.navmesh import DEFAULT_SETTINGS
 
 
+def _levels_of(face_z: np.ndarray, gap: float = 0.3) -> np.ndarray:
+    """(F,) level number of each upward floor face: heights sorted and split where they jump by more than ``gap`` m
+    (a level's floor is flat up to the realism model's noise and waves, levels are ~3 m apart)."""
+    if len(face_z) == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(face_z, kind="stable")
+    level_sorted = np.concatenate([[0], np.cumsum(np.diff(face_z[order]) > gap)])
+    out = np.empty(len(face_z), dtype=np.int64)
+    out[order] = level_sorted
+    return out
+
+
 def walkable_polygons(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -42,7 +54,7 @@ def walkable_polygons(
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     up = floor_faces & (n[:, 2] > 0.9 * np.linalg.norm(n, axis=1))
     face_z = tri[up, :, 2].mean(axis=1)
-    heights = np.round(face_z, 2)  # groups: one per level (floor slabs are exactly flat)
+    heights = _levels_of(face_z)
 
     # Connected parts of the mesh (faces sharing vertices), with their height range and xy points.
     graph = coo_matrix((np.ones(2 * len(f)), (np.r_[f[:, 0], f[:, 1]], np.r_[f[:, 1], f[:, 2]])),
