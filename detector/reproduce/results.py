@@ -175,18 +175,44 @@ def read_density(path: Path) -> DensitySummary | None:
 # --- mpchair generate (dataset/manifest.json) -------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Manifest:
-    """What the report quotes of a dataset's manifest: its house ids."""
+    """What the report quotes of a dataset's manifest: its house ids, and the sensor height and robot radius
+    (metres) its ``command`` passed to ``mpchair generate`` (None: not in the command)."""
 
     houses: tuple[str, ...]
+    height: float | None = None
+    robot_radius: float | None = None
 
     @classmethod
     def from_json(cls, d: dict) -> Manifest:
-        return cls(houses=tuple(d.get("houses") or ()))
+        command = [str(a) for a in d.get("command") or ()]
+
+        def option(name: str) -> float | None:
+            i = command.index(name) if name in command else -1
+            return float(command[i + 1]) if 0 <= i < len(command) - 1 else None
+
+        return cls(houses=tuple(d.get("houses") or ()), height=option("--height"),
+                   robot_radius=option("--robot-radius"))
 
 
 def read_manifest(dataset: Path) -> Manifest:
     """``dataset/manifest.json`` (no houses when absent)."""
     return Manifest.from_json(_read_json(dataset / "manifest.json") or {})
+
+
+# --- detector viz-sparsity --json (viz.json) --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SparsityFrame:
+    """The frame the sparsity figures were drawn on: its id and D (non-empty pillars / canvas, the dense input)."""
+
+    frame_id: str
+    density: float
+
+
+def read_sparsity_frame(path: Path) -> SparsityFrame | None:
+    """``viz.json`` of the viz step (None when absent or without the dense input's fraction)."""
+    d = _read_json(path)
+    fractions = (d or {}).get("nonzero_fraction", {}).get("dense") or []
+    return SparsityFrame(str(d["frame_id"]), float(fractions[0])) if d and fractions else None
 
 
 # --- detector train (RUN/config.yaml, RUN/metrics.jsonl) --------------------------------------------------------------
@@ -203,6 +229,8 @@ class RunConfig:
     lr: float | None = None
     output_shape: tuple[int, ...] | None = None  # (nx, ny) pillars
     point_cloud_range: tuple[float, ...] | None = None  # x, y, z min, then max, metres, sensor frame
+    grad_clip_norm: float | None = None  # None: no clipping (or not in the file)
+    downsample: str | None = None  # the sparse down-conv's output set (``floor`` / ``reference_quirk``); dense: None
 
     @classmethod
     def from_yaml(cls, d: dict) -> RunConfig:
@@ -211,7 +239,8 @@ class RunConfig:
         return cls(epochs=t.get("epochs"), samples_per_epoch=t.get("samples_per_epoch"),
                    batch_size=t.get("batch_size"), precision=t.get("precision"), schedule=t.get("schedule"),
                    lr=t.get("lr"), output_shape=None if grid is None else tuple(grid),
-                   point_cloud_range=None if rng is None else tuple(rng))
+                   point_cloud_range=None if rng is None else tuple(rng), grad_clip_norm=t.get("grad_clip_norm"),
+                   downsample=m.get("downsample"))
 
 
 def read_run_config(run: Path) -> RunConfig | None:

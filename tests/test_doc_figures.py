@@ -1,0 +1,287 @@
+"""The figures docs/results.md, benchmarks.md, sparse.md, evaluation.md and the README quote agree with the tables
+they come from (the Markdown tables in the same docs) and with the code that makes them (``detector.reproduce.report``
+for the metric notes, the KITTI protocol for the half-found example), so a number copied from an older run fails here.
+
+Each ``check_*`` returns the problems it finds in the docs' text; every test runs it on the docs as they are (no
+problem) and on a copy with the stale figure the docs once quoted (a problem), so a check cannot pass vacuously."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import pytest
+
+from detector.reproduce.report import PAPER, half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
+from detector.reproduce.results import EvalOutputs, Open3dMlMetrics
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = {name: ROOT / path for name, path in (("results", "docs/results.md"), ("benchmarks", "docs/benchmarks.md"),
+                                              ("sparse", "docs/sparse.md"), ("evaluation", "docs/evaluation.md"),
+                                              ("readme", "README.md"))}
+Docs = Mapping[str, str]
+
+
+@pytest.fixture(scope="module")
+def docs() -> dict[str, str]:
+    return {name: path.read_text(encoding="utf-8") for name, path in DOCS.items()}
+
+
+def flat(text: str) -> str:
+    """``text`` with every run of whitespace one space (a quoted sentence may wrap anywhere)."""
+    return " ".join(text.split())
+
+
+def number(cell: str) -> float:
+    """The leading number of a table cell: ``458.0 ± 22.471`` -> 458.0, ``11.77x`` -> 11.77, ``3,325.3`` -> 3325.3."""
+    return float(re.match(r"[-+]?[\d,]*\.?\d+", cell.strip()).group(0).replace(",", ""))
+
+
+def tables(text: str) -> list[list[list[str]]]:
+    """Every Markdown table of ``text`` as rows of cells (header first, the ``|---|`` line dropped)."""
+    found, current = [], []
+    for line in text.splitlines() + [""]:
+        if line.startswith("|"):
+            if not set(line) <= set("|-: "):
+                current.append([c.strip() for c in line.strip().strip("|").split("|")])
+        elif current:
+            found.append(current)
+            current = []
+    return found
+
+
+def cell(table: list[list[str]], row: str, column: str) -> str:
+    """The cell of the row whose first cell is ``row`` under the header ``column``."""
+    (match,) = [r for r in table[1:] if r[0] == row]
+    return match[table[0].index(column)]
+
+
+def section(text: str, heading: str) -> str:
+    """The text under the ``## heading`` line (its start), up to the next ``## `` heading."""
+    return text.split(f"\n## {heading}", 1)[1].split("\n", 1)[1].split("\n## ", 1)[0]
+
+
+def runtime_tables(text: str) -> list[list[list[str]]]:
+    """The per-component runtime tables (``detector bench --markdown``) of ``text``."""
+    return [t for t in tables(text) if t[0][:2] == ["model", "To Device"]]
+
+
+def quoted(pattern: str, text: str) -> tuple[str, ...] | None:
+    m = re.search(pattern, flat(text))
+    return None if m is None else m.groups()
+
+
+def results_runtime(d: Docs, alloc: str) -> list[list[str]]:
+    (table,) = runtime_tables(section(d["results"], f"Runtime at 768 x 512, allocator {alloc}"))
+    return table
+
+
+# --- results.md: the dense backbone's speed-up over the EPYC run ------------------------------------------------------
+def check_dense_backbone_speedup(d: Docs) -> list[str]:
+    """results.md's "the dense backbone is Ax / Bx faster here (a / b ms against the EPYC's c / d ms)" is c / a and
+    d / b, with a and b its own runtime tables' dense Backbone; and "the backbone ratio is X / Y" their dense / sparse
+    Backbone cells."""
+    got = quoted(r"the dense backbone is ([\d.]+)x / ([\d.]+)x faster here \(([\d.,]+) / ([\d.,]+) ms against the "
+                 r"EPYC's ([\d.,]+) / ([\d.,]+) ms, default / reuse\).*?the backbone ratio is ([\d.]+)x / ([\d.]+)x "
+                 r"instead of (\d+)x / (\d+)x \(([\d.]+)x / ([\d.]+)x lower\)", d["results"])
+    if got is None:
+        return ["results.md: no 'the dense backbone is Ax / Bx faster here (a / b ms against the EPYC's ...' sentence"]
+    speedup, here, epyc = got[0:2], got[2:4], got[4:6]
+    ratio, before, lower = got[6:8], got[8:10], got[10:12]
+    problems = []
+    for i, alloc in enumerate(("default", "reuse")):
+        table = results_runtime(d, alloc)
+        if number(here[i]) != number(cell(table, "dense", "Backbone")):
+            problems.append(f"{alloc}: dense backbone {here[i]} ms, table {cell(table, 'dense', 'Backbone')}")
+        if f"{number(epyc[i]) / number(here[i]):.1f}" != speedup[i]:
+            problems.append(f"{alloc}: {epyc[i]} / {here[i]} ms is not {speedup[i]}x")
+        if f"{number(cell(table, 'dense / sparse', 'Backbone')):.1f}" != ratio[i]:
+            problems.append(f"{alloc}: backbone ratio {ratio[i]}x is not the table's "
+                            f"{cell(table, 'dense / sparse', 'Backbone')}")
+        if f"{int(before[i]) / float(ratio[i]):.1f}" != lower[i]:
+            problems.append(f"{alloc}: {before[i]}x / {ratio[i]}x is not {lower[i]}x")
+    return problems
+
+
+# --- the half-found example: R40 for this val set's chairs ------------------------------------------------------------
+def check_half_found(d: Docs) -> list[str]:
+    """"Finding half of the chairs perfectly" scores, on the KITTI level, what the protocol's threshold rule gives for
+    the val set's chair count (results.md's "Overall N"), as the report writes it; evaluation.md quotes the same."""
+    (n_gt,) = quoted(r"Valid GT chairs: Easy \d+, Moderate \d+, Hard \d+, Overall (\d+)", d["results"]) or ("0",)
+    problems = []
+    if half_found_text(int(n_gt)) not in flat(d["results"]):
+        problems.append(f"results.md does not say {half_found_text(int(n_gt))!r}")
+    got = quoted(r"Finding half of the chairs perfectly scores 100; KITTI Overall gives R40 (\d+) there with many "
+                 r"chairs \(([\d,]+) in the val split of docs/results.md\) and R40 (\d+) with 10 ground-truth boxes",
+                 d["evaluation"])
+    if got is None:
+        return problems + ["evaluation.md: no 'KITTI Overall gives R40 N there with many chairs (...)' sentence"]
+    if int(got[1].replace(",", "")) != int(n_gt) or f"{half_found_r40(int(n_gt)):.0f}" != got[0]:
+        problems.append(f"evaluation.md: R40 {got[0]} with {got[1]} chairs; results.md's {n_gt} give "
+                        f"{half_found_r40(int(n_gt)):.0f}")
+    if f"{half_found_r40(10):.0f}" != got[2]:
+        problems.append(f"evaluation.md: R40 {got[2]} with 10 GT; the protocol gives {half_found_r40(10):.0f}")
+    return problems
+
+
+# --- sparse.md: the ratios on trained weights are results.md's --------------------------------------------------------
+def check_sparse_md_ratios(d: Docs) -> list[str]:
+    """sparse.md's "backbone A× (default allocator) and B× (reuse), end to end with the exact sparse head C× and D×"
+    are results.md's dense / sparse Backbone and dense / sparse+sparse_head Total cells."""
+    got = quoted(r"backbone ([\d.]+)× \(default allocator\) and ([\d.]+)× \(reuse\), end to end with the exact sparse "
+                 r"head ([\d.]+)× and ([\d.]+)×", d["sparse"])
+    if got is None:
+        return ["sparse.md: no 'backbone A× (default allocator) and B× (reuse), end to end ...' sentence"]
+    problems = []
+    for i, alloc in enumerate(("default", "reuse")):
+        table = results_runtime(d, alloc)
+        for value, row, column in ((got[i], "dense / sparse", "Backbone"),
+                                   (got[2 + i], "dense / sparse+sparse_head", "Total")):
+            if f"{number(cell(table, row, column)):.1f}" != value:
+                problems.append(f"sparse.md: {alloc} {row} {column} {value}× is not results.md's "
+                                f"{cell(table, row, column)}")
+    return problems
+
+
+# --- benchmarks.md: our dense backbone + neck against Open3D-ML's -----------------------------------------------------
+def check_backbone_against_open3d_ml(d: Docs) -> list[str]:
+    """benchmarks.md's "the dense backbone + neck A-Bx faster than Open3D-ML's ... C-Dx on the loaded AVX2 EPYC": A-B
+    the range of the Backbone cells of every ``open3d-ml / dense`` row of the runtime tables (benchmarks.md and
+    results.md), C-D that of Open3D-ML's over our dense Backbone in the EPYC table of "Numbers"."""
+    got = quoted(r"the dense backbone \+ neck ([\d.]+)-([\d.]+)x faster than Open3D-ML's same layers.*?; "
+                 r"([\d.]+)-([\d.]+)x on the loaded AVX2 EPYC", d["benchmarks"])
+    if got is None:
+        return ["benchmarks.md: no 'the dense backbone + neck A-Bx faster than Open3D-ML's ...' sentence"]
+    cells = [number(cell(t, "open3d-ml / dense", "Backbone"))
+             for name in ("benchmarks", "results") for t in runtime_tables(d[name])]
+    (epyc,) = [t for t in tables(section(d["benchmarks"], "Numbers")) if t[0][:2] == ["allocator", "model"]]
+    backbone = {(r[0], r[1]): number(r[epyc[0].index("Backbone")]) for r in epyc[1:]}
+    peer = [backbone[(a, "open3d-ml")] / backbone[(a, "dense")] for a in ("reuse", "default")]
+    want = [f"{min(cells):.2f}", f"{max(cells):.2f}", f"{min(peer):.2f}", f"{max(peer):.2f}"]
+    return [] if list(got) == want and len(cells) >= 4 else [
+        f"benchmarks.md quotes {got[0]}-{got[1]}x / {got[2]}-{got[3]}x; the tables give {want[0]}-{want[1]}x "
+        f"({len(cells)} rows) / {want[2]}-{want[3]}x"]
+
+
+# --- Open3D-ML's mAP: recall-blind wherever it is quoted --------------------------------------------------------------
+def _detection_outputs(d: Docs) -> tuple[EvalOutputs, float]:
+    """results.md's detection table as the report's records (Open3D-ML mAP per model), and its sparse - dense 3D."""
+    (table,) = [t for t in tables(section(d["results"], "Detection")) if "3D AP Open3D-ML mAP" in t[0]]
+    o3d = {m: Open3dMlMetrics({"bev": number(cell(table, m, "BEV AP Open3D-ML mAP")),
+                               "3d": number(cell(table, m, "3D AP Open3D-ML mAP"))}) for m in ("dense", "sparse")}
+    return EvalOutputs(kitti={}, open3d_ml=o3d), number(cell(table, "sparse - dense", "3D AP Open3D-ML mAP"))
+
+
+def check_open3d_ml_notes(d: Docs) -> list[str]:
+    """results.md carries the report's recall-blind note and its verdict on the paper's gap, made from its own
+    detection table; the README's rounded mAPs are that table's; every prose paragraph of these docs that quotes an
+    Open3D-ML mAP number says that the metric is recall-blind; none calls the paper's -4.61 gap reproduced."""
+    problems = []
+    ev, gap = _detection_outputs(d)
+    dense_3d = ev.open3d_ml["dense"].get("3d")
+    with_gap = EvalOutputs(kitti={}, open3d_ml={"dense": ev.open3d_ml["dense"],
+                                                "sparse": Open3dMlMetrics({"3d": dense_3d + gap})})
+    for line in (recall_blind_note(ev), paper_gap_verdict(with_gap)):
+        if line not in d["results"]:
+            problems.append(f"results.md lacks the report's {line!r}")
+    o3d = {m: ev.open3d_ml[m] for m in ("dense", "sparse")}
+    readme = (f"dense {o3d['dense'].get('3d'):.1f} / sparse {o3d['sparse'].get('3d'):.1f} 3D AP, above its BEV AP "
+              f"({o3d['dense'].get('bev'):.1f} / {o3d['sparse'].get('bev'):.1f})")
+    if readme not in flat(d["readme"]):
+        problems.append(f"README does not quote results.md's Open3D-ML mAP as {readme!r}")
+    for name, text in d.items():
+        for para in text.split("\n\n"):
+            if para.lstrip().startswith(("|", "```")) or not re.search(r"Open3D-ML (3D |BEV )?mAP\b", para):
+                continue
+            if re.search(r"\d\d\.\d\d?\b", para) and "recall-blind" not in para:
+                problems.append(f"{name}: a paragraph quotes Open3D-ML's mAP without 'recall-blind': {para[:80]!r}")
+            for sentence in re.split(r"(?<=[.;:])\s", flat(para)):
+                if str(PAPER["sparse_3d_delta"]) in sentence and re.search(r"(?<!not )reproduced", sentence):
+                    problems.append(f"{name}: calls the paper's gap reproduced: {sentence!r}")
+    return problems
+
+
+# --- the differences table of results.md ------------------------------------------------------------------------------
+def check_differences(d: Docs) -> list[str]:
+    """results.md's differences table has the rows of the report, and their figures are the same doc's: the density
+    median of its stats summary, the sparsity frame's D in its op-count table, the head ratio of its runtime tables,
+    the training grid of its grid row."""
+    text = d["results"]
+    (table,) = [t for t in tables(section(text, "Differences from the paper's experiment"))]
+    rows = {r[0]: r[2] for r in table[1:]}
+    need = ("sparse down-conv", "gradient clipping", "sensor height", "robot radius", "head at inference",
+            "bench weights", "density D (test split)", "sparsity figures (Figs. 3-4)")
+    problems = [f"differences table: no {a!r} row" for a in need if a not in rows]
+    if problems:
+        return problems
+    (median,) = quoted(r'`mpchair stats` summary: `\{"median": ([\d.e-]+)', text)
+    if rows["density D (test split)"] != f"median {float(median):.5f} (`mpchair stats`)":
+        problems.append(f"density row {rows['density D (test split)']!r}, summary median {median}")
+    frame, dens = quoted(r"test frame (\d{6}), a Matterport-Chair frame of D = ([\d.]+)", rows[need[-1]]) or ("", "")
+    ops = [t for t in tables(section(text, "Operation counts")) if t[0][:2] == ["frame", "D"]]
+    if not ops or [r[1] for r in ops[0][1:] if r[0] == frame] != [dens]:
+        problems.append(f"sparsity row: frame {frame!r} D {dens!r} is not the op-count table's")
+    head = [f"{number(cell(results_runtime(d, a), 'open3d-ml / dense', 'Head')):.1f}x" for a in ("default", "reuse")]
+    if f"Open3D-ML's three convs take {head[0]} / {head[1]} its time" not in rows["head at inference"]:
+        problems.append(f"head row {rows['head at inference']!r}; the runtime tables give {head}")
+    grid = re.search(r"(\d+ x \d+) pillars of 5 cm over", rows["training grid"])
+    if grid is None or f"trained on the {grid.group(1)} crop" not in rows["bench weights"]:
+        problems.append(f"bench weights row {rows['bench weights']!r} is not the training grid's")
+    if "Targets (issue)" in text:
+        problems.append("results.md: 'Targets (issue)' is the issue's wording, not the report's")
+    return problems
+
+
+# --- README: what has been measured where -----------------------------------------------------------------------------
+def check_readme_machines(d: Docs) -> list[str]:
+    """The README's opening promises no machine the docs have no measurement of: it names the CPUs benchmarks.md
+    measured on, and says "no GPU run yet" while benchmarks.md's GPU check says no GPU has been lent."""
+    top = flat(d["readme"].split("\n## ", 1)[0])
+    problems = [f"README's opening does not name {cpu!r}" for cpu in ("Intel Xeon", "AMD EPYC") if cpu not in top]
+    problems += [f"benchmarks.md does not name {cpu!r}" for cpu in ("Xeon", "AMD EPYC") if cpu not in d["benchmarks"]]
+    if "a robot CPU or a GPU" in top:
+        problems.append("README promises 'a robot CPU or a GPU'")
+    no_gpu = "No GPU has been lent to this project yet" in flat(section(d["benchmarks"], "GPU check"))
+    if no_gpu != ("no GPU run yet" in top) or "tools/device_check.sh" not in top:
+        problems.append("README's GPU sentence does not match benchmarks.md's GPU check section")
+    return problems
+
+
+def _swap(name: str, old: str, new: str) -> Callable[[Docs], dict[str, str]]:
+    def stale(d: Docs) -> dict[str, str]:
+        assert old in d[name], (name, old)
+        return {**d, name: d[name].replace(old, new, 1)}
+    return stale
+
+
+CHECKS = [
+    (check_dense_backbone_speedup, _swap("results", "7.3x / 9.0x faster here", "~2.5x / 9.0x faster here")),
+    (check_dense_backbone_speedup, _swap("results", "(458.0 / 339.1 ms against", "(448.0 / 339.1 ms against")),
+    (check_half_found, _swap("results", "R40 50 on the KITTI level", "R40 10 on the KITTI level")),
+    (check_half_found, _swap("evaluation", "KITTI Overall gives R40 50 there", "KITTI Overall gives R40 10 there")),
+    (check_sparse_md_ratios, _swap("sparse", "backbone 11.8× (default", "backbone 16.4× (default")),
+    (check_sparse_md_ratios, _swap("sparse", "head 8.9× and 11.3×", "head 19.1× and 21.1×")),
+    (check_backbone_against_open3d_ml, _swap("benchmarks", "neck 1.35-1.49x faster", "neck 1.1-1.2x faster")),
+    (check_open3d_ml_notes, _swap("readme", "is recall-blind, so", "is the paper's, so")),
+    (check_open3d_ml_notes, _swap("results", "| dense | 69.58 | 68.15 | 70.24 | 66.57 | 87.37 | 88.36 |",
+                                  "| dense | 69.58 | 68.15 | 70.24 | 66.57 | 87.37 | 88.46 |")),
+    (check_open3d_ml_notes, _swap("readme", "so the paper's -4.61 gap is not reproduced on it",
+                                  "so the paper's -4.61 gap is reproduced on it")),
+    (check_differences, _swap("results", "median 0.00565 (`mpchair stats`)", "median 0.00495 (`mpchair stats`)")),
+    (check_differences, _swap("results", "Open3D-ML's three convs take 11.0x", "Open3D-ML's three convs take 10.0x")),
+    (check_differences, _swap("results", "## Targets and this run", "## Targets (issue) and this run")),
+    (check_readme_machines, _swap("readme", "yet: `tools/device_check.sh` is the", "yet: a script is the")),
+    (check_readme_machines, _swap("readme", "no robot CPU and no GPU run yet", "a robot CPU or a GPU")),
+]
+
+
+@pytest.mark.parametrize("check", sorted({c for c, _ in CHECKS}, key=lambda c: c.__name__),
+                         ids=lambda c: c.__name__)
+def test_docs_quote_their_tables(docs, check) -> None:
+    assert check(docs) == []
+
+
+@pytest.mark.parametrize(("check", "stale"), CHECKS, ids=[f"{c.__name__}-{i}" for i, (c, _) in enumerate(CHECKS)])
+def test_a_stale_figure_fails_its_check(docs, check, stale) -> None:
+    assert check(stale(docs)) != []
