@@ -186,3 +186,18 @@ def test_camera_to_sensor_style_axes():
     np.testing.assert_allclose(s, [[10.0, -1.0, -0.75, 4.0, 2.0, 1.5, -math.pi / 2]])
     poly = bev_polygons(s)[0]
     assert np.ptp(poly[:, 1]) == pytest.approx(4.0) and np.ptp(poly[:, 0]) == pytest.approx(2.0)
+
+
+def test_3d_iou_never_exceeds_bev_iou():
+    """The fact docs/evaluation.md and the report's recall-blind note rest on: for upright boxes, IoU_3D =
+    I*h_i / (A*h_a + B*h_b - I*h_i) <= I / (A + B - I) = IoU_BEV, since h_i <= min(h_a, h_b)."""
+    from detector.ops import iou_3d, rotated_iou_bev
+
+    rng = np.random.default_rng(41)
+    a = np.column_stack([rng.uniform(-2, 2, (200, 3)), rng.uniform(0.2, 3, (200, 3)), rng.uniform(-np.pi, np.pi, 200)])
+    shift = np.column_stack([rng.normal(0, 0.4, (200, 3)), rng.normal(0, 0.3, (200, 3)).clip(-0.15),
+                             rng.normal(0, 0.5, 200)])
+    b = a + shift
+    bev, d3 = rotated_iou_bev(a, b), iou_3d(a, b)
+    assert (d3 > 0.2).sum() > 50  # many overlapping pairs, not a vacuous check
+    assert np.all(d3 <= bev + 1e-12)
