@@ -209,11 +209,13 @@ def render_bev(
     extent: tuple[float, float, float, float] | None = None,
     size: tuple[int, int] = (1000, 1000),
     title: str = "",
+    det_label: str = "detections",
 ) -> None:
     """Bird's-eye view PNG (``size = (W, H)`` pixels) of a scan with its boxes, looking down the sensor's +z.
 
     ``points`` (N, >=3) sensor frame, metres, coloured by z; ``boxes`` (M,7) ground truth in green, labelled with
-    ``names``; ``det_boxes`` (K,7) detections in red (dashed), labelled with ``det_scores``. Each box shows its
+    ``names``; ``det_boxes`` (K,7) detections in red (dashed), labelled with ``det_scores``, named ``det_label`` in
+    the legend. Each box shows its
     heading as a line from the centre to its front edge. ``extent`` ``(xmin, xmax, ymin, ymax)`` metres, default:
     the points' 0.5-99.5 percentiles plus every box. The axes are equal: x to the right, y up (a top view of the
     right-handed frame, so a positive yaw turns counter-clockwise on the picture).
@@ -246,7 +248,7 @@ def render_bev(
     legend = [f"ground truth ({len(boxes)})"]
     handles = [_line(GT_COLOUR, "-")]
     if det_boxes is not None:
-        legend.append(f"detections ({len(dets)})")
+        legend.append(f"{det_label} ({len(dets)})")
         handles.append(_line(DET_COLOUR, "--"))
     ax.legend(handles, legend, loc="upper right", fontsize=8)
     ax.set_title(title)
