@@ -264,6 +264,30 @@ def _seconds(text: str) -> float:
     return float(value) * {"s": 1, "min": 60, "h": 3600}[unit]
 
 
+def test_the_duration_estimate_follows_the_recent_steps(monkeypatch):
+    """A run whose steps slow down from 0.5 s to 3 s (a co-running load): the start-up estimate says 0.5 s, the
+    rolling one that the epoch lines print moves to the recent 3 s (the warm-up step is never counted), and the epoch
+    line says what is left at that pace; the last epoch's line has nothing left to estimate."""
+    from detector.train import metrics
+
+    clock = iter([10.0, 10.5, 11.0, 11.5] + [11.5 + 3.0 * i for i in range(1, 61)])  # step 1 took 10 s
+    monkeypatch.setattr(metrics.time, "perf_counter", lambda: next(clock))
+    estimate = metrics.DurationEstimate(first_step=0, todo=100)
+    measured = [estimate.after_step(step) for step in range(1, 5)]
+    assert measured == [None, None, None, 0.5]
+    assert estimate.rolling() == 0.5
+    for step in range(5, 65):
+        estimate.after_step(step)
+    assert estimate.rolling() == pytest.approx(3.0)  # the last ROLLING_STEPS = 50 steps are all 3 s ones
+    zero = metrics.ZERO_LOSSES
+    line = metrics.epoch_line(epoch=1, epochs=2, means=zero, steps=64, seconds=200.0, step=64, total_steps=100,
+                              per_step=estimate.rolling(), steps_left=36)
+    assert line.endswith(", step 64/100, ~3.00 s/step now -> ~2 min left"), line  # 108 s
+    last = metrics.epoch_line(epoch=2, epochs=2, means=zero, steps=36, seconds=108.0, step=100, total_steps=100,
+                              per_step=3.0, steps_left=0)
+    assert last.endswith("36 steps in 2 min, step 100/100"), last
+
+
 def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path, capsys):
     """Without progress bars ``detector train`` still prints its plan, the expected duration measured on the first
     steps, and one line per epoch; ``detector eval`` says where it wrote its files and that the all-zero AP of so
@@ -284,9 +308,14 @@ def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path
     assert per_step >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
     assert abs(_seconds(estimate.group(2)) - 6 * per_step) <= max(1.0, 0.05 * 6 * per_step)
     (epoch,) = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
-    assert re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
-                        rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8",
-                        lines[2]), lines[2]
+    # the epoch line's estimate is the rolling mean of the steps after the first, for the 2 steps still to run
+    line = re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
+                        rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8, "
+                        r"~(\d+\.\d\d) s/step now -> ~(.+) left", lines[2])
+    assert line, lines[2]
+    rolling = float(line.group(1))
+    assert rolling >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
+    assert abs(_seconds(line.group(2)) - 2 * rolling) <= 1.0
     assert lines[3:] == [f"trained 1 epoch(s), 6 step(s), last loss {steps[-1]['loss_total']:.4f}; checkpoint "
                          f"{run / 'last.pt'}"]
 
