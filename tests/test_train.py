@@ -258,6 +258,35 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, t
     assert len(steps) == 5 and all(math.isfinite(s["loss_total"]) for s in steps)  # epoch 2 failed at its 2nd step
 
 
+def test_ctrl_c_says_which_step_last_pt_holds_and_the_resume_command(data, tmp_path, capsys, monkeypatch):
+    """Ctrl-C in the 6th step of a 2 x 4-step run: one line (no traceback, exit 130) says that last.pt holds step 4
+    (the end of epoch 1) and gives the command that continues it; that command, run as printed, finishes the run."""
+    import shlex
+
+    from detector.train import loop
+
+    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=2))
+    run = tmp_path / "run"
+    real_step = loop.train_step
+
+    def interrupted_at_step_6(batch, parts, settings, *, epoch, step):
+        if step == 5:  # 0-based: the 6th step
+            raise KeyboardInterrupt
+        return real_step(batch, parts, settings, epoch=epoch, step=step)
+
+    monkeypatch.setattr(loop, "train_step", interrupted_at_step_6)
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", run, "--threads", "1", "--no-progress"],
+                        capsys)
+    assert code == 130 and "Traceback" not in err
+    command = (f"detector train --config {cfg} --data {data} --out {run} --threads 1 --no-progress --resume")
+    assert err.splitlines()[-1] == (f"interrupted: {run / 'last.pt'} holds step 4 (epoch 1 done); steps after it are "
+                                    f"lost. Continue with: {command}")
+    monkeypatch.setattr(loop, "train_step", real_step)
+    code, out, err = _cli(shlex.split(command)[1:], capsys)
+    assert code == 0, err
+    assert "resumed at step 4" in out and "trained 2 epoch(s), 8 step(s)" in out
+
+
 def _seconds(text: str) -> float:
     """``"18 s"`` / ``"3 min"`` / ``"1.5 h"`` (detector.train.format_duration) in seconds."""
     value, unit = text.split()

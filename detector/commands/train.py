@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import sys
 
 import click
@@ -14,6 +15,26 @@ def _say(line: str) -> None:
 
     tqdm.write(line, file=sys.stdout)
     sys.stdout.flush()
+
+
+def _resume_command(ctx: click.Context) -> str:
+    """This command line as typed (the options given on it, in the command's order) with ``--resume``; under
+    torchrun the ``torchrun ... -m detector`` prefix stands for the one used."""
+    import os
+
+    words = ["detector", "train"]
+    for param in ctx.command.params:
+        source = ctx.get_parameter_source(param.name)
+        if source != click.core.ParameterSource.COMMANDLINE or param.name == "resume":
+            continue
+        value = ctx.params[param.name]
+        if isinstance(param, click.Option) and param.is_flag:
+            words += [param.opts[0]] if value else []
+        else:
+            words += [param.opts[0], str(value)]
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        words[:1] = ["torchrun", "...", "-m", "detector"]
+    return shlex.join(words + ["--resume"])
 
 
 @click.command("train")
@@ -58,6 +79,15 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
                               max_steps=max_steps, device=device, threads=threads, split=split,
                               eval_split=eval_split, progress=not no_progress, log=_say)
+    except KeyboardInterrupt:
+        if main_rank:
+            from pathlib import Path
+
+            from detector.train.resume import interrupted_line
+
+            click.echo(interrupted_line(Path(out_dir) / "last.pt", _resume_command(click.get_current_context())),
+                       err=True)
+        sys.exit(130)
     except TrainingError as e:
         if main_rank:  # the failing loss / gradient norm is all-reduced: every rank stops at the same step
             click.echo(f"error: {e}", err=True)
