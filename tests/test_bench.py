@@ -132,6 +132,39 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
     assert not (tmp_path / "no.json").exists()
 
 
+def test_bench_threads_default_to_the_free_cores_and_warn_when_oversubscribed(data, tmp_path, capsys,
+                                                                              monkeypatch) -> None:
+    """``--threads`` defaults to the cores minus the 1-minute load (at least 1); threads + load above the cores is one
+    warning line on stderr before the timing (a loaded machine collapsed the sparse/dense ratio from 14.2x to 2.2x)."""
+    from detector import device
+
+    assert [device.free_cores(16, load) for load in (0.0, 0.3, 3.6, 15.2, 40.0)] == [16, 16, 12, 1, 1]
+    assert device.oversubscription_warning(2, 2, 0.3) is None and device.oversubscription_warning(3, 4, 1.2) is None
+    assert device.oversubscription_warning(2, 2, 1.5) == (
+        "--threads 2 + load 1.5 exceed the 2 cores: timings will be slower than on an idle machine, the sparse "
+        "backbone's most (use --threads 1 or a quiet machine)")
+    monkeypatch.setattr(device, "usable_cores", lambda: 4)
+
+    def bench(load: float, *threads: str) -> tuple[list[str], dict]:
+        monkeypatch.setattr(device, "load_1m", lambda: load)
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
+                  *threads, "--json", str(tmp_path / "b.json")])
+        assert e.value.code == 0
+        return capsys.readouterr().err.splitlines(), json.loads((tmp_path / "b.json").read_text())["machine"]
+
+    try:
+        err, machine = bench(1.2)
+        assert machine["torch_threads"] == 3 and not [ln for ln in err if ln.startswith("warning:")], err
+        err, machine = bench(3.5, "--threads", "2")
+        assert machine["torch_threads"] == 2
+        assert [ln for ln in err if ln.startswith("warning:")] == [
+            "warning: --threads 2 + load 3.5 exceed the 4 cores: timings will be slower than on an idle machine, the "
+            "sparse backbone's most (use --threads 1 or a quiet machine)"]
+    finally:
+        torch.set_num_threads(1)
+
+
 def test_a_checkpoint_is_compared_with_the_config_it_is_loaded_under(data, tmp_path, capsys) -> None:
     """A checkpoint loaded under another grid runs (exit 0) with one warning naming the keys that differ; under
     another network it is one error line naming the differing key (exit 2, no PyTorch "Missing key(s)" dump); a file
