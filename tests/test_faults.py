@@ -244,7 +244,8 @@ def test_settings_that_cannot_make_frames_leave_nothing_and_the_corrected_comman
         assert code == 2 and "must be a finite number" in _one_error_line(err) and not out.exists()
     (tmp_path / "file").write_text("x")
     code, _, err = _cli(mpchair_main, _cmd(houses, tmp_path / "file" / "ds", 3)[3:], capsys)
-    assert code == 2 and _one_error_line(err) == f"error: {tmp_path / 'file' / 'ds'}: Not a directory"
+    assert code == 2 and _one_error_line(err) == (f"error: {tmp_path / 'file'}: is not a folder, so "
+                                                  f"{tmp_path / 'file' / 'ds'} cannot be written")
     code, _, err = _cli(mpchair_main, base, capsys)
     assert code == 0 and (out / "manifest.json").is_file()
 

@@ -55,7 +55,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     """
     from detector.bench import BenchModel, format_table, run_bench
     from detector.device import free_cores, load_1m, oversubscription_warning, usable_cores
-    from mpchair.core.atomic import write_text
+    from mpchair.core.atomic import check_writable, write_text
     from mpchair.core.errors import InputError
 
     if checkpoints and len(checkpoints) != len(configs):
@@ -63,6 +63,8 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
                          f"checkpoint(s) for {len(configs)} config(s)")
     ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
     models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
+    if json_out:
+        check_writable(json_out)  # before the minutes of timing, not after
     if device == "cpu":
         # oversubscribed threads wait on each other: a loaded machine measured a 2.2x sparse/dense backbone ratio at
         # --threads 2 and 14.2x at --threads 1 minutes later, so warn before timing, not after

@@ -72,9 +72,11 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
     """
     from detector.train import TrainingError, dist_info_from_env
     from detector.train import train as run_training
+    from mpchair.core.atomic import check_writable
 
     # Under torchrun every rank runs this command; rank 0 speaks for the job (the others' results are the same).
     main_rank = dist_info_from_env().is_main
+    check_writable(out_dir, folder=True)
     try:
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
                               max_steps=max_steps, device=device, threads=threads, split=split,

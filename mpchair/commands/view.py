@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.core.atomic import check_writable
 from mpchair.core.clitools import FRAME_ID
 from mpchair.core.errors import InputError
 
@@ -17,6 +18,7 @@ _CTX = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
 def _png(path: Path, option: str) -> Path:
     if path.suffix.lower() != ".png":
         raise InputError(f"{option} must name a .png file", path)
+    check_writable(path)  # now, not after the drawing
     return path
 
 
