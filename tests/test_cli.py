@@ -189,3 +189,18 @@ def test_outputs_that_cannot_be_written_fail_before_the_work_naming_the_folder(t
             mpchair_main(["view", str(data), "--frame", "0", "--out", str(ro / "x.png")])
         assert e.value.code == 2
         assert capsys.readouterr().err.startswith(f"error: {ro}: folder not writable (Permission denied)")
+
+
+def test_help_examples_name_ids_synth_makes_and_write_under_out() -> None:
+    """``view-house --help`` shows no house id that ``mpchair synth`` never makes (it says how to list the ids), and the
+    picture examples of ``view``, ``view-house`` and ``stats`` write under ``out/``, not into the repository root."""
+    import re
+
+    runner = click.testing.CliRunner()
+    for name in ("view", "view-house", "stats"):
+        text = runner.invoke(mpchair_cli, [name, "--help"], prog_name="mpchair").output
+        examples = text.split("Example", 1)[1]
+        assert "synth0000" not in examples
+        written = re.findall(r"--(?:out|plot) (\S+\.png)", examples)
+        assert written and all(p.startswith("out/") for p in written), (name, written)
+    assert "mpchair houses --root" in runner.invoke(mpchair_cli, ["view-house", "--help"]).output

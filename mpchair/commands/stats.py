@@ -44,9 +44,9 @@ def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | No
 
     \b
     Examples:
-      mpchair stats --density dataset/ --plot density.png
+      mpchair stats --density dataset/ --plot out/density.png
       mpchair stats --density tests/data/kitti --preset kitti --json
-      mpchair stats --boxes dataset/ --plot boxes.png
+      mpchair stats --boxes dataset/ --plot out/boxes.png
     """
     from mpchair.analysis import render
     from mpchair.analysis import stats as lib

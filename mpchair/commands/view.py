@@ -61,8 +61,8 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
 
     \b
     Examples:
-      mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
-      mpchair view dataset/ --frame 3 --out all.png --zmax none # the ceiling too
+      mpchair view dataset/ --frame 3 --out out/frame.png --3d  # writes out/frame.png and out/frame-3d.png
+      mpchair view dataset/ --frame 3 --out out/all.png --zmax none  # the ceiling too
       mpchair view stream/ --rerun stream.rrd && rerun stream.rrd
       mpchair view stream/ --mcap stream.mcap && ros2 bag play -s mcap stream.mcap
     """
@@ -172,7 +172,8 @@ def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Pat
 
     \b
     Example:
-      mpchair view-house --root houses/ --house synth0000 --out house.png --dataset dataset/
+      mpchair houses --root houses/             # lists the house ids under the root
+      mpchair view-house --root houses/ --house ID --out out/house.png --dataset dataset/
     """
     from mpchair.analysis.render import house_picture
 
