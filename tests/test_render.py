@@ -203,3 +203,33 @@ def test_generated_dataset_stats_and_pictures(generated, tmp_path, capsys):
     assert near(image, "#ff7f0e", 30) > 50 and near(image, "#1f4fff", 40) > 5
     code, out = run_main(capsys, "view-house", "--root", houses, "--house", "nope", "--out", tmp_path / "n.png")
     assert code == 2 and "house 'nope' not found" in out and not (tmp_path / "n.png").exists()
+
+
+def test_view_draws_a_stream_frame_with_sequence(tmp_path, capsys):
+    """``mpchair view STREAM --frame 5 --out x.png`` says how (``--sequence NN``, the sequences listed) instead of
+    "no training/velodyne/000005.bin"; with ``--sequence`` it draws that sequence's frame: its points below the
+    ceiling cut of the stream's sensor height, its labelled boxes."""
+    from mpchair.kitti import read_labels
+    from mpchair.stream import StreamRequest, stream
+    from mpchair.synth import synthesize_house, write_house
+
+    house = synthesize_house(7, levels=1)
+    write_house(tmp_path / "houses", house)
+    out = tmp_path / "stream"
+    stream(StreamRequest(root=tmp_path / "houses", houses=(house.id,), episodes=2, out=out, rate=2.0, duration=4.0,
+                         look_around=False, min_geodesic=3.0, seed=2, progress=False, height=0.8))
+    code, output = run_main(capsys, "view", out, "--frame", "5", "--out", tmp_path / "x.png")
+    assert code == 2 and "pick the sequence with --sequence NN (it has 00, 01)" in output, output
+    code, output = run_main(capsys, "view", out, "--sequence", "07", "--frame", "5", "--out", tmp_path / "x.png")
+    assert code == 2 and "no sequence 07 (it has 00, 01)" in output, output
+    pic = tmp_path / "pics" / "x.png"
+    code, output = run_main(capsys, "view", out, "--sequence", "01", "--frame", "5", "--out", pic,
+                            "--json", "--size", "400", "300")
+    assert code == 0, output
+    info = json.loads(output)
+    seq = out / "sequences" / "01"
+    points = read_velodyne(seq / "velodyne" / "000005.bin")
+    assert info["zmax"] == pytest.approx(2.0 - 0.8)  # the ceiling cut above the stream's own sensor height
+    assert info["points"] == int((points[:, 2] < 2.0 - 0.8).sum()) > 0
+    assert info["boxes"] == len(read_labels(seq / "label_2" / "000005.txt").objects())
+    assert_picture(pic, (400, 300))

@@ -469,9 +469,10 @@ def render_house(
 # ------------------------------------------------------------------------------------------------ dataset readers
 
 
-def frame_boxes(root: str | Path, frame_id: str) -> tuple[np.ndarray, list[str]]:
-    """Ground truth of a frame: (N,7) sensor-frame boxes of the non-DontCare rows of ``label_2`` and their names."""
-    paths = frame_paths(root, frame_id)
+def frame_boxes(root: str | Path, frame_id: str, split_dir: str = "training") -> tuple[np.ndarray, list[str]]:
+    """Ground truth of a frame: (N,7) sensor-frame boxes of the non-DontCare rows of ``label_2`` and their names
+    (``split_dir`` as in :func:`mpchair.analysis.stats.load_points`)."""
+    paths = frame_paths(root, frame_id, split_dir)
     labels = read_labels(paths.label_2).objects()
     return labels_to_boxes(labels, read_calib(paths.calib)), [str(n) for n in labels.names]
 
@@ -549,6 +550,22 @@ def default_zmax(dataset: str | Path) -> float | None:
 
 
 
+def stream_zmax(stream: str | Path) -> float:
+    """``mpchair view``'s default ``zmax`` for a stream folder: :data:`CEILING_CUT` above the floor, with the sensor
+    height of the ``--height`` in ``stream.json``'s command (1.0 m when it names none)."""
+    from mpchair.recording.sources import read_stream_meta
+
+    meta, path = read_stream_meta(Path(stream))
+    command = meta.get("command") if isinstance(meta.get("command"), list) else []
+    height = 1.0
+    if "--height" in command[:-1]:
+        try:
+            height = float(command[command.index("--height") + 1])
+        except ValueError:
+            raise InputError("malformed stream file (--height in its command is no number)", path) from None
+    return CEILING_CUT - height
+
+
 def frame_picture(
     dataset: str | Path,
     frame_id: str,
@@ -559,8 +576,10 @@ def frame_picture(
     size: tuple[int, int] = (1000, 1000),
     extent: tuple[float, float, float, float] | None = None,
     zmax: float | None = None,
+    split_dir: str = "training",
 ) -> dict:
-    """The pictures of one frame of a KITTI-layout dataset: the bird's-eye view at ``out`` (:func:`render_bev`) and,
+    """The pictures of one frame of a KITTI-layout dataset (``split_dir`` ``""``: of a stream's sequence folder):
+    the bird's-eye view at ``out`` (:func:`render_bev`) and,
     when ``out_3d`` is given, the 3D view there (:func:`render_frame_3d`, rendered first so that a machine without
     off-screen OpenGL fails before anything is written). ``results`` is a folder of KITTI result files (16 columns)
     whose detections are drawn in red. ``zmax`` (sensor frame, metres) drops points at or above it from both views,
@@ -570,18 +589,19 @@ def frame_picture(
     """
     from mpchair.analysis.stats import load_points
 
-    paths = frame_paths(dataset, frame_id)
-    points = load_points(dataset, frame_id, fov_crop)
+    paths = frame_paths(dataset, frame_id, split_dir)
+    points = load_points(dataset, frame_id, fov_crop, split_dir)
     n_loaded = len(points)
     if zmax is not None:
         points = points[points[:, 2] < zmax]
-    boxes, names = frame_boxes(dataset, frame_id)
+    boxes, names = frame_boxes(dataset, frame_id, split_dir)
     dets = scores = None
     if results is not None:
         dets, scores, _ = result_boxes(results, frame_id, read_calib(paths.calib))
     if out_3d is not None:
         render_frame_3d(points, boxes, out_3d, det_boxes=dets, size=size)
-    title = (f"{Path(dataset).name} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
+    where = f"{Path(dataset).parent.parent.name} sequence {Path(dataset).name}" if not split_dir else Path(dataset).name
+    title = (f"{where} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
              + ("" if zmax is None else f", z < {zmax:g} m"))
     render_bev(points, boxes, out, names=names, det_boxes=dets, det_scores=scores, extent=extent, size=size,
                title=title)
