@@ -110,7 +110,9 @@ def _reference(houses, tmp_path: Path, frames: int) -> dict[str, bytes]:
 def test_sigkill_before_every_rename_then_the_same_command_resumes_byte_identical(houses, tmp_path):
     frames = 2
     renames = count_replaces(lambda: generate(_req(houses, tmp_path / "ref", frames)), tmp_path / "ref")
-    assert renames == 1 + frames * 6 + 3 + 1  # settings, 5 KITTI files + record per frame, ImageSets, manifest
+    tests = len((tmp_path / "ref" / "ImageSets" / "test.txt").read_text().split())
+    # settings, 5 KITTI files + record per frame, ImageSets, the test frames' 3 links in testing/, manifest
+    assert renames == 1 + frames * 6 + 3 + 3 * tests + 1 and tests == 1
     want = tree(tmp_path / "ref")
     for k in range(1, renames + 1):
         out = tmp_path / f"k{k}"

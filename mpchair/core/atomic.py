@@ -119,3 +119,26 @@ def check_writable(path: str | Path, *, folder: bool = False) -> None:
                          "another output", here) from None
     os.close(fd)
     os.unlink(probe)
+
+
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """Make ``dst`` hold ``src``'s bytes: a hard link (no second copy on disk) made under a temp name and renamed into
+    place, or, where the filesystem has no hard links, an atomic copy. Nothing happens when ``dst`` already is
+    ``src``'s file."""
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and os.path.samefile(src, dst):
+        return
+    fd, tmp = _create_temp(dst)
+    os.close(fd)
+    os.unlink(tmp)  # os.link wants a free name: the one just reserved
+    try:
+        os.link(src, tmp)
+    except OSError:
+        write_bytes(dst, src.read_bytes())
+        return
+    try:
+        os.replace(tmp, dst)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
