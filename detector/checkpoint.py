@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import re
+import warnings
 from pathlib import Path
 
 import torch
@@ -137,7 +139,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         if unsafe:
             raise InputError(f"refused: loading it would call {unsafe.group(1)}; a checkpoint holds only tensors "
                              "and plain data (numbers, strings, lists, dicts)", path) from None
-        raise InputError(f"cannot read checkpoint: {type(e).__name__}: {text[:300]}", path) from None
+        # torch's own text advises weights_only=False, which would run whatever the file holds: never repeat it
+        raise InputError(f"not a detector checkpoint: torch.load cannot read it ({type(e).__name__}); a checkpoint "
+                         "is the last.pt or checkpoints/epoch_NNN.pt of a detector train run", path) from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
         raise InputError("not a detector checkpoint (missing format/model keys)", path)
     return _from_file_dict(state)
@@ -150,13 +154,41 @@ def config_from_checkpoint(checkpoint: Checkpoint, source: str) -> ExperimentCon
     return experiment_from_dict(checkpoint.config, source=source)
 
 
+def config_differences(stored: dict, cfg: ExperimentConfig) -> list[str]:
+    """The ``model.*`` keys on which a checkpoint's stored config dict and ``cfg`` differ, in plain words
+    (``model.output_shape is [288, 144] in the checkpoint, [768, 512] here``), in the schema's key order. Only the
+    model section: data, train and eval settings do not change what the weights mean."""
+    try:
+        # through the dataclasses, so a checkpoint written before a key existed compares with its default
+        theirs = json.loads(json.dumps(to_dict(experiment_from_dict(stored).model)))
+    except InputError:
+        theirs = json.loads(json.dumps(stored.get("model", {}), default=str))
+    ours = json.loads(json.dumps(to_dict(cfg.model)))
+    return [f"model.{key} is {json.dumps(theirs.get(key))} in the checkpoint, {json.dumps(value)} here"
+            for key, value in ours.items() if theirs.get(key) != value]
+
+
+def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
+    """What keeps ``weights`` from loading into ``model`` (tensors of another shape, missing, unexpected), or None."""
+    own = model.state_dict()
+    shapes = [k for k in own if k in weights and tuple(weights[k].shape) != tuple(own[k].shape)]
+    missing = [k for k in own if k not in weights]
+    unexpected = [k for k in weights if k not in own]
+    parts = [f"{len(keys)} tensor(s) {what} (first {keys[0]})"
+             for keys, what in ((shapes, "of another shape"), (missing, "missing"), (unexpected, "unexpected"))
+             if keys]
+    return ", ".join(parts) or None
+
+
 def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device | str = "cpu", *,
                seed: int = 0) -> PointPillars:
     """``cfg.model`` in eval mode on ``device``: trained weights from ``checkpoint``, or seeded random weights when it
     is None (drawn under ``torch.random.fork_rng``, so the caller's global RNG is untouched).
 
-    Conv weights do not depend on the grid, so a checkpoint trained at one pseudo-image size loads into a model of
-    another size. A checkpoint whose weights do not fit the model is an :class:`InputError` (one line).
+    The checkpoint's stored config is compared with ``cfg`` (:func:`config_differences`). Conv weights do not depend
+    on the grid, so a checkpoint trained at one pseudo-image size loads into a model of another size: that loads,
+    with one warning naming what differs. A checkpoint whose weights do not fit the model is an :class:`InputError`
+    (one line: the differing keys, or the tensors when the file stores no config).
     """
     if checkpoint is None:
         with torch.random.fork_rng(devices=[]):
@@ -164,11 +196,14 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
             model = build_model(cfg.model)
         return model.to(device).eval()
     saved = load_checkpoint(checkpoint, map_location=device)
+    differences = config_differences(saved.config, cfg) if isinstance(saved.config, dict) else []
     model = build_model(cfg.model).to(device)
-    try:
-        model.load_state_dict(saved.model)
-    except RuntimeError as e:
-        first = str(e).strip().splitlines()
-        msg = " ".join(first[:2])[:300]
-        raise InputError(f"checkpoint does not fit the config's model: {msg}", checkpoint) from None
+    misfit = _misfit(model, saved.model)
+    if misfit is not None:
+        why = "; ".join(differences) if differences else misfit
+        raise InputError(f"checkpoint does not fit the config's model: {why}", checkpoint)
+    if differences:
+        warnings.warn(f"{checkpoint}: trained under another config ({'; '.join(differences)}); its weights load "
+                      "into this one, but results may differ from the trained model's", stacklevel=2)
+    model.load_state_dict(saved.model)
     return model.eval()

@@ -3,6 +3,7 @@ and the description of the machine (CPU, threads, torch, GPU, load, allocator) t
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import time
@@ -32,6 +33,33 @@ def use_device(device: str, threads: int | None = None) -> torch.device:
     if threads is not None:
         torch.set_num_threads(threads)
     return torch.device(device)
+
+
+def usable_cores() -> int:
+    """The logical CPUs this process may run on (its affinity mask where the OS has one, else ``os.cpu_count()``)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def load_1m() -> float:
+    """The 1-minute load average (runnable processes, machine-wide), 0.0 where the OS has none."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+
+
+def free_cores(cores: int, load: float) -> int:
+    """The cores another process leaves free: ``cores`` minus the 1-minute ``load``, rounded, at least 1."""
+    return max(1, min(cores, math.floor(cores - load + 0.5)))
+
+
+def oversubscription_warning(threads: int, cores: int, load: float) -> str | None:
+    """One line when ``threads`` plus the 1-minute ``load`` (rounded to whole cores, as :func:`free_cores`: an idle
+    machine's load of 0.3 fills no core) exceed ``cores`` (the threads then share cores with other work and wait on
+    each other: the sparse path's many small ops suffer most), else None."""
+    if threads <= free_cores(cores, load):
+        return None
+    return (f"--threads {threads} + load {load:.1f} exceed the {cores} cores: timings will be slower than on an idle "
+            f"machine, the sparse backbone's most (use --threads {free_cores(cores, load)} or a quiet machine)")
 
 
 def cpu_model() -> str:

@@ -6,11 +6,12 @@ from __future__ import annotations
 import io
 import json
 import sys
+from pathlib import Path
 
 import click.testing
 import pytest
 import torch
-from helpers_detector import make_tiny_dataset
+from helpers_detector import make_tiny_dataset, write_test_config
 
 from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
 from detector.checkpoint import Checkpoint, load_model, save_checkpoint
@@ -129,6 +130,74 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
         "--json", str(tmp_path / "no.json")])
     assert res.exit_code != 0 and "checkpoint does not fit the config's model" in str(res.exception)
     assert not (tmp_path / "no.json").exists()
+
+
+def test_bench_threads_default_to_the_free_cores_and_warn_when_oversubscribed(data, tmp_path, capsys,
+                                                                              monkeypatch) -> None:
+    """``--threads`` defaults to the cores minus the 1-minute load (at least 1); threads + load above the cores is one
+    warning line on stderr before the timing (a loaded machine collapsed the sparse/dense ratio from 14.2x to 2.2x)."""
+    from detector import device
+
+    assert [device.free_cores(16, load) for load in (0.0, 0.3, 3.6, 15.2, 40.0)] == [16, 16, 12, 1, 1]
+    assert device.oversubscription_warning(2, 2, 0.3) is None and device.oversubscription_warning(3, 4, 1.2) is None
+    assert device.oversubscription_warning(2, 2, 1.5) == (
+        "--threads 2 + load 1.5 exceed the 2 cores: timings will be slower than on an idle machine, the sparse "
+        "backbone's most (use --threads 1 or a quiet machine)")
+    monkeypatch.setattr(device, "usable_cores", lambda: 4)
+
+    def bench(load: float, *threads: str) -> tuple[list[str], dict]:
+        monkeypatch.setattr(device, "load_1m", lambda: load)
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
+                  *threads, "--json", str(tmp_path / "b.json")])
+        assert e.value.code == 0
+        return capsys.readouterr().err.splitlines(), json.loads((tmp_path / "b.json").read_text())["machine"]
+
+    try:
+        err, machine = bench(1.2)
+        assert machine["torch_threads"] == 3 and not [ln for ln in err if ln.startswith("warning:")], err
+        err, machine = bench(3.5, "--threads", "2")
+        assert machine["torch_threads"] == 2
+        assert [ln for ln in err if ln.startswith("warning:")] == [
+            "warning: --threads 2 + load 3.5 exceed the 4 cores: timings will be slower than on an idle machine, the "
+            "sparse backbone's most (use --threads 1 or a quiet machine)"]
+    finally:
+        torch.set_num_threads(1)
+
+
+def test_a_checkpoint_is_compared_with_the_config_it_is_loaded_under(data, tmp_path, capsys) -> None:
+    """A checkpoint loaded under another grid runs (exit 0) with one warning naming the keys that differ; under
+    another network it is one error line naming the differing key (exit 2, no PyTorch "Missing key(s)" dump); a file
+    that is no checkpoint is one line naming it, without torch's advice to load it unsafely."""
+    trained = write_test_config(tmp_path / "trained.yaml")
+    cfg = load_experiment(trained)
+    model = build_model(cfg.model)
+    ckpt = tmp_path / "run.pt"
+    save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg,
+                                             epoch=0, step_in_epoch=0, step=0, global_batch=1))
+    coarse = write_test_config(tmp_path / "coarse.yaml", model=dict(voxel_size=[0.2, 0.2, 4.0], output_shape=[48, 32]))
+    narrow = write_test_config(tmp_path / "narrow.yaml", model=dict(layer_channels=[32, 32, 32]))
+
+    def bench(config: Path, checkpoint: Path) -> tuple[int, list[str]]:
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "--config", str(config), "--checkpoint", str(checkpoint), "--data", str(data), "--frames",
+                  "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", str(tmp_path / "b.json")])
+        return e.value.code, capsys.readouterr().err.splitlines()
+
+    code, err = bench(trained, ckpt)
+    assert code == 0 and not [ln for ln in err if ln.startswith("warning:")], err
+    code, err = bench(coarse, ckpt)
+    assert code == 0
+    assert [ln for ln in err if ln.startswith("warning:")] == [
+        f"warning: {ckpt}: trained under another config (model.voxel_size is [0.1, 0.1, 4.0] in the checkpoint, "
+        "[0.2, 0.2, 4.0] here; model.output_shape is [96, 64] in the checkpoint, [48, 32] here); its weights load "
+        "into this one, but results may differ from the trained model's"]
+    code, err = bench(narrow, ckpt)
+    assert code == 2 and err == [f"error: {ckpt}: checkpoint does not fit the config's model: model.layer_channels is "
+                                 "[32, 32, 64] in the checkpoint, [32, 32, 32] here"]
+    code, err = bench(trained, trained)  # the YAML given as the checkpoint
+    assert code == 2 and len(err) == 1 and err[0].startswith(f"error: {trained}: not a detector checkpoint")
+    assert "weights_only" not in err[0]
 
 
 class _Terminal(io.StringIO):

@@ -145,3 +145,62 @@ def test_eval_min_overlap_sets_the_bbox_bev_3d_thresholds(tmp_path: Path, capsys
         code, out, err = _detector(capsys, *base, "--min-overlap", bad)
         assert code == 2 and out == "" and err == (f"error: --min-overlap {bad!r}: expected CLASS=T or "
                                                    "CLASS=BBOX,BEV,3D with values in [0, 1)\n"), err
+
+
+def test_outputs_that_cannot_be_written_fail_before_the_work_naming_the_folder(tmp_path, capsys, monkeypatch):
+    """An output below a file (or in a read-only folder) is one error line naming that folder, before any work (the
+    work is replaced by a failure here): no hidden temp name, nothing after minutes of drawing, timing or training. A
+    writer that still meets such a folder names the folder, not its temp file."""
+    import os
+
+    from helpers_detector import make_tiny_dataset
+
+    import detector.bench
+    import mpchair.analysis.render
+    from mpchair.cli import main as mpchair_main
+    from mpchair.core.atomic import write_text
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work ran before the output was checked")
+
+    monkeypatch.setattr(mpchair.analysis.render, "frame_picture", no_work)
+    monkeypatch.setattr(detector.bench, "run_bench", no_work)
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+
+    with pytest.raises(SystemExit) as e:
+        mpchair_main(["view", str(data), "--frame", "0", "--out", str(blocker / "x.png")])
+    assert e.value.code == 2
+    assert capsys.readouterr().err == f"error: {blocker}: is not a folder, so {blocker / 'x.png'} cannot be written\n"
+    code, _, err = _detector(capsys, "bench", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
+                             "--json", blocker / "out" / "b.json")
+    assert code == 2 and err.splitlines()[-1].startswith(f"error: {blocker}: is not a folder"), err
+    code, _, err = _detector(capsys, "train", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
+                             "--out", blocker / "run")
+    assert code == 2 and err == f"error: {blocker}: is not a folder, so {blocker / 'run'} cannot be written\n"
+    with pytest.raises(NotADirectoryError) as exc:
+        write_text(blocker / "x.txt", "x")
+    assert exc.value.filename == str(blocker)
+    if os.geteuid() != 0:  # root writes into a read-only folder anyway
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        with pytest.raises(SystemExit) as e:
+            mpchair_main(["view", str(data), "--frame", "0", "--out", str(ro / "x.png")])
+        assert e.value.code == 2
+        assert capsys.readouterr().err.startswith(f"error: {ro}: folder not writable (Permission denied)")
+
+
+def test_help_examples_name_ids_synth_makes_and_write_under_out() -> None:
+    """``view-house --help`` shows no house id that ``mpchair synth`` never makes (it says how to list the ids), and the
+    picture examples of ``view``, ``view-house`` and ``stats`` write under ``out/``, not into the repository root."""
+    import re
+
+    runner = click.testing.CliRunner()
+    for name in ("view", "view-house", "stats"):
+        text = runner.invoke(mpchair_cli, [name, "--help"], prog_name="mpchair").output
+        examples = text.split("Example", 1)[1]
+        assert "synth0000" not in examples
+        written = re.findall(r"--(?:out|plot) (\S+\.png)", examples)
+        assert written and all(p.startswith("out/") for p in written), (name, written)
+    assert "mpchair houses --root" in runner.invoke(mpchair_cli, ["view-house", "--help"]).output

@@ -112,7 +112,9 @@ def _reference(houses, tmp_path: Path, frames: int) -> dict[str, bytes]:
 def test_sigkill_before_every_rename_then_the_same_command_resumes_byte_identical(houses, tmp_path):
     frames = 2
     renames = count_replaces(lambda: generate(_req(houses, tmp_path / "ref", frames)), tmp_path / "ref")
-    assert renames == 1 + frames * 6 + 3 + 1  # settings, 5 KITTI files + record per frame, ImageSets, manifest
+    tests = len((tmp_path / "ref" / "ImageSets" / "test.txt").read_text().split())
+    # settings, 5 KITTI files + record per frame, ImageSets, the test frames' 3 links in testing/, manifest
+    assert renames == 1 + frames * 6 + 3 + 3 * tests + 1 and tests == 1
     want = tree(tmp_path / "ref")
     for k in range(1, renames + 1):
         out = tmp_path / f"k{k}"
@@ -246,7 +248,8 @@ def test_settings_that_cannot_make_frames_leave_nothing_and_the_corrected_comman
         assert code == 2 and "must be a finite number" in _one_error_line(err) and not out.exists()
     (tmp_path / "file").write_text("x")
     code, _, err = _cli(mpchair_main, _cmd(houses, tmp_path / "file" / "ds", 3)[3:], capsys)
-    assert code == 2 and _one_error_line(err) == f"error: {tmp_path / 'file' / 'ds'}: Not a directory"
+    assert code == 2 and _one_error_line(err) == (f"error: {tmp_path / 'file'}: is not a folder, so "
+                                                  f"{tmp_path / 'file' / 'ds'} cannot be written")
     code, _, err = _cli(mpchair_main, base, capsys)
     assert code == 0 and (out / "manifest.json").is_file()
 

@@ -60,6 +60,28 @@ def dataset(house_root, tmp_path_factory):
     return out, summary
 
 
+def _assert_testing_folder(out: Path) -> None:
+    """testing/{velodyne,calib,image_2}/ hold exactly the test split's frames, as training/'s files (hard links)."""
+    test_ids = read_imageset(out / "ImageSets" / "test.txt")
+    for kind, ext in (("velodyne", "bin"), ("calib", "txt"), ("image_2", "png")):
+        folder = out / "testing" / kind
+        assert (sorted(p.stem for p in folder.iterdir()) if folder.is_dir() else []) == sorted(test_ids)
+        for fid in test_ids:
+            assert os.path.samefile(folder / f"{fid}.{ext}", out / "training" / kind / f"{fid}.{ext}")
+    assert not (out / "testing" / "label_2").exists()  # KITTI's test split has no labels
+
+
+def test_the_test_split_is_where_openpcdet_looks_for_it(house_root, tmp_path):
+    """OpenPCDet's create_kitti_infos reads the test split from testing/ (scan, calib, image for its size): a
+    10-frame dataset (3 test frames) has them there, the training/ files' own bytes, and keeps them in training/
+    for the readers that take the splits from ImageSets/ (ours, Open3D-ML's subclass)."""
+    root, house = house_root
+    out = tmp_path / "ds"
+    generate(GenerateRequest(root=root, houses=(house.id,), frames=10, out=out, seed=11, progress=False, workers=1))
+    assert len(read_imageset(out / "ImageSets" / "test.txt")) > 0
+    _assert_testing_folder(out)
+
+
 def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
     out, summary = dataset
     _, house = house_root
@@ -70,6 +92,9 @@ def test_dataset_is_kitti_that_openpcdet_reads(dataset, house_root):
         house.files()[".house"]).hexdigest()
     ids = sorted(read_imageset(out / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test"))
     assert sorted(sum(ids, [])) == [f"{i:06d}" for i in range(FRAMES)]
+    # OpenPCDet's create_kitti_infos reads the test split from testing/ (scan, calib, image; no labels): the same
+    # files as training/'s (hard links), for exactly the test ids
+    _assert_testing_folder(out)
     truth = {o.index: o for o in house.objects}
     for rec in manifest.frames:
         fid = rec.frame

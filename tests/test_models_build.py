@@ -264,3 +264,20 @@ def test_sparse_variants_build_and_run() -> None:
     wide.loss(preds, [box], [torch.zeros(1, dtype=torch.int64)]).total.backward()
     with pytest.raises(InputError, match="downsample"):
         check_model_config(_tiny_config(backbone="sparse_wide_down", downsample="reference_quirk"))
+
+
+@pytest.mark.parametrize(("backbone", "head"), [("dense", "dense"), ("sparse", "dense"), ("sparse", "sparse_exact")])
+def test_weight_gradients_have_the_weights_strides(backbone: str, head: str) -> None:
+    """Every weight's gradient has the weight's own strides, in fp32 and bf16 training (channels-last canvas): DDP
+    compares them exactly with its bucket views and warned "Grad strides do not match bucket view strides" once per
+    rank for the 1x1 transposed convs (a permute in the sparse one, a channels-last input in the dense one)."""
+    pts, box = _scene(1)
+    for bf16 in (False, True):
+        torch.manual_seed(0)
+        model = build_model(_tiny_config(backbone=backbone, head=head)).train()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            preds = model([pts])
+        model.loss(preds, [box], [torch.zeros(1, dtype=torch.int64)]).total.backward()
+        wrong = [(name, tuple(p.grad.stride()), tuple(p.stride())) for name, p in model.named_parameters()
+                 if p.grad is not None and p.grad.stride() != p.stride()]
+        assert not wrong, (bf16, wrong)

@@ -203,3 +203,95 @@ def test_generated_dataset_stats_and_pictures(generated, tmp_path, capsys):
     assert near(image, "#ff7f0e", 30) > 50 and near(image, "#1f4fff", 40) > 5
     code, out = run_main(capsys, "view-house", "--root", houses, "--house", "nope", "--out", tmp_path / "n.png")
     assert code == 2 and "house 'nope' not found" in out and not (tmp_path / "n.png").exists()
+
+
+def test_view_draws_a_stream_frame_with_sequence(tmp_path, capsys):
+    """``mpchair view STREAM --frame 5 --out x.png`` says how (``--sequence NN``, the sequences listed) instead of
+    "no training/velodyne/000005.bin"; with ``--sequence`` it draws that sequence's frame: its points below the
+    ceiling cut of the stream's sensor height, its labelled boxes."""
+    from mpchair.kitti import read_labels
+    from mpchair.stream import StreamRequest, stream
+    from mpchair.synth import synthesize_house, write_house
+
+    house = synthesize_house(7, levels=1)
+    write_house(tmp_path / "houses", house)
+    out = tmp_path / "stream"
+    stream(StreamRequest(root=tmp_path / "houses", houses=(house.id,), episodes=2, out=out, rate=2.0, duration=4.0,
+                         look_around=False, min_geodesic=3.0, seed=2, progress=False, height=0.8))
+    code, output = run_main(capsys, "view", out, "--frame", "5", "--out", tmp_path / "x.png")
+    assert code == 2 and "pick the sequence with --sequence NN (it has 00, 01)" in output, output
+    code, output = run_main(capsys, "view", out, "--sequence", "07", "--frame", "5", "--out", tmp_path / "x.png")
+    assert code == 2 and "no sequence 07 (it has 00, 01)" in output, output
+    pic = tmp_path / "pics" / "x.png"
+    code, output = run_main(capsys, "view", out, "--sequence", "01", "--frame", "5", "--out", pic,
+                            "--json", "--size", "400", "300")
+    assert code == 0, output
+    info = json.loads(output)
+    seq = out / "sequences" / "01"
+    points = read_velodyne(seq / "velodyne" / "000005.bin")
+    assert info["zmax"] == pytest.approx(2.0 - 0.8)  # the ceiling cut above the stream's own sensor height
+    assert info["points"] == int((points[:, 2] < 2.0 - 0.8).sum()) > 0
+    assert info["boxes"] == len(read_labels(seq / "label_2" / "000005.txt").objects())
+    assert_picture(pic, (400, 300))
+
+
+def _figures(monkeypatch) -> list:
+    """The matplotlib figures the render functions save, kept for inspection (nothing written)."""
+    from mpchair.analysis import render
+
+    saved: list = []
+    monkeypatch.setattr(render, "_save_figure", lambda fig, out: saved.append(fig))
+    return saved
+
+
+def test_stats_plots_tell_their_curves_and_bands_apart(small, monkeypatch):
+    """The density plot's shaded bands have legend entries (the paper's min-max), and a one-class dataset's l, w and
+    h histograms (one axis) have three colours, each in the legend."""
+    from matplotlib.colors import to_hex
+
+    from mpchair.analysis import render
+    from mpchair.analysis.stats import box_stats, density_stats
+
+    saved = _figures(monkeypatch)
+    render.plot_density_histogram(density_stats(small, MATTERPORT_GEOMETRY), "d.png")
+    labels = [t.get_text() for t in saved[-1].axes[0].get_legend().get_texts()]
+    assert any(t.startswith("paper Matterport-Chair: min-max ") for t in labels), labels
+    assert any(t.startswith("paper KITTI: min-max ") for t in labels), labels
+    stats = box_stats(small, classes=["Chair"])
+    assert list(stats["classes"]) == ["Chair"]
+    render.plot_box_stats(stats, "b.png")
+    sizes = saved[-1].axes[1]
+    colours = {to_hex(p.get_edgecolor()) for p in sizes.patches}
+    assert len(colours) == 3, colours
+    assert [t.get_text().split()[0] for t in sizes.get_legend().get_texts()] == ["l", "w", "h"]
+
+
+def test_bev_labels_sit_on_their_own_box():
+    """A label's anchor is a corner of its own box (the top-most one), not the bounding corner (max x, max y) that a
+    rotated box does not reach."""
+    from mpchair.analysis.render import label_anchors
+    from mpchair.geometry import bev_polygons
+
+    boxes = np.array([[2.0, 1.0, 0.0, 1.0, 0.5, 0.8, 0.6], [3.0, -1.0, 0.0, 0.6, 0.6, 0.9, -1.2]])
+    anchors = label_anchors(boxes)
+    polys = bev_polygons(boxes)
+    for anchor, poly in zip(anchors, polys):
+        assert np.any(np.all(np.isclose(poly, anchor), axis=1))  # a corner of the box
+        assert anchor[1] == pytest.approx(poly[:, 1].max())
+        assert not np.any(np.all(np.isclose(poly, poly.max(axis=0)), axis=1))  # the old anchor was not a corner
+
+
+def test_3d_view_has_axes_and_a_title(tmp_path):
+    """``--3d``: an x / y / z axes marker in the lower left and the frame's title in the upper left."""
+    from mpchair.analysis.render import render_frame_3d
+
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(1, 6, 2000), rng.uniform(-3, 3, 2000), rng.uniform(-1, 1, 2000)]
+    boxes = np.array([[3.0, 0.0, 0.0, 1.0, 0.6, 0.9, 0.3]])
+    render_frame_3d(points, boxes, tmp_path / "plain.png", size=(400, 300))
+    render_frame_3d(points, boxes, tmp_path / "titled.png", size=(400, 300), title="dataset frame 000001")
+    image = rgb(tmp_path / "titled.png")
+    assert near(image[:30, :200], "#ffffff", tol=60) > 30  # the title's white text
+    assert near(rgb(tmp_path / "plain.png")[:30, :200], "#ffffff", tol=60) < near(image[:30, :200], "#ffffff", 60)
+    corner = image[-60:, :80]
+    assert near(corner, "#0000ff", tol=90) + near(corner, "#ff0000", tol=90) > 5  # the axes marker's arrows

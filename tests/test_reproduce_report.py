@@ -568,3 +568,23 @@ def test_readers_tolerate_missing_files_and_keys(tmp_path: Path) -> None:
     assert cfg is not None and (cfg.epochs, cfg.batch_size, cfg.precision, cfg.output_shape) == (2, 2, "fp32", None)
     assert results.read_run_config(tmp_path / "w" / "runs" / "sparse") is None
     assert [r.step for r in results.step_records(run)] == [1, 2, 3] and results.eval_records(run) == []
+
+
+def test_status_without_scale_finds_the_run_of_another_scale(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``tools/reproduce.py --status`` as README shows it, while a ``SCALE=small`` run is going: it shows that run
+    (saying so) instead of "no reproduction here yet"; with an explicit ``--scale full`` it says which ``--scale``
+    shows the run there is."""
+    import detector.reproduce.cli as reproduce_cli
+
+    monkeypatch.setattr(reproduce_cli, "ROOT", tmp_path)
+    small = tmp_path / "out" / "reproduce-small"
+    small.mkdir(parents=True)
+    assert reproduce_cli.main(["--status"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:2] == ["(no --scale given and no full-scale work folder: the small-scale one)", f"{small}:"]
+    assert reproduce_cli.main(["--status", "--scale", "full"]) == 0
+    full = tmp_path / "out" / "reproduce-full"
+    assert capsys.readouterr().out.splitlines() == [
+        f"{full}: no reproduction here yet; there is one in {small} (--scale small)"]
+    assert reproduce_cli.main(["--status", "--scale", "small"]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == f"{small}:"

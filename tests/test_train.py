@@ -258,10 +258,63 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, t
     assert len(steps) == 5 and all(math.isfinite(s["loss_total"]) for s in steps)  # epoch 2 failed at its 2nd step
 
 
+def test_ctrl_c_says_which_step_last_pt_holds_and_the_resume_command(data, tmp_path, capsys, monkeypatch):
+    """Ctrl-C in the 6th step of a 2 x 4-step run: one line (no traceback, exit 130) says that last.pt holds step 4
+    (the end of epoch 1) and gives the command that continues it; that command, run as printed, finishes the run."""
+    import shlex
+
+    from detector.train import loop
+
+    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=2, epochs=2))
+    run = tmp_path / "run"
+    real_step = loop.train_step
+
+    def interrupted_at_step_6(batch, parts, settings, *, epoch, step):
+        if step == 5:  # 0-based: the 6th step
+            raise KeyboardInterrupt
+        return real_step(batch, parts, settings, epoch=epoch, step=step)
+
+    monkeypatch.setattr(loop, "train_step", interrupted_at_step_6)
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", run, "--threads", "1", "--no-progress"],
+                        capsys)
+    assert code == 130 and "Traceback" not in err
+    command = (f"detector train --config {cfg} --data {data} --out {run} --threads 1 --no-progress --resume")
+    assert err.splitlines()[-1] == (f"interrupted: {run / 'last.pt'} holds step 4 (epoch 1 done); steps after it are "
+                                    f"lost. Continue with: {command}")
+    monkeypatch.setattr(loop, "train_step", real_step)
+    code, out, err = _cli(shlex.split(command)[1:], capsys)
+    assert code == 0, err
+    assert "resumed at step 4" in out and "trained 2 epoch(s), 8 step(s)" in out
+
+
 def _seconds(text: str) -> float:
     """``"18 s"`` / ``"3 min"`` / ``"1.5 h"`` (detector.train.format_duration) in seconds."""
     value, unit = text.split()
     return float(value) * {"s": 1, "min": 60, "h": 3600}[unit]
+
+
+def test_the_duration_estimate_follows_the_recent_steps(monkeypatch):
+    """A run whose steps slow down from 0.5 s to 3 s (a co-running load): the start-up estimate says 0.5 s, the
+    rolling one that the epoch lines print moves to the recent 3 s (the warm-up step is never counted), and the epoch
+    line says what is left at that pace; the last epoch's line has nothing left to estimate."""
+    from detector.train import metrics
+
+    clock = iter([10.0, 10.5, 11.0, 11.5] + [11.5 + 3.0 * i for i in range(1, 61)])  # step 1 took 10 s
+    monkeypatch.setattr(metrics.time, "perf_counter", lambda: next(clock))
+    estimate = metrics.DurationEstimate(first_step=0, todo=100)
+    measured = [estimate.after_step(step) for step in range(1, 5)]
+    assert measured == [None, None, None, 0.5]
+    assert estimate.rolling() == 0.5
+    for step in range(5, 65):
+        estimate.after_step(step)
+    assert estimate.rolling() == pytest.approx(3.0)  # the last ROLLING_STEPS = 50 steps are all 3 s ones
+    zero = metrics.ZERO_LOSSES
+    line = metrics.epoch_line(epoch=1, epochs=2, means=zero, steps=64, seconds=200.0, step=64, total_steps=100,
+                              per_step=estimate.rolling(), steps_left=36)
+    assert line.endswith(", step 64/100, ~3.00 s/step now -> ~2 min left"), line  # 108 s
+    last = metrics.epoch_line(epoch=2, epochs=2, means=zero, steps=36, seconds=108.0, step=100, total_steps=100,
+                              per_step=3.0, steps_left=0)
+    assert last.endswith("36 steps in 2 min, step 100/100"), last
 
 
 def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path, capsys):
@@ -284,9 +337,14 @@ def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path
     assert per_step >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
     assert abs(_seconds(estimate.group(2)) - 6 * per_step) <= max(1.0, 0.05 * 6 * per_step)
     (epoch,) = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
-    assert re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
-                        rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8",
-                        lines[2]), lines[2]
+    # the epoch line's estimate is the rolling mean of the steps after the first, for the 2 steps still to run
+    line = re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
+                        rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8, "
+                        r"~(\d+\.\d\d) s/step now -> ~(.+) left", lines[2])
+    assert line, lines[2]
+    rolling = float(line.group(1))
+    assert rolling >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
+    assert abs(_seconds(line.group(2)) - 2 * rolling) <= 1.0
     assert lines[3:] == [f"trained 1 epoch(s), 6 step(s), last loss {steps[-1]['loss_total']:.4f}; checkpoint "
                          f"{run / 'last.pt'}"]
 

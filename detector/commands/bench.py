@@ -20,7 +20,9 @@ import click
 @click.option("--trials", type=int, default=3, show_default=True, help="Timed passes over the frames.")
 @click.option("--warmup", type=int, default=3, show_default=True, help="Untimed warm-up frames per model.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-@click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
+@click.option("--threads", type=int, default=None,
+              help="torch intra-op threads (default: the free cores, i.e. the cores minus the 1-minute load, at "
+                   "least 1; a warning when threads + load exceed the cores).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
 @click.option("--peer", type=click.Choice(["open3d-ml"]), default=None,
               help="Also time Open3D-ML's own PointPillars, built like the first --config (a dense model) with its "
@@ -49,10 +51,11 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
       detector bench --config configs/models/mpchair_dense.yaml --config configs/models/mpchair_sparse.yaml \\
-        --data dataset/ --frames 20 --trials 3 --threads 2 --peer open3d-ml --json bench.json
+        --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
-    from mpchair.core.atomic import write_text
+    from detector.device import free_cores, load_1m, oversubscription_warning, usable_cores
+    from mpchair.core.atomic import check_writable, write_text
     from mpchair.core.errors import InputError
 
     if checkpoints and len(checkpoints) != len(configs):
@@ -60,6 +63,16 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
                          f"checkpoint(s) for {len(configs)} config(s)")
     ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
     models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
+    if json_out:
+        check_writable(json_out)  # before the minutes of timing, not after
+    if device == "cpu":
+        # oversubscribed threads wait on each other: a loaded machine measured a 2.2x sparse/dense backbone ratio at
+        # --threads 2 and 14.2x at --threads 1 minutes later, so warn before timing, not after
+        cores, load = usable_cores(), load_1m()
+        threads = free_cores(cores, load) if threads is None else threads
+        warning = oversubscription_warning(threads, cores, load) if threads >= 1 else None
+        if warning:
+            click.echo(f"warning: {warning}", err=True)
     result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
                        threads=threads, seed=seed, peer=peer, progress=not no_progress)
     if json_out:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
 
@@ -135,6 +136,7 @@ def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, prot
         raise
     split = split or "val"
     out = out if out is not None else default_results_dir(checkpoint, split)
+    check_writable(out, folder=True)  # before the inference, not after it
     result = evaluate_checkpoint(config, data, checkpoint, split=split, out_dir=out, device=device, threads=threads,
                                  protocol=protocol)
     return result, (out / RESULTS_SUBDIR, out / METRICS_FILES[protocol])

@@ -32,11 +32,13 @@ def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as
       detector ops --config configs/models/mpchair_sparse.yaml --data dataset/ --frames 50
     """
     from detector.opcount import count_dataset, format_counts
-    from mpchair.core.atomic import write_text
+    from mpchair.core.atomic import check_writable, write_text
     from mpchair.core.errors import InputError
 
     if frames < 1 or start < 0:
         raise InputError(f"need --frames >= 1 and --start >= 0 (got {frames}, {start})")
+    if json_out:
+        check_writable(json_out)
     result = count_dataset(config_path, data_dir, split, frames, start, progress=not (no_progress or as_json))
     text = json.dumps(result, indent=2)
     if json_out:

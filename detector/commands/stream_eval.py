@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
 
@@ -84,6 +85,11 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         check_mcap_path(mcap_out)
     if json_out is not None and str(json_out) != "-" and json_out.suffix.lower() != ".json":
         raise InputError("--json must name a .json file (or '-')", json_out)
+    for output in (json_out if json_out is not None and str(json_out) != "-" else None, latency_log):
+        if output is not None:
+            check_writable(output)
+    if save_results is not None:
+        check_writable(save_results, folder=True)
     source = source_from_options(config, checkpoint, results, oracle, device, threads)
     stream = read_stream(data)
     prep = prepare(stream, source, latency_ms=latency_ms, latency_log=replay, schedule=schedule, repeats=repeats,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import sys
 
 import click
@@ -14,6 +15,26 @@ def _say(line: str) -> None:
 
     tqdm.write(line, file=sys.stdout)
     sys.stdout.flush()
+
+
+def _resume_command(ctx: click.Context) -> str:
+    """This command line as typed (the options given on it, in the command's order) with ``--resume``; under
+    torchrun the ``torchrun ... -m detector`` prefix stands for the one used."""
+    import os
+
+    words = ["detector", "train"]
+    for param in ctx.command.params:
+        source = ctx.get_parameter_source(param.name)
+        if source != click.core.ParameterSource.COMMANDLINE or param.name == "resume":
+            continue
+        value = ctx.params[param.name]
+        if isinstance(param, click.Option) and param.is_flag:
+            words += [param.opts[0]] if value else []
+        else:
+            words += [param.opts[0], str(value)]
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        words[:1] = ["torchrun", "...", "-m", "detector"]
+    return shlex.join(words + ["--resume"])
 
 
 @click.command("train")
@@ -51,13 +72,24 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
     """
     from detector.train import TrainingError, dist_info_from_env
     from detector.train import train as run_training
+    from mpchair.core.atomic import check_writable
 
     # Under torchrun every rank runs this command; rank 0 speaks for the job (the others' results are the same).
     main_rank = dist_info_from_env().is_main
+    check_writable(out_dir, folder=True)
     try:
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
                               max_steps=max_steps, device=device, threads=threads, split=split,
                               eval_split=eval_split, progress=not no_progress, log=_say)
+    except KeyboardInterrupt:
+        if main_rank:
+            from pathlib import Path
+
+            from detector.train.resume import interrupted_line
+
+            click.echo(interrupted_line(Path(out_dir) / "last.pt", _resume_command(click.get_current_context())),
+                       err=True)
+        sys.exit(130)
     except TrainingError as e:
         if main_rank:  # the failing loss / gradient norm is all-reduced: every rank stops at the same step
             click.echo(f"error: {e}", err=True)

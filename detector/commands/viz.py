@@ -37,7 +37,9 @@ def viz_sparsity(config_path: str, data_dir: str, frame_id: str | None, index: i
     """
     from detector.viz import STAGES
     from detector.viz import viz_sparsity as run
+    from mpchair.core.atomic import check_writable
 
+    check_writable(out_dir, folder=True)
     result = run(config_path, data_dir, out_dir, frame_id=frame_id, index=index, split=split,
                  dense_checkpoint=dense_checkpoint, sparse_checkpoint=sparse_checkpoint, seed=seed)
     if as_json:

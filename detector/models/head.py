@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from detector.models.grad_layout import conv2d
+
 CLS_PRIOR = 0.01  # initial foreground probability of every anchor (focal-loss prior), bias = -log((1 - p) / p)
 
 
@@ -75,10 +77,11 @@ class AnchorHead(nn.Module):
         (docs/benchmarks.md, "Shared components").
         """
         if torch.is_grad_enabled():
+            # conv2d: the modules' own convs, with the weight gradients DDP expects on a channels-last map
             return HeadOutput(
-                self.conv_cls(x).permute(0, 2, 3, 1),
-                self.conv_reg(x).permute(0, 2, 3, 1),
-                self.conv_dir(x).permute(0, 2, 3, 1),
+                conv2d(self.conv_cls, x).permute(0, 2, 3, 1),
+                conv2d(self.conv_reg, x).permute(0, 2, 3, 1),
+                conv2d(self.conv_dir, x).permute(0, 2, 3, 1),
             )
         weight, bias = self.fused()
         b, _, h, w = x.shape

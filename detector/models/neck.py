@@ -12,13 +12,14 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from detector.models.grad_layout import ConvTranspose2dStandardGrad
 from detector.models.pillar_net import BN_EPS, BN_MOMENTUM
 
 
 def upsample_block(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:
     """ConvTranspose2d(kernel = stride, no bias) → BN → ReLU: (B, C_in, H, W) → (B, C_out, H*stride, W*stride)."""
     return nn.Sequential(
-        nn.ConvTranspose2d(in_channels, out_channels, stride, stride=stride, bias=False),
+        ConvTranspose2dStandardGrad(in_channels, out_channels, stride, stride=stride, bias=False),
         nn.BatchNorm2d(out_channels, eps=BN_EPS, momentum=BN_MOMENTUM),
         nn.ReLU(inplace=True),
     )

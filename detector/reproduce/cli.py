@@ -44,13 +44,13 @@ from pathlib import Path
 from detector.reproduce.report import write_report
 from detector.reproduce.runner import ROOT, Runner
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
-from detector.reproduce.status import status_lines
+from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, STEPS, Plan
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scale", choices=sorted(SCALES), default="full",
+    p.add_argument("--scale", choices=sorted(SCALES), default=None,
                    help="full (default): the issue's experiment, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
                         "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
                         "loaded machine")
@@ -106,6 +106,7 @@ def _scale(args: argparse.Namespace) -> Scale | str:
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
     args = _parser().parse_args(argv)
+    scale_given, args.scale = args.scale is not None, args.scale or "full"
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     bad = [s for s in steps if s not in STEPS]
     if bad:
@@ -113,7 +114,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     if args.status:
-        print("\n".join(status_lines(out)))
+        others = {} if args.out is not None else other_scales(out, args.scale, tuple(sorted(SCALES)))
+        if not out.is_dir() and not scale_given and len(others) == 1:
+            # `--status` as README shows it while another scale runs (make reproduce SCALE=small): that run
+            ((scale, out),) = others.items()
+            print(f"(no --scale given and no {args.scale}-scale work folder: the {scale}-scale one)")
+            others = {}
+        print("\n".join(status_lines(out, others)))
         return 0
     sc = _scale(args)
     if isinstance(sc, str):

@@ -33,11 +33,20 @@ def train_status(out: Path, model: str) -> str:
             f"lately -> ~{format_duration(pace * (total - now.step))} left; {running}")
 
 
-def status_lines(out: Path) -> list[str]:
+def other_scales(out: Path, scale: str, scales: tuple[str, ...]) -> dict[str, Path]:
+    """The work folders of the other ``scales`` beside ``out`` (``out/reproduce-<scale>``, the default naming) that
+    exist, by scale."""
+    folders = {s: out.parent / f"reproduce-{s}" for s in scales if s != scale}
+    return {s: f for s, f in folders.items() if f.is_dir()}
+
+
+def status_lines(out: Path, others: dict[str, Path] | None = None) -> list[str]:
     """Where the reproduction in work folder ``out`` stands: each step's outputs (:func:`step_outputs`) and each
-    model's training progress."""
+    model's training progress. Where ``out`` holds none, which of ``others`` (work folders of other scales) do, and
+    the ``--scale`` that shows each."""
     if not out.is_dir():
-        return [f"{out}: no reproduction here yet"]
+        found = [f"{folder} (--scale {s})" for s, folder in sorted((others or {}).items())]
+        return [f"{out}: no reproduction here yet" + (f"; there is one in {', '.join(found)}" if found else "")]
     lines = [f"{out}:"]
     for step, files in step_outputs(out).items():
         paths = list(files.values())

@@ -266,8 +266,11 @@ class SparseConvTranspose2d(SparseModule):
         if x.batch_size != target.batch_size:
             raise ValueError(f"batch sizes differ: input {x.batch_size}, target {target.batch_size}")
         s, o = self.stride, self.out_channels
-        # (C, O, s, s) -> (s * s, C, O): slot ky * s + kx as a contiguous (C, O) matrix
-        w = self.weight.permute(2, 3, 0, 1).contiguous().view(s * s, self.in_channels, o)
+        # (C, O, s, s) -> (s * s, C, O): slot ky * s + kx as a contiguous (C, O) matrix. At s = 1 a plain view: the
+        # permute of a (C, O, 1, 1) weight is "contiguous" already, so its backward handed the gradient back with
+        # permuted strides on the size-1 dims, which DDP's bucket views flag ("Grad strides do not match").
+        w = (self.weight.view(1, self.in_channels, o) if s == 1
+             else self.weight.permute(2, 3, 0, 1).contiguous().view(s * s, self.in_channels, o))
         if s == 1 and target.coords is x.coords:
             out = x.features @ w[0]  # same site set: a plain 1x1 matmul
         else:

@@ -310,7 +310,7 @@ def _train_epochs(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at:
             stopped = True  # --max-steps hit inside the epoch
             break
         at = Position(epoch=at.epoch + 1, step_in_epoch=0, step=at.step)
-        _finish_epoch(run, parts, at, part, log, saves)
+        _finish_epoch(run, parts, at, part, log, saves, per_step=estimate.rolling(), steps_left=end_step - at.step)
     if stopped:
         _save(run, parts, at, run.last_path)
     return at, last_loss
@@ -359,14 +359,15 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
 
 
 def _finish_epoch(run: RunPlan, parts: ModelAndOptimiser, at: Position, part: _EpochPart, log: MetricsLog,
-                  saves: _SaveClock) -> None:
-    """After epoch ``at.epoch``: its record and line, ``checkpoints/epoch_NNN.pt`` when due, ``last.pt``, and the
-    evaluation every ``train.eval_every`` epochs."""
+                  saves: _SaveClock, *, per_step: float | None, steps_left: int) -> None:
+    """After epoch ``at.epoch``: its record and line (with the time left at ``per_step``, the rolling mean seconds
+    per step), ``checkpoints/epoch_NNN.pt`` when due, ``last.pt``, and the evaluation every ``train.eval_every``
+    epochs."""
     tc = run.cfg.train
     means = mean_losses(part.sums, part.steps)
     log.epoch(epoch=at.epoch, step=at.step, steps=part.steps, means=means, seconds=part.seconds)
     run.say(epoch_line(epoch=at.epoch, epochs=tc.epochs, means=means, steps=part.steps, seconds=part.seconds,
-                       step=at.step, total_steps=run.total_steps))
+                       step=at.step, total_steps=run.total_steps, per_step=per_step, steps_left=steps_left))
     if at.epoch % max(tc.checkpoint_every, 1) == 0 or at.epoch == tc.epochs:
         _save(run, parts, at, run.out / "checkpoints" / f"epoch_{at.epoch:03d}.pt")
     _save(run, parts, at, run.last_path)

@@ -5,6 +5,7 @@ line per epoch and per validation).
 
 from __future__ import annotations
 
+import collections
 import json
 import time
 from pathlib import Path
@@ -18,6 +19,10 @@ from mpchair.core.atomic import write_text
 #: allocates its buffers and is several times slower than the rest).
 ESTIMATE_WARMUP = 1
 ESTIMATE_STEPS = 3
+#: The estimate in each epoch line is the mean wall time of the last ROLLING_STEPS steps (data loading, checkpoints
+#: and validation included): step times drift by several times over a run (a shared CPU, the GT sampler's
+#: boxes, thermal limits), so the start-up measurement alone can be far off.
+ROLLING_STEPS = 50
 
 
 def read_metrics(path: Path, max_step: int) -> list[str]:
@@ -113,14 +118,19 @@ ZERO_LOSSES = Losses(cls=0.0, reg=0.0, dir=0.0, total=0.0)
 
 
 class DurationEstimate:
-    """The start-up estimate of a process that runs ``todo`` steps from global step ``first_step``: the wall time of
-    its steps ``ESTIMATE_WARMUP + 1`` to ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` (data loading and checkpoints included).
-    Nothing for ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` steps or fewer."""
+    """The duration estimates of a process that runs ``todo`` steps from global step ``first_step``.
+
+    The start-up one: the wall time of its steps ``ESTIMATE_WARMUP + 1`` to ``ESTIMATE_WARMUP + ESTIMATE_STEPS``
+    (data loading and checkpoints included), nothing for ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` steps or fewer. The
+    rolling one (:meth:`rolling`): the mean wall time between the ends of the last ``ROLLING_STEPS`` steps after the
+    warm-up, updated at every step, for the epoch lines."""
 
     def __init__(self, *, first_step: int, todo: int) -> None:
         self.first_step = first_step
         self.todo = todo
         self._timed_from: float | None = None
+        self._last_end: float | None = None
+        self._recent: collections.deque[float] = collections.deque(maxlen=ROLLING_STEPS)
 
     @property
     def will_measure(self) -> bool:
@@ -129,12 +139,20 @@ class DurationEstimate:
     def after_step(self, step: int) -> float | None:
         """Call after every step (``step``: the global steps done); returns the measured seconds per step once, else
         None."""
+        now = time.perf_counter()
         done = step - self.first_step
+        if self._last_end is not None and done > ESTIMATE_WARMUP:
+            self._recent.append(now - self._last_end)
+        self._last_end = now
         if done == ESTIMATE_WARMUP:
-            self._timed_from = time.perf_counter()
+            self._timed_from = now
         elif done == ESTIMATE_WARMUP + ESTIMATE_STEPS and self._timed_from is not None and self.will_measure:
-            return (time.perf_counter() - self._timed_from) / ESTIMATE_STEPS
+            return (now - self._timed_from) / ESTIMATE_STEPS
         return None
+
+    def rolling(self) -> float | None:
+        """Mean seconds per step over the last ``ROLLING_STEPS`` timed steps (None before the first timed one)."""
+        return sum(self._recent) / len(self._recent) if self._recent else None
 
 
 def format_duration(seconds: float) -> str:
@@ -162,10 +180,13 @@ def estimate_line(todo: int, per_step: float, validation: str) -> str:
 
 
 def epoch_line(*, epoch: int, epochs: int, means: Losses, steps: int, seconds: float, step: int,
-               total_steps: int) -> str:
-    """``epoch 1/2: loss L (cls C, reg R, dir D), N steps in T, step S/TOTAL``."""
+               total_steps: int, per_step: float | None = None, steps_left: int = 0) -> str:
+    """``epoch 1/2: loss L (cls C, reg R, dir D), N steps in T, step S/TOTAL`` and, with ``per_step`` (the rolling
+    mean, seconds) and steps still to run, ``, ~0.85 s/step now -> ~5 min left``."""
+    left = (f", ~{per_step:.2f} s/step now -> ~{format_duration(per_step * steps_left)} left"
+            if per_step is not None and steps_left > 0 else "")
     return (f"epoch {epoch}/{epochs}: loss {means.total:.4f} (cls {means.cls:.4f}, reg {means.reg:.4f}, dir "
-            f"{means.dir:.4f}), {steps} steps in {format_duration(seconds)}, step {step}/{total_steps}")
+            f"{means.dir:.4f}), {steps} steps in {format_duration(seconds)}, step {step}/{total_steps}" + left)
 
 
 def ap_text(result: dict, classes: tuple[str, ...]) -> str:

@@ -104,3 +104,18 @@ def ends_an_evaluated_epoch(cfg: ExperimentConfig, at: Position) -> bool:
     that evaluation was stopped during it, and evaluates those weights first."""
     tc = cfg.train
     return at.step_in_epoch == 0 and at.epoch > 0 and tc.eval_every > 0 and at.epoch % tc.eval_every == 0
+
+
+def interrupted_line(last_path: Path, resume_command: str) -> str:
+    """What a person needs after Ctrl-C: the step ``last_path`` holds (the newest save: an epoch's end, ``--max-steps``
+    or the mid-epoch save every ``SAVE_INTERVAL_S`` seconds) and ``resume_command``, or that nothing was saved yet."""
+    if not last_path.is_file():
+        return (f"interrupted before the first checkpoint ({last_path} not written): nothing to resume; start again "
+                f"with: {resume_command.removesuffix(' --resume')}")
+    try:
+        saved = load_checkpoint(last_path)
+    except InputError as e:
+        return f"interrupted; {last_path} cannot be resumed: {e}"
+    where = f"step {saved.step} (epoch {saved.epoch} done" + (
+        f", {saved.step_in_epoch} step(s) into epoch {saved.epoch + 1})" if saved.step_in_epoch else ")")
+    return (f"interrupted: {last_path} holds {where}; steps after it are lost. Continue with: {resume_command}")

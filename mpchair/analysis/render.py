@@ -85,7 +85,8 @@ def plot_density_histogram(stats: dict, out: str | Path, size: tuple[int, int] =
     for key, name, colour in styles:
         ax.axvline(paper[key]["median"], color=colour, lw=2, ls="--", label=f"paper {name}: median "
                    f"{paper[key]['median']:.5f}")
-        ax.axvspan(paper[key]["min"], paper[key]["max"], color=colour, alpha=0.12)
+        ax.axvspan(paper[key]["min"], paper[key]["max"], color=colour, alpha=0.12,
+                   label=f"paper {name}: min-max {paper[key]['min']:.5f}-{paper[key]['max']:.5f}")
     g = stats["geometry"]
     ax.set_xlabel(f"pseudoimage density D = non-empty pillars / ({g['grid'][0]} x {g['grid'][1]})")
     ax.set_ylabel("frames")
@@ -101,6 +102,10 @@ def _class_colours(names: Sequence[str]) -> dict[str, tuple]:
 
     cmap = colormaps["tab10"]
     return {n: cmap(i % 10) for i, n in enumerate(names)}
+
+
+#: Colours of the l, w and h histograms of a one-class dataset (matplotlib's tab10 blue, orange, green).
+DIMENSION_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c")
 
 
 def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 800)) -> None:
@@ -127,8 +132,16 @@ def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 
             ax.set_xscale("symlog", linthresh=1.0)
         ax.set_title(title)
 
-    for key, ls in (("l", "-"), ("w", "--"), ("h", ":")):
-        steps(axes[1], key, "l (solid), w (dashed), h (dotted) [m]", ls=ls, label=key == "l")
+    if len(classes) == 1:
+        # one class: l, w and h overlap on one axis, so each gets its own colour (and its own legend entry)
+        ((name, c),) = classes.items()
+        for key, colour in zip(("l", "w", "h"), DIMENSION_COLOURS):
+            h = c[key]["histogram"]
+            axes[1].stairs(h["counts"], h["edges"], color=colour, lw=2, label=f"{key} ({name}, {c['count']})")
+        axes[1].set_title("box size l, w, h [m]")
+    else:
+        for key, ls in (("l", "-"), ("w", "--"), ("h", ":")):
+            steps(axes[1], key, "l (solid), w (dashed), h (dotted) [m]", ls=ls, label=key == "l")
     axes[1].legend(fontsize=7)
     steps(axes[2], "points", "points per box (log)", log=True)
     steps(axes[3], "distance", "centre distance hypot(x, y) [m]")
@@ -181,6 +194,13 @@ def _auto_extent(points: np.ndarray, boxes: Sequence[np.ndarray]) -> tuple[float
     return min(xs) - margin, max(xs) + margin, min(ys) - margin, max(ys) + margin
 
 
+def label_anchors(boxes: np.ndarray) -> np.ndarray:
+    """(N, 2) sensor-frame points (x, y, metres) where BEV labels of ``boxes`` (N, 7) sit: each box's corner with
+    the largest y (the top of the picture), a corner of the box itself."""
+    polys = bev_polygons(boxes)
+    return polys[np.arange(len(polys)), np.argmax(polys[:, :, 1], axis=1)]
+
+
 def _draw_bev_boxes(ax, boxes: np.ndarray, colour: str, texts: Sequence[str] | None, dashed: bool = False) -> None:
     from matplotlib.collections import LineCollection, PolyCollection
 
@@ -194,8 +214,10 @@ def _draw_bev_boxes(ax, boxes: np.ndarray, colour: str, texts: Sequence[str] | N
     ax.add_collection(LineCollection(np.stack([boxes[:, :2], front], axis=1), colors=colour, linewidths=1.6,
                                      zorder=3), autolim=False)
     if texts is not None:
-        for (x, y), t in zip(polys.max(axis=1), texts):
-            ax.text(x, y, t, color=colour, fontsize=8, zorder=4, clip_on=True,
+        # at the box's own top-most corner, just above it: the bounding corner (max x, max y) of a rotated box lies
+        # outside it, and in a crowded frame that is nearer a neighbour than its own box
+        for (x, y), t in zip(label_anchors(boxes), texts):
+            ax.text(x, y, t, color=colour, fontsize=8, zorder=4, clip_on=True, ha="center", va="bottom",
                     bbox={"facecolor": "white", "alpha": 0.6, "pad": 1, "edgecolor": "none"})
 
 
@@ -324,9 +346,11 @@ def render_frame_3d(
     out: str | Path,
     det_boxes: np.ndarray | None = None,
     size: tuple[int, int] = (1200, 900),
+    title: str | None = None,
 ) -> None:
     """3D PNG (``size = (W, H)`` pixels) of a scan (sensor frame, metres; points coloured by z) with ground-truth
-    boxes (green wireframes) and detections (red), seen from behind and above the sensor, rendered off-screen by VTK.
+    boxes (green wireframes) and detections (red), seen from behind and above the sensor, rendered off-screen by VTK,
+    with an x / y / z axes marker (sensor frame) in the lower left and ``title`` in the upper left.
 
     Raises :class:`RenderError` when VTK cannot render off-screen here, or renders a blank image.
     """
@@ -355,6 +379,9 @@ def render_frame_3d(
             plotter.add_mesh(pv.line_segments_from_points(seg), color=colour, line_width=3)
         extent = float(np.linalg.norm(np.ptp(np.percentile(pts, [5, 95], axis=0), axis=0))) if len(pts) else 1.0
         plotter.add_mesh(pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), scale=max(1.0, 0.05 * extent)), color="white")
+        plotter.add_axes(xlabel="x", ylabel="y", zlabel="z", line_width=3)  # the sensor frame's axes
+        if title:
+            plotter.add_text(title, position="upper_left", font_size=10, color="white")
         # Camera: behind and above the scene, looking along +x and down; then fit the scene's robust bounds (the
         # 1-99 percentiles of the points, plus every box) so a few far returns do not shrink everything.
         parts = [np.zeros((1, 3))]
@@ -471,9 +498,10 @@ def render_house(
 # ------------------------------------------------------------------------------------------------ dataset readers
 
 
-def frame_boxes(root: str | Path, frame_id: str) -> tuple[np.ndarray, list[str]]:
-    """Ground truth of a frame: (N,7) sensor-frame boxes of the non-DontCare rows of ``label_2`` and their names."""
-    paths = frame_paths(root, frame_id)
+def frame_boxes(root: str | Path, frame_id: str, split_dir: str = "training") -> tuple[np.ndarray, list[str]]:
+    """Ground truth of a frame: (N,7) sensor-frame boxes of the non-DontCare rows of ``label_2`` and their names
+    (``split_dir`` as in :func:`mpchair.analysis.stats.load_points`)."""
+    paths = frame_paths(root, frame_id, split_dir)
     labels = read_labels(paths.label_2).objects()
     return labels_to_boxes(labels, read_calib(paths.calib)), [str(n) for n in labels.names]
 
@@ -551,6 +579,22 @@ def default_zmax(dataset: str | Path) -> float | None:
 
 
 
+def stream_zmax(stream: str | Path) -> float:
+    """``mpchair view``'s default ``zmax`` for a stream folder: :data:`CEILING_CUT` above the floor, with the sensor
+    height of the ``--height`` in ``stream.json``'s command (1.0 m when it names none)."""
+    from mpchair.recording.sources import read_stream_meta
+
+    meta, path = read_stream_meta(Path(stream))
+    command = meta.get("command") if isinstance(meta.get("command"), list) else []
+    height = 1.0
+    if "--height" in command[:-1]:
+        try:
+            height = float(command[command.index("--height") + 1])
+        except ValueError:
+            raise InputError("malformed stream file (--height in its command is no number)", path) from None
+    return CEILING_CUT - height
+
+
 def frame_picture(
     dataset: str | Path,
     frame_id: str,
@@ -561,8 +605,10 @@ def frame_picture(
     size: tuple[int, int] = (1000, 1000),
     extent: tuple[float, float, float, float] | None = None,
     zmax: float | None = None,
+    split_dir: str = "training",
 ) -> dict:
-    """The pictures of one frame of a KITTI-layout dataset: the bird's-eye view at ``out`` (:func:`render_bev`) and,
+    """The pictures of one frame of a KITTI-layout dataset (``split_dir`` ``""``: of a stream's sequence folder):
+    the bird's-eye view at ``out`` (:func:`render_bev`) and,
     when ``out_3d`` is given, the 3D view there (:func:`render_frame_3d`, rendered first so that a machine without
     off-screen OpenGL fails before anything is written). ``results`` is a folder of KITTI result files (16 columns)
     whose detections are drawn in red. ``zmax`` (sensor frame, metres) drops points at or above it from both views,
@@ -572,19 +618,20 @@ def frame_picture(
     """
     from mpchair.analysis.stats import load_points
 
-    paths = frame_paths(dataset, frame_id)
-    points = load_points(dataset, frame_id, fov_crop)
+    paths = frame_paths(dataset, frame_id, split_dir)
+    points = load_points(dataset, frame_id, fov_crop, split_dir)
     n_loaded = len(points)
     if zmax is not None:
         points = points[points[:, 2] < zmax]
-    boxes, names = frame_boxes(dataset, frame_id)
+    boxes, names = frame_boxes(dataset, frame_id, split_dir)
     dets = scores = None
     if results is not None:
         dets, scores, _ = result_boxes(results, frame_id, read_calib(paths.calib))
-    if out_3d is not None:
-        render_frame_3d(points, boxes, out_3d, det_boxes=dets, size=size)
-    title = (f"{Path(dataset).name} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
+    where = f"{Path(dataset).parent.parent.name} sequence {Path(dataset).name}" if not split_dir else Path(dataset).name
+    title = (f"{where} frame {frame_id}: {len(points)} points" + (" (FOV-cropped)" if fov_crop else "")
              + ("" if zmax is None else f", z < {zmax:g} m"))
+    if out_3d is not None:
+        render_frame_3d(points, boxes, out_3d, det_boxes=dets, size=size, title=title)
     render_bev(points, boxes, out, names=names, det_boxes=dets, det_scores=scores, extent=extent, size=size,
                title=title)
     return {"frame": frame_id, "points": int(len(points)), "zmax": zmax, "above_zmax": n_loaded - len(points),

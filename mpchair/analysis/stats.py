@@ -82,13 +82,14 @@ def dataset_frame_ids(root: str | Path, split: str | None = None) -> list[str]:
     return ids
 
 
-def load_points(root: str | Path, frame_id: str, fov_crop: bool = False) -> np.ndarray:
-    """The (N,4) float32 scan of a frame (sensor frame, metres), optionally cropped to the image_2 field of view.
+def load_points(root: str | Path, frame_id: str, fov_crop: bool = False, split_dir: str = "training") -> np.ndarray:
+    """The (N,4) float32 scan of a frame (sensor frame, metres), optionally cropped to the image_2 field of view
+    (``split_dir``: the folder under ``root`` holding ``velodyne/``; ``""`` for a stream's sequence folder).
 
     The crop (:func:`mpchair.geometry.fov_mask`) uses the frame's calib and its real image size, read from
     ``image_2/<id>.png`` (sizes differ per frame on KITTI), like OpenPCDet's ``FOV_POINTS_ONLY``.
     """
-    paths = frame_paths(root, frame_id)
+    paths = frame_paths(root, frame_id, split_dir)
     points = read_velodyne(paths.velodyne)
     if fov_crop:
         calib = read_calib(paths.calib)

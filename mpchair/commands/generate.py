@@ -69,12 +69,14 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
       mpchair generate --root mp3d/ --house A --house B --frames 3750 --height 1.25 --split-mode paper --out mpc/
       mpchair generate ... --shard 3/8        # one job of a cluster array
     """
+    from mpchair.core.atomic import check_writable
     from mpchair.core.heap import keep_freed_memory
     from mpchair.dataset.generate import GenerateRequest
     from mpchair.dataset.generate import generate as run
 
     keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/core/heap.py)
 
+    check_writable(out, folder=True)
     req = GenerateRequest(
         root=root, houses=tuple(houses), frames=frames, out=out, sensor=sensor, seed=seed, height=height,
         robot_radius=robot_radius, categories=tuple(categories), keep_empty=keep_empty, split_mode=split_mode,

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
 
@@ -43,9 +44,9 @@ def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | No
 
     \b
     Examples:
-      mpchair stats --density dataset/ --plot density.png
+      mpchair stats --density dataset/ --plot out/density.png
       mpchair stats --density tests/data/kitti --preset kitti --json
-      mpchair stats --boxes dataset/ --plot boxes.png
+      mpchair stats --boxes dataset/ --plot out/boxes.png
     """
     from mpchair.analysis import render
     from mpchair.analysis import stats as lib
@@ -54,6 +55,8 @@ def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | No
         raise click.UsageError("choose --density or --boxes")
     if plot is not None and plot.suffix.lower() != ".png":
         raise InputError("--plot must name a .png file", plot)
+    if plot is not None:
+        check_writable(plot)
     if mode == "density":
         given = [name for name, v in (("--config", config), ("--preset", preset), ("--range", pc_range)) if v]
         if len(given) > 1:

@@ -62,11 +62,13 @@ def stream(root: Path, houses: tuple[str, ...], episodes: int, out: Path, rate: 
       mpchair stream --root houses/ --house X --house Y --episodes 5 --rate 10 --speed 0.5 --out stream/
       mpchair stream --root houses/ --house X --episodes 1 --speed 0 --duration 5 --out still/   # a still robot
     """
+    from mpchair.core.atomic import check_writable
     from mpchair.core.heap import keep_freed_memory
     from mpchair.stream import StreamRequest
     from mpchair.stream import stream as run
 
     keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/core/heap.py)
+    check_writable(out, folder=True)
     req = StreamRequest(
         root=root, houses=tuple(houses), episodes=episodes, out=out, rate=rate, speed=speed, turn_rate=turn_rate,
         accel=accel, sensor=sensor, seed=seed, height=height, robot_radius=robot_radius, categories=tuple(categories),

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.core.atomic import check_writable
 from mpchair.core.clitools import FRAME_ID
 from mpchair.core.errors import InputError
 
@@ -17,12 +18,15 @@ _CTX = {"help_option_names": ["-h", "--help"], "max_content_width": 110}
 def _png(path: Path, option: str) -> Path:
     if path.suffix.lower() != ".png":
         raise InputError(f"{option} must name a .png file", path)
+    check_writable(path)  # now, not after the drawing
     return path
 
 
 @click.command(context_settings=_CTX)
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--frame", "frame", type=FRAME_ID, help="Frame id (123 or 000123).")
+@click.option("--sequence", default=None, metavar="NN",
+              help="On a stream (mpchair stream): the sequence whose --frame to draw (DIR/sequences/NN).")
 @click.option("--out", type=click.Path(path_type=Path), help="Bird's-eye view PNG.")
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Instead of a picture: write DATASET (a stream or a dataset) as a Rerun recording (.rrd): per frame "
@@ -49,9 +53,9 @@ def _png(path: Path, option: str) -> Path:
                    "the ceiling does not cover the room; nothing on other folders (real KITTI). none: keep every "
                    "point.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was drawn as JSON.")
-def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | None, mcap_out: Path | None,
-         limit: int | None, rate: float, results: Path | None, three_d: bool, fov_crop: bool, size: tuple[int, int],
-         extent, zmax: str, as_json: bool) -> None:
+def view(dataset: Path, frame: str | None, sequence: str | None, out: Path | None, rerun_out: Path | None,
+         mcap_out: Path | None, limit: int | None, rate: float, results: Path | None, three_d: bool, fov_crop: bool,
+         size: tuple[int, int], extent, zmax: str, as_json: bool) -> None:
     """Picture of one frame of DATASET: bird's-eye view of the scan (coloured by z) with its labelled boxes (green,
     class names) and, with --results, detections (red, dashed, scores). Headless; PNG output. With --rerun, a Rerun
     recording of a whole stream (mpchair stream) or dataset instead, to watch in the Rerun viewer; with --mcap, a
@@ -59,8 +63,9 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
 
     \b
     Examples:
-      mpchair view dataset/ --frame 3 --out frame.png --3d      # writes frame.png and frame-3d.png
-      mpchair view dataset/ --frame 3 --out all.png --zmax none # the ceiling too
+      mpchair view dataset/ --frame 3 --out out/frame.png --3d  # writes out/frame.png and out/frame-3d.png
+      mpchair view dataset/ --frame 3 --out out/all.png --zmax none  # the ceiling too
+      mpchair view stream/ --sequence 00 --frame 5 --out out/stream-frame.png
       mpchair view stream/ --rerun stream.rrd && rerun stream.rrd
       mpchair view stream/ --mcap stream.mcap && ros2 bag play -s mcap stream.mcap
     """
@@ -72,7 +77,7 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
     if mcap_out is not None:
         _mcap(dataset, mcap_out, limit, rate, as_json, other=frame is not None or out is not None)
         return
-    from mpchair.analysis.render import RenderError, default_zmax, frame_picture
+    from mpchair.analysis.render import RenderError, default_zmax, frame_picture, stream_zmax
 
     if frame is None or out is None:
         raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd, or --mcap OUT.mcap")
@@ -80,13 +85,15 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
     _png(out, "--out")
     if min(size) < 64:
         raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
-    if not (Path(dataset) / "training" / "velodyne" / f"{fid}.bin").is_file():
-        raise InputError(f"frame {fid} not found (no training/velodyne/{fid}.bin)", dataset)
+    folder, split_dir = _frame_folder(dataset, sequence, fov_crop)
+    if not (folder / split_dir / "velodyne" / f"{fid}.bin").is_file():
+        raise InputError(f"frame {fid} not found (no {Path(split_dir) / 'velodyne' / (fid + '.bin')})", folder)
     out_3d = out.with_name(out.stem + "-3d.png") if three_d else None
-    cut = default_zmax(dataset) if zmax.strip().lower() == "auto" else _zmax(zmax)
+    auto = zmax.strip().lower() == "auto"
+    cut = (stream_zmax(dataset) if sequence is not None else default_zmax(dataset)) if auto else _zmax(zmax)
     try:
-        info = frame_picture(dataset, fid, out, results=results, out_3d=out_3d, fov_crop=fov_crop, size=tuple(size),
-                             extent=tuple(extent) if extent else None, zmax=cut)
+        info = frame_picture(folder, fid, out, results=results, out_3d=out_3d, fov_crop=fov_crop, size=tuple(size),
+                             extent=tuple(extent) if extent else None, zmax=cut, split_dir=split_dir)
     except RenderError as e:
         raise click.ClickException(str(e)) from None
     if as_json:
@@ -97,6 +104,27 @@ def view(dataset: Path, frame: str | None, out: Path | None, rerun_out: Path | N
         click.echo(f"wrote {out}" + (f" and {out_3d}" if out_3d else "") + f": frame {fid}, {info['points']} points"
                    f"{left_out}, {info['boxes']} boxes" + ("" if info["detections"] is None else
                                                             f", {info['detections']} detections"))
+
+
+def _frame_folder(dataset: Path, sequence: str | None, fov_crop: bool) -> tuple[Path, str]:
+    """``(folder, split_dir)`` holding the frames to draw: a dataset's ``training/``, or with ``sequence`` a stream's
+    ``sequences/NN/``. A stream without ``--sequence`` is an :class:`InputError` that lists its sequences."""
+    is_stream = (dataset / "stream.json").is_file()
+    if sequence is None:
+        if is_stream:
+            seqs = sorted(p.name for p in (dataset / "sequences").iterdir() if p.is_dir())
+            raise InputError(f"a stream: pick the sequence with --sequence NN (it has {', '.join(seqs) or 'none'}); "
+                             "frame ids count from 000000 in each", dataset)
+        return dataset, "training"
+    if not is_stream:
+        raise InputError("--sequence applies to a stream (mpchair stream); this folder has no stream.json", dataset)
+    if fov_crop:
+        raise InputError("--fov-crop needs image_2, which a stream does not write", dataset)
+    folder = dataset / "sequences" / sequence
+    if not folder.is_dir():
+        seqs = sorted(p.name for p in (dataset / "sequences").iterdir() if p.is_dir())
+        raise InputError(f"no sequence {sequence} (it has {', '.join(seqs) or 'none'})", dataset)
+    return folder, ""
 
 
 def _zmax(value: str) -> float | None:
@@ -170,7 +198,8 @@ def view_house(root: Path, house_id: str, out: Path, category: str, dataset: Pat
 
     \b
     Example:
-      mpchair view-house --root houses/ --house synth0000 --out house.png --dataset dataset/
+      mpchair houses --root houses/             # lists the house ids under the root
+      mpchair view-house --root houses/ --house ID --out out/house.png --dataset dataset/
     """
     from mpchair.analysis.render import house_picture
 

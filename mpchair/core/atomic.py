@@ -29,6 +29,9 @@ def _create_temp(path: Path) -> tuple[int, Path]:
             continue
         except FileNotFoundError:
             path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            e.filename = str(path.parent)  # name the folder that refused, not the hidden temp name nobody asked for
+            raise
     raise FileExistsError(f"no free temporary name beside {path}")
 
 
@@ -87,6 +90,54 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def check_writable(path: str | Path, *, folder: bool = False) -> None:
+    """Before any work: raise an :class:`~mpchair.core.errors.InputError` naming the folder when the file ``path``
+    (or, with ``folder``, the folder ``path`` itself) could not be written at the end.
+
+    The nearest folder that exists on the way (the output's own, or the ancestor its writer would create it in) must
+    be a folder where a file can be created: that is tried with a probe temp file, removed at once, so the answer is
+    the filesystem's (read-only mounts, ACLs, root) rather than a guess from the mode bits. Nothing else is created.
+    """
+    from mpchair.core.errors import InputError
+
+    path = Path(path)
+    here = path if folder else path.parent
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    if not here.is_dir():
+        raise InputError(f"is not a folder, so {path} cannot be written", here)
+    try:
+        fd, probe = _create_temp(here / ".write-check")
+    except OSError as e:
+        raise InputError(f"folder not writable ({e.strerror or e}), so {path} cannot be written there; choose "
+                         "another output", here) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """Make ``dst`` hold ``src``'s bytes: a hard link (no second copy on disk) made under a temp name and renamed into
+    place, or, where the filesystem has no hard links, an atomic copy. Nothing happens when ``dst`` already is
+    ``src``'s file."""
+    src, dst = Path(src), Path(dst)
+    if dst.exists() and os.path.samefile(src, dst):
+        return
+    fd, tmp = _create_temp(dst)
+    os.close(fd)
+    os.unlink(tmp)  # os.link wants a free name: the one just reserved
+    try:
+        os.link(src, tmp)
+    except OSError:
+        write_bytes(dst, src.read_bytes())
+        return
+    try:
+        os.replace(tmp, dst)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

@@ -4,6 +4,7 @@ Layout written under ``out``::
 
     training/{velodyne,label_2,calib,image_2,pose}/NNNNNN.*   one frame each (see mpchair.dataset.frame)
     ImageSets/{train,val,test}.txt                          written when every frame exists
+    testing/{velodyne,calib,image_2}/NNNNNN.*               the test split as KITTI lays it out (hard links)
     manifest.json                                           written last (mpchair.dataset.manifest.Manifest)
     .frames/NNNNNN.json                                     per-frame records (mpchair.dataset.manifest.FrameRecord;
                                                             a frame is done iff its record exists)
@@ -64,7 +65,7 @@ from mpchair.dataset.manifest import (
     describe_records,
     read_frame_record,
 )
-from mpchair.dataset.splits import SPLIT_MODES, split_frames
+from mpchair.dataset.splits import SPLIT_MODES, TESTING_KINDS, split_frames, write_testing_folder
 from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.kitti import write_imageset
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
@@ -486,7 +487,8 @@ def _with_hint(e: OSError, hint: str) -> OSError:
 def _assemble(plan: _Plan, n_total: int) -> Manifest:
     """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the manifest."""
     out = Path(plan.req.out)
-    for p in [out, out / "ImageSets"]:  # temps a killed assembly left behind
+    testing = [out / "testing" / kind for kind in TESTING_KINDS]
+    for p in [out, out / "ImageSets", *testing]:  # temps a killed assembly left behind
         if p.is_dir():
             for q in p.iterdir():
                 if q.name.startswith(".") and q.name.endswith(".tmp"):
@@ -496,6 +498,7 @@ def _assemble(plan: _Plan, n_total: int) -> Manifest:
     splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
     for name, ids in splits.items():
         write_imageset(out / "ImageSets" / f"{name}.txt", ids)
+    write_testing_folder(out, list(splits.get("test", ())))
     manifest = _manifest(plan, records, {k: len(v) for k, v in splits.items()})
     write_text(out / MANIFEST_NAME, manifest.to_json() + "\n")
     return manifest

@@ -13,10 +13,13 @@ Frame ids are global 6-digit indices, ``house position * frames_per_house + fram
 from __future__ import annotations
 
 import zlib
+from pathlib import Path
 
 import numpy as np
 
+from mpchair.core.atomic import link_or_copy
 from mpchair.core.errors import InputError
+from mpchair.kitti import frame_paths
 
 SPLIT_MODES = ("frame", "house", "paper")
 FRACTIONS = (0.6, 0.2, 0.2)
@@ -53,3 +56,19 @@ def split_frames(n_houses: int, frames_per_house: int, mode: str, seed: int) -> 
         raise InputError(f"unknown split mode {mode!r} (choose from {', '.join(SPLIT_MODES)})")
     return {"train": sorted(int(i) for i in train), "val": sorted(int(i) for i in val),
             "test": sorted(int(i) for i in test)}
+
+
+#: What a reader of the ``testing/`` folder needs of a frame (OpenPCDet's KITTI info creation: the scan, the
+#: calibration, the image for its size; no labels, as KITTI's test split has none).
+TESTING_KINDS = ("velodyne", "calib", "image_2")
+
+
+def write_testing_folder(out: Path, test_ids: list[str]) -> None:
+    """``out/testing/{velodyne,calib,image_2}/`` of the ``test`` split, as KITTI lays it out (OpenPCDet's
+    ``create_kitti_infos`` reads the test split from ``testing/``): hard links to the frames' ``training/`` files,
+    so no byte is stored twice and ``training/`` keeps every frame (Open3D-ML and our own readers take the splits
+    from ``ImageSets/``)."""
+    for fid in test_ids:
+        src, dst = frame_paths(out, fid), frame_paths(out, fid, "testing")
+        for kind in TESTING_KINDS:
+            link_or_copy(getattr(src, kind), getattr(dst, kind))

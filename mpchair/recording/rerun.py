@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.atomic import atomic_path
+from mpchair.core.atomic import atomic_path, check_writable
 from mpchair.core.errors import InputError
 from mpchair.kitti import frame_paths, read_poses, read_velodyne
 from mpchair.recording.sources import dataset_frame_ids, frame_boxes, read_sequence, read_stream_meta
@@ -42,6 +42,7 @@ def check_rerun_path(path: str | Path) -> None:
     """Fail early (:class:`InputError`) when ``path`` is not an ``.rrd`` file name or rerun-sdk is missing."""
     if Path(path).suffix.lower() != ".rrd":
         raise InputError("--rerun must name a .rrd file", path)
+    check_writable(path)
     _rerun()
 
 
