@@ -95,3 +95,20 @@ def test_a_stream_on_a_full_disk_names_the_file_and_resumes(inputs, tiny_disk):
     res, _ = _cli(*cmd)
     assert res.returncode == 0, res.stderr
     assert (tiny_disk / "st" / "stream.json").is_file()
+
+
+def test_bad_input_inside_a_recording_leaves_the_process_exit_status_alone(inputs, tmp_path):
+    """Only a failed write abandons rerun-sdk's stream (and ends the process with status 2): a library caller that
+    catches an InputError raised while recording (a broken poses.txt) exits 0, with no file written."""
+    import shutil
+
+    stream = tmp_path / "st"
+    shutil.copytree(inputs / "st", stream)
+    (stream / "sequences" / "00" / "poses.txt").write_text("garbage\n")
+    code = ("from mpchair.recording.rerun import log_stream\nfrom mpchair.core.errors import InputError\n"
+            f"try:\n    log_stream({str(stream)!r}, {str(tmp_path / 'x.rrd')!r})\n"
+            "except InputError as e:\n    print('refused:', e)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("refused: ") and "poses.txt:1: expected 12 finite numbers" in res.stdout
+    assert not (tmp_path / "x.rrd").exists() and not list(tmp_path.glob(".x.rrd.*"))

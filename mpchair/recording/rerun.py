@@ -73,14 +73,12 @@ class Recorder:
         self.rec = rr.RecordingStream(application)
         self.rec.save(str(path))
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self._frames = 0
         self.failed = False
 
     def time(self, frame: int, time_us: int | None = None) -> None:
-        """Set the timelines for what is logged next: ``frame`` index and capture time (microseconds)."""
-        if self._frames:
-            self.flush()
-        self._frames += 1
+        """Set the timelines for what is logged next (after flushing what came before): ``frame`` index and capture
+        time (microseconds)."""
+        self.flush()
         self.rec.set_time("frame", sequence=int(frame))
         if time_us is not None:
             self.rec.set_time("time", duration=int(time_us) * 1e-6)
@@ -92,11 +90,7 @@ class Recorder:
             self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
         except Exception as e:  # rerun raises RuntimeError (its writer died) or TimeoutError; the cause is in its log
             self.failed = True
-            free = shutil.disk_usage(self._tmp.parent).free
-            if free < MIN_FREE_BYTES:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.out)) from None
-            raise OSError(errno.EIO, f"rerun-sdk could not write the recording ({' '.join(str(e).split())[:200]})",
-                          str(self.out)) from None
+            raise write_error(e, self._tmp.parent, self.out, "write") from None
 
     def pose(self, entity: str, T: np.ndarray) -> None:
         """A (4,4) transform of ``entity`` into its parent's frame (child → parent)."""
@@ -149,8 +143,17 @@ def _exit_now() -> None:
     sys.stderr.flush()
     os._exit(2)
 
+
 #: Free space below which a failed write is reported as a full disk (bytes).
 MIN_FREE_BYTES = 1 << 20
+
+
+def write_error(e: Exception, folder: Path, out: str | Path, what: str) -> OSError:
+    """The one-line ``OSError`` naming ``out`` for rerun-sdk's failure ``e`` to ``what`` (start / write) a recording
+    in ``folder``: ``ENOSPC`` when the disk is full, else ``EIO`` with rerun's words."""
+    if shutil.disk_usage(folder).free < MIN_FREE_BYTES:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(out))
+    return OSError(errno.EIO, f"rerun-sdk could not {what} the recording ({' '.join(str(e).split())[:200]})", str(out))
 
 
 @contextlib.contextmanager
@@ -161,14 +164,14 @@ def recording(out: str | Path) -> Iterator[Recorder]:
         try:
             rec = Recorder(tmp, out=out)
         except RuntimeError as e:  # rerun-sdk cannot even write the file header (the disk is full already)
-            raise OSError(errno.ENOSPC if shutil.disk_usage(Path(tmp).parent).free < MIN_FREE_BYTES else errno.EIO,
-                          f"rerun-sdk could not start the recording ({' '.join(str(e).split())[:200]})",
-                          str(out)) from None
+            raise write_error(e, Path(tmp).parent, out, "start") from None
         try:
             yield rec
         except BaseException:
-            rec.failed = True  # the recording is abandoned: no final flush
-            rec.close()
+            # The block failed (bad input, Ctrl-C, a failed write): end the stream; only a stream whose write failed
+            # is abandoned (close), a healthy one is flushed and disconnected, and the block's error is what counts.
+            with contextlib.suppress(OSError):
+                rec.close()
             raise
         rec.close()
 
