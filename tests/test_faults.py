@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from helpers_detector import make_tiny_dataset, write_test_config
-from helpers_faults import count_replaces, kill_at_replace, run_forked, tree
+from helpers_faults import count_replaces, kill_at_replace, mounted_tmpfs, run_forked, tree
 
 from detector.cli import main as detector_main
 from detector.train import train
@@ -178,14 +178,8 @@ def test_an_os_error_inside_a_worker_is_one_line_exit_2_and_the_run_resumes(hous
 @pytest.fixture
 def small_disk(tmp_path):
     """A 700 KiB tmpfs (a real ENOSPC); needs the right to mount (root outside a restricted container)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=700k", "tmpfs", str(disk)], capture_output=True,
-                         text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (needs root with CAP_SYS_ADMIN): {res.stderr.strip()}")
-    yield disk
-    subprocess.run(["umount", "-l", str(disk)], check=True)
+    with mounted_tmpfs(tmp_path / "disk", "700k") as disk:
+        yield disk
 
 
 def test_a_full_disk_is_one_line_exit_2_and_the_run_resumes_after_space_is_freed(houses, tmp_path, small_disk):

@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from helpers_faults import mounted_tmpfs
 
 from mpchair.synth import plan_houses, synthesize_house, write_house
 
@@ -43,14 +44,8 @@ def inputs(tmp_path_factory):
 
 @pytest.fixture
 def tiny_disk(tmp_path):
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], capture_output=True,
-                         text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (needs root with CAP_SYS_ADMIN): {res.stderr.strip()}")
-    yield disk
-    subprocess.run(["umount", "-l", str(disk)], check=True)
+    with mounted_tmpfs(tmp_path / "disk", "256k") as disk:
+        yield disk
 
 
 @pytest.mark.parametrize("what", ["ds", "st"])
