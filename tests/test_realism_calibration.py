@@ -73,9 +73,10 @@ def test_the_table_lands_between_the_markers(calibrated, tmp_path):
 def test_the_hole_picture_shows_a_rejected_box(calibrated, tmp_path):
     plan, _ = calibrated
     data = dataset_of(plan, "default", 1)
-    fid, hid, obj = find_hole_frame(data)
-    record = next(f for f in read_manifest(data).frames if f.frame == fid)
-    assert any(b.reason == "in_box_fraction" and b.object_index == obj for b in record.rejected)
+    record, box = find_hole_frame(data)
+    fid = record.frame
+    assert box.reason == "in_box_fraction" and box in record.rejected
+    assert record in read_manifest(data).frames
     info = hole_picture(data, data.parent / "houses", tmp_path / "hole.png")
     assert info["frame"] == fid
     with Image.open(tmp_path / "hole.png") as im:

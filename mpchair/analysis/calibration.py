@@ -22,7 +22,7 @@ from mpchair.analysis.stats import box_records, dataset_frame_ids, load_points
 from mpchair.core.atomic import write_text
 from mpchair.core.errors import InputError
 from mpchair.dataset.generate import GenerateRequest, generate
-from mpchair.dataset.manifest import read_manifest
+from mpchair.dataset.manifest import FrameRecord, RejectedBox, read_manifest
 from mpchair.geometry import MATTERPORT_GEOMETRY, frame_density, invert_rigid, transform_boxes
 from mpchair.matterport import find_houses, read_house
 from mpchair.synth import realism_preset, write_synthetic_houses
@@ -169,13 +169,13 @@ def write_doc_table(doc: Path, table: str) -> None:
     write_text(doc, head + BEGIN + "\n" + table + END + rest.split(END, 1)[1])
 
 
-def find_hole_frame(dataset: Path, reason: str = "in_box_fraction") -> tuple[str, str, int] | None:
-    """``(frame id, house id, object index)`` of the first frame where a box was rejected for ``reason``."""
+def find_hole_frame(dataset: Path, reason: str = "in_box_fraction") -> tuple[FrameRecord, RejectedBox] | None:
+    """The first frame (its record) where a box was rejected for ``reason``, and that box's record."""
     manifest = read_manifest(dataset)
     for f in () if manifest is None else manifest.frames:
         for b in f.rejected:
             if b.reason == reason:
-                return f.frame, f.house, b.object_index
+                return f, b
     return None
 
 
@@ -187,10 +187,10 @@ def hole_picture(dataset: Path, houses: Path, out: Path, reason: str = "in_box_f
     found = find_hole_frame(dataset, reason)
     if found is None:
         raise InputError(f"no box was rejected for {reason} in this dataset", dataset)
-    fid, hid, obj = found
+    record, box = found
+    fid, hid, obj = record.frame, record.house, box.object_index
     house = read_house(find_houses(houses)[hid])
     chair = next(o for o in house.objects if o.index == obj)
-    record = next(f for f in read_manifest(dataset).frames if f.frame == fid)
     pose = np.eye(4)
     pose[:3] = np.asarray(record.pose, dtype=np.float64)
     rejected = transform_boxes(np.asarray(chair.aligned_box, dtype=np.float64)[None], invert_rigid(pose))
