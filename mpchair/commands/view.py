@@ -71,11 +71,9 @@ def view(dataset: Path, frame: str | None, sequence: str | None, out: Path | Non
     """
     if rerun_out is not None and mcap_out is not None:
         raise InputError("give --rerun or --mcap, not both")
-    if rerun_out is not None:
-        _rerun(dataset, rerun_out, limit, as_json, other=frame is not None or out is not None)
-        return
-    if mcap_out is not None:
-        _mcap(dataset, mcap_out, limit, rate, as_json, other=frame is not None or out is not None)
+    if rerun_out is not None or mcap_out is not None:
+        fmt, rec_out = ("rerun", rerun_out) if rerun_out is not None else ("mcap", mcap_out)
+        _record(fmt, dataset, rec_out, limit, rate, as_json, other=frame is not None or out is not None)
         return
     from mpchair.analysis.render import RenderError, default_zmax, frame_picture, stream_zmax
 
@@ -140,42 +138,32 @@ def _zmax(value: str) -> float | None:
     return z
 
 
-def _rerun(dataset: Path, out: Path, limit: int | None, as_json: bool, other: bool) -> None:
-    """``mpchair view --rerun``: a stream (``stream.json``) or a dataset as a Rerun recording."""
-    from mpchair.recording.rerun import check_rerun_path, log_dataset, log_stream
-
+def _record(fmt: str, dataset: Path, out: Path, limit: int | None, rate: float, as_json: bool, other: bool) -> None:
+    """``mpchair view --rerun`` / ``--mcap``: a stream (``stream.json``) or a dataset as a Rerun recording or a
+    ROS 2 bag (``fmt``: ``"rerun"`` or ``"mcap"``)."""
     if other:
-        raise InputError("--rerun writes a recording of the whole folder; leave out --frame / --out")
-    check_rerun_path(out)
+        what = "a recording" if fmt == "rerun" else "a bag"
+        raise InputError(f"--{fmt} writes {what} of the whole folder; leave out --frame / --out")
     if limit is not None and limit < 1:
         raise InputError(f"--limit must be >= 1, got {limit}")
     is_stream = (Path(dataset) / "stream.json").is_file()
-    info = log_stream(dataset, out) if is_stream else log_dataset(dataset, out, limit)
-    info = {"recording": str(out), "kind": "stream" if is_stream else "dataset", **info}
-    if as_json:
-        click.echo(json.dumps(info, indent=1))
+    kind = "stream" if is_stream else "dataset"
+    if fmt == "rerun":
+        from mpchair.recording import rerun as rec
+
+        rec.check_rerun_path(out)
+        info = rec.log_stream(dataset, out) if is_stream else rec.log_dataset(dataset, out, limit)
+        info = {"recording": str(out), "kind": kind, **info}
+        text = f"wrote {out}: {kind} {dataset}, {info['frames']} frames (open it with: rerun {out})"
     else:
-        click.echo(f"wrote {out}: {info['kind']} {dataset}, {info['frames']} frames (open it with: rerun {out})")
+        from mpchair.recording import mcap as rec
 
-
-def _mcap(dataset: Path, out: Path, limit: int | None, rate: float, as_json: bool, other: bool) -> None:
-    """``mpchair view --mcap``: a stream (``stream.json``) or a dataset as a ROS 2 bag."""
-    from mpchair.recording.mcap import check_mcap_path, log_dataset, log_stream
-
-    if other:
-        raise InputError("--mcap writes a bag of the whole folder; leave out --frame / --out")
-    check_mcap_path(out)
-    if limit is not None and limit < 1:
-        raise InputError(f"--limit must be >= 1, got {limit}")
-    is_stream = (Path(dataset) / "stream.json").is_file()
-    info = log_stream(dataset, out) if is_stream else log_dataset(dataset, out, limit, rate)
-    info = {"bag": str(out), "kind": "stream" if is_stream else "dataset", **info}
-    if as_json:
-        click.echo(json.dumps(info, indent=1))
-    else:
-        click.echo(f"wrote {out}: {info['kind']} {dataset}, {info['frames']} frames, "
-                   f"{sum(info['topics'].values())} messages on {len(info['topics'])} topics (open it in Foxglove, "
-                   f"or replay it: ros2 bag play -s mcap {out})")
+        rec.check_mcap_path(out)
+        info = rec.log_stream(dataset, out) if is_stream else rec.log_dataset(dataset, out, limit, rate)
+        info = {"bag": str(out), "kind": kind, **info}
+        text = (f"wrote {out}: {kind} {dataset}, {info['frames']} frames, {sum(info['topics'].values())} messages on "
+                f"{len(info['topics'])} topics (open it in Foxglove, or replay it: ros2 bag play -s mcap {out})")
+    click.echo(json.dumps(info, indent=1) if as_json else text)
 
 
 @click.command("view-house", context_settings=_CTX)
