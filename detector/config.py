@@ -224,8 +224,9 @@ def pseudoimage_geometry(cfg: ModelConfig) -> PseudoimageGeometry:
     return PseudoimageGeometry(cfg.point_cloud_range, cfg.voxel_size[:2], (nx, ny))
 
 
-def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
-    """Raise :class:`InputError` for values the dataclass types cannot express (ranges, divisibility, lengths)."""
+def check_model_config(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1) -> None:
+    """Raise :class:`InputError` for values the dataclass types cannot express (ranges, divisibility, lengths), or
+    for a model whose training step at ``batch_size`` cannot fit this machine's memory (:func:`check_memory`)."""
 
     def fail(msg: str) -> None:
         raise InputError(f"model.{msg}", source)
@@ -282,7 +283,7 @@ def check_model_config(cfg: ModelConfig, source: str = "<config>") -> None:
         fail(f"neg_iou_thr / pos_iou_thr: need 0 <= neg <= pos <= 1, got {cfg.neg_iou_thr}, {cfg.pos_iou_thr}")
     if cfg.nms_pre < 1:
         fail(f"nms_pre: must be >= 1, got {cfg.nms_pre}")
-    check_memory(cfg, source)
+    check_memory(cfg, source, batch_size)
 
 
 def memory_floor_bytes(cfg: ModelConfig, batch_size: int = 1) -> int:
@@ -325,7 +326,7 @@ def check_memory(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1
 
 def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
     """Cross-section checks: class lists agree with ``model.num_classes`` and ``eval.iou_thresholds``."""
-    check_model_config(cfg.model, source)
+    check_model_config(cfg.model, source, cfg.train.batch_size)
     if len(cfg.data.classes) != cfg.model.num_classes:
         raise InputError(
             f"data.classes has {len(cfg.data.classes)} names but model.num_classes is {cfg.model.num_classes}", source
@@ -337,7 +338,6 @@ def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
         raise InputError(f"eval.classes: {unknown[0]!r} is not a trained class (data.classes: "
                          f"{', '.join(cfg.data.classes)})", source)
     check_train_config(cfg.train, source)
-    check_memory(cfg.model, source, cfg.train.batch_size)
 
 
 #: Bounds that no real schedule reaches (the reference trains 200 epochs of 5,000 samples), so a typo cannot start a
