@@ -88,14 +88,15 @@ def _ap_table(res: Path) -> list[str]:
              "paper, KITTI Car Moderate BEV / 3D |", "|---|---|---|---|---|---|"]
     for m in models:
         v = values[m]
+        p = PAPER_TABLE3_MODERATE.get(m)
+        paper = "-" if p is None else f"{p[0]:.2f} / {p[1]:.2f}" if m == "dense" else f"{p[0]:+.2f} / {p[1]:+.2f}"
         if m not in ev.kitti and m not in ev.open3d_ml:
-            cells = ["not run", "", "", ""]
-        elif m == "dense":
+            lines.append(f"| {PAPER_NAMES[m]} | not run | | | | {paper} |")
+            continue
+        if m == "dense":
             cells = ["n/a" if x is None else f"{x:.2f}" for x in v]
         else:
             cells = ["n/a" if x is None or d is None else f"{x - d:+.2f}" for x, d in zip(v, dense)]
-        p = PAPER_TABLE3_MODERATE.get(m)
-        paper = "-" if p is None else f"{p[0]:.2f} / {p[1]:.2f}" if m == "dense" else f"{p[0]:+.2f} / {p[1]:+.2f}"
         lines.append(f"| {PAPER_NAMES[m]} | " + " | ".join(cells) + f" | {paper} |")
     return lines + [""]
 

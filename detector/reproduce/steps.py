@@ -317,7 +317,7 @@ def curve_command(plan: Plan, json_out: Path, png: Path) -> list[str]:
     density = read_density(step_outputs(plan.out)["stats"]["density"])
     median = density.values.get("median") if density else None
     if median:
-        cmd += ["--mark", f"this dataset's median={median:.5f}"]
+        cmd += ["--mark", f"this dataset (median)={median:.5f}"]
     return cmd
 
 
