@@ -17,7 +17,7 @@ from detector.bench.density import crossings
 from detector.models import build_model
 from detector.models.reference_head import nchw, reference_head
 from detector.reproduce.cli import main
-from detector.reproduce.report import targets_section
+from detector.reproduce.report import differences_section, targets_section
 from detector.reproduce.report_ablations import ablations_section
 from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
 from detector.reproduce.status import status_lines
@@ -121,6 +121,9 @@ def test_reference_head_section_is_written_from_the_benchs_json(tiny, tmp_path: 
             "robot CPU: 1082.135 / 236.737 ms = 4.6x).") in text
     (row,) = [r for r in targets_section(res) if "reference's head layout" in r]
     assert row.endswith(f"| paper 4.6 (robot CPU) | {ref:.1f}x |")
+    (head,) = [r for r in differences_section(tmp_path, {}, res) if r.startswith("| head at inference |")]
+    assert head.endswith(f"not the paper's 4.6x (with the reference's head layout: {ref:.1f}x, section \"Total time "
+                         "with the reference's head layout\") |")
 
 
 def test_density_crossings_interpolate_in_log_d() -> None:

@@ -392,6 +392,14 @@ def _head_ratio_text(res: Path) -> str:
             f"({' / '.join(a for a, _ in ratios)})")
 
 
+def _reference_total_text(res: Path) -> str:
+    """" (with the reference's head layout: Nx, section ...)" from the refhead step's JSON ("" without it)."""
+    bench = read_reference_head(res / "bench_reference_head.json")
+    ratio = bench.ratio("dense", "sparse", "total_reference_head") if bench else None
+    return "" if ratio is None else (f" (with the reference's head layout: {ratio:.1f}x, section \"Total time with "
+                                     "the reference's head layout\")")
+
+
 def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, str, str]]:
     """(aspect, paper, this run, why) of the ways the models, the data and the measurements differ from those the
     paper's numbers came from (its released code, its KITTI figures), from this run's manifest, configs and outputs."""
@@ -426,7 +434,8 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
         ("head at inference", "the reference's three 1x1 convs (class, box, direction), NCHW",
          "the three fused into one 1x1 GEMM (channels-last in, channel-planar out)" + _head_ratio_text(res),
          "the dense baseline as fast as we can make it; it takes the same ms off both models' totals, so the dense / "
-         "sparse total-time ratio is higher than with the reference's head and not the paper's 4.6x"),
+         "sparse total-time ratio is higher than with the reference's head and not the paper's 4.6x"
+         + _reference_total_text(res)),
         ("bench weights", "epoch-200 weights trained at the bench's 768 x 512 grid",
          f"this run's, trained on the {grid[0]} x {grid[1]} crop and loaded into the 768 x 512 model (conv weights "
          "do not depend on the grid)" if grid else "n/a",
