@@ -82,7 +82,8 @@ def test_report_section_and_markers(tmp_path):
             in text)
     # keeps up: 1000 / p95; busy at 1 Hz: median / 1 s; CPU left: 1 - threads x median / 1 s / logical CPUs
     assert "| sparse | 768 x 512, 2 threads | 80.0 / 100.0 | 10.0 | 8 % | 96 % of 4 |" in text
-    assert "| dense | 768 x 512, 1 thread | 1600.0 / 2000.0 | 0.5 | 160 % | 60 % of 4 |" in text
+    assert "| dense | 768 x 512, 1 thread | 1600.0 / 2000.0 | 0.5 | all (slower than 1 Hz) | none |" in text
+    assert "| dense | 768 x 512, 2 threads | 800.0 / 1000.0 | 1.0 | 80 % | 60 % of 4 |" in text
     assert "at 1 Hz it keeps the CPU 76 % idle" in text
     # ego: dense 80 - 40 v, sparse 70 - 10 v: equal at v = 1/3 m/s; raw: sparse is ahead from 0.25 m/s on
     assert "- ego: sparse overtakes dense at about 0.33 m/s" in text
@@ -220,7 +221,7 @@ def test_the_streamed_houses_are_checked_against_the_training_data(tmp_path):
     held = check_houses(_stream(tmp_path / "s1", {"X": "x", "C": "c"}), data)
     assert held.streamed == ("X", "C") and held.trained == ("A", "B") and held.overlap == ()
     said = houses_text(held, 1000)
-    assert "2 held-out houses made for these streams (`mpchair synth --seed 1000`): X, C" in said
+    assert "Houses (2): held-out houses made for these streams (`mpchair synth --seed 1000`): X, C" in said
     assert "none of them (by id or by file checksums) is among the 2 houses" in said
     # same id, or other id with the same files: not held out
     seen = check_houses(_stream(tmp_path / "s2", {"A": "zzz", "Y": "b"}), data)

@@ -129,11 +129,17 @@ def _report(args: argparse.Namespace, plan: StreamPlan) -> Path:
             f"house(s) x {sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
             + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {logged_text(plan.out / 'commands.log')}; "
             "latencies are this machine's under its load at the time, see the machine line). "
-            "Models: the CPU-trained weights of make reproduce (288 x 144 crop), loaded into each grid's model "
-            "(conv weights do not depend on the grid)."
+            f"Models: {_relative(plan.checkpoints['dense'])} and {_relative(plan.checkpoints['sparse'])}, loaded "
+            "into each grid's model (conv weights do not depend on the grid)."
             + "".join(" " + n.strip() for n in args.note) + "\n\n" + houses_text(check, plan.heldout_seed))
     write_section(doc, results_section(runs, list(plan.settings), speeds, rates, rel, note))
     return doc
+
+
+def _relative(path: Path) -> str:
+    """``path`` relative to the checkout when it lies in it (the report reads the same on every machine)."""
+    path = path.resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
 
 
 def _check_args(args: argparse.Namespace) -> str | None:

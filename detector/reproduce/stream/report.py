@@ -53,7 +53,7 @@ def houses_text(check: HouseCheck | None, heldout_seed: int | None) -> str:
         return "Houses: not streamed yet."
     made = (f"held-out houses made for these streams (`mpchair synth --seed {heldout_seed}`)"
             if heldout_seed is not None else "the houses given with --houses")
-    said = f"Houses: {len(check.streamed)} {made}: {', '.join(check.streamed)}"
+    said = f"Houses ({len(check.streamed)}): {made}: {', '.join(check.streamed)}"
     if check.dataset is None:
         return said + "; the training dataset was not found, so whether the models saw them is not checked."
     if check.overlap:
@@ -121,9 +121,12 @@ def _keep_up_lines(runs: Runs, settings: list[Setting]) -> list[str]:
                 continue
             med, p95 = ego.latency_ms.median, ego.latency_ms.p95
             cpus = ego.machine.logical_cpus if ego.machine else None
-            left = "n/a" if not cpus else f"{100 * (1 - s.threads * med / 1000 / cpus):.0f} % of {cpus}"
-            rows.append(f"| {m} | {s.text} | {_f(med)} / {_f(p95)} | {_f(keeps_up_hz(p95))} | "
-                        f"{100 * med / 1000:.0f} % | {left} |")
+            if med > 1000:  # slower than one frame a second: it cannot run at 1 Hz at all
+                busy, left = "all (slower than 1 Hz)", "none"
+            else:
+                busy = f"{100 * med / 1000:.0f} %"
+                left = "n/a" if not cpus else f"{100 * (1 - s.threads * med / 1000 / cpus):.0f} % of {cpus}"
+            rows.append(f"| {m} | {s.text} | {_f(med)} / {_f(p95)} | {_f(keeps_up_hz(p95))} | {busy} | {left} |")
     if not rows:
         return []
     paper_left = 100 * (1 - PAPER_ROBOT_SPARSE_MS / 1000)
