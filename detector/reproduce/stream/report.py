@@ -55,7 +55,8 @@ def houses_text(check: HouseCheck | None, heldout_seed: int | None) -> str:
             if heldout_seed is not None else "the houses given with --houses")
     said = f"Houses ({len(check.streamed)}): {made}: {', '.join(check.streamed)}"
     if check.dataset is None:
-        return said + "; the training dataset was not found, so whether the models saw them is not checked."
+        return said + ("; the training dataset's manifest.json (--dataset) was not found, so whether the models saw "
+                       "them is not checked.")
     if check.overlap:
         return (said + f". **Not held out:** {', '.join(check.overlap)} also gave the models' train / val frames "
                 f"({check.dataset.name}), so these streams are not on unseen houses.")
