@@ -58,6 +58,7 @@ def _runs(speeds: list[float], rates: list[float]) -> dict:
             for mode, loss in (("raw", 2 * slow), ("ego", slow)):
                 off = base + 20 if (v, f) == HEADLINE else None
                 summary = _summary(base + 20 - loss, off, 800.0 if m == "dense" else 80.0)
+                summary["repeats"] = 3 if (v, f) == HEADLINE else 1
                 runs[(m, v, f, T2.name, mode)] = StreamSummary.from_json(summary)
     for m, lat in (("dense", 1600.0), ("sparse", 120.0)):
         for mode in ("raw", "ego"):
@@ -91,6 +92,7 @@ def test_report_section_and_markers(tmp_path):
     assert "sAP 3D R40 against sensor rate (at 0.5 m/s), 768 x 512, 2 threads:" in text
     assert "| 20 | 40.00 | 60.00 | 60.00 | 65.00 | 50 % / 50 % |" in text
     assert "GPU column: not measured" in text and "![sAP against speed](img/s.png)" in text
+    assert "median of 3 timed runs per frame on the headline stream, 1 on the sweep's other streams" in text
     doc = tmp_path / "streaming.md"
     doc.write_text(f"# Title\n\nprotocol text\n\n{BEGIN}\nold\n{END}\n\nafter\n")
     write_section(doc, text)

@@ -145,11 +145,16 @@ def _machine_lines(runs: Runs) -> list[str]:
     machine = next((r.machine for r in runs.values() if r.machine), None)
     if not machine:
         return []
-    repeats = sorted({r.repeats for r in runs.values() if r.repeats is not None})
+
+    def repeats(headline: bool) -> str:
+        """The latency repeats of the runs on the headline stream (or on the others), "n/a" for none."""
+        found = {r.repeats for k, r in runs.items() if r.repeats is not None and (k[1:3] == HEADLINE) == headline}
+        return " / ".join(map(str, sorted(found))) or "n/a"
+
     return ["", f"Latency measured end to end per processed frame on {machine.cpu}, torch {machine.torch}, allocator "
-            f"{machine.allocator}, at each row's thread budget; median of {' / '.join(map(str, repeats))} runs "
-            "(headline stream / sweep streams) after warm-up. GPU column: not measured — this machine has no GPU "
-            "(`detector stream-eval --device cuda` on one)."]
+            f"{machine.allocator}, at each row's thread budget; median of {repeats(True)} timed runs per frame on the "
+            f"headline stream, {repeats(False)} on the sweep's other streams, after warm-up. GPU column: not measured "
+            "— this machine has no GPU (`detector stream-eval --device cuda` on one)."]
 
 
 def _axis_point(axis: str, x: float) -> tuple[float, float]:
