@@ -234,3 +234,25 @@ def test_the_new_steps_commands(tmp_path: Path, capsys) -> None:
     assert "--ablations takes a comma-separated subset of" in capsys.readouterr().err
     text = "\n".join(status_lines(out))
     assert "  ablations 0 of 12 outputs" in text and "    sparse_wide: not started" in text
+
+
+def test_the_tools_refuse_bad_input_in_one_line_and_write_nothing(tiny, tmp_path: Path, capsys) -> None:
+    import tools.bench_density as density
+    import tools.bench_reference_head as refhead
+
+    out = tmp_path / "r.json"
+    cases = [
+        (refhead, ["--config", tiny["dense"], "--config", tiny["sparse"], "--checkpoint", "-", "--data", tiny["data"],
+                   "--json", out], "give one --checkpoint per --config"),
+        (refhead, ["--config", tiny["dense"], "--data", tmp_path / "none", "--json", out], "none"),
+        (density, ["--dense-config", tiny["sparse"], "--sparse-config", tiny["dense"], "--json", out],
+         "needs a dense config first and a sparse one second"),
+        (density, ["--mark", "mine=2", "--json", out], "--mark takes LABEL=D with 0 < D < 1, got 'mine=2'"),
+        (density, ["--densities", "0.01,x", "--json", out], "error: --densities"),
+        (density, ["--densities", "0.01,1.5", "--json", out], "densities must lie in (0, 1)"),
+    ]
+    for tool, args, said in cases:
+        assert tool.main([str(a) for a in args]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and said in err[0], err
+        assert not out.exists()

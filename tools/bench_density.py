@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from detector.bench.density import DENSITIES, density_curve, format_curve, plot_curve
@@ -52,6 +53,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args(argv)
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("always")
+        code = _run(args)
+    if code == 0:  # a warning raised on the way (a checkpoint of another grid), one line each, after the result
+        for text in dict.fromkeys(" ".join(str(w.message).split()) for w in held):
+            print(f"warning: {text}", file=sys.stderr)
+    return code
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The tool's work once its options are parsed; 2 with one ``error:`` line on bad input."""
     try:
         densities = [float(x) for x in args.densities.split(",") if x.strip()]
         marks = dict(_mark(m) for m in args.mark)

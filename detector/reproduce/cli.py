@@ -12,9 +12,18 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     bench     detector bench             per-component runtime at 768x512 (trained weights load at any grid size),
                                          under the default allocator and the reuse setting, with Open3D-ML's own
                                          PointPillars as a peer row when Open3D-ML is installed
+    refhead   tools/bench_reference_head.py  dense / sparse total time with the reference's head layout (three NCHW
+                                         1x1 convs) beside our fused head at 768x512: the ratio the paper's 4.6x is
     ops       detector ops               exact MACs vs Table I's bound at 768x512
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
+    curve     tools/bench_density.py     dense / sparse backbone runtime and op-count ratios against density D
+                                         (clustered synthetic sites, random weights, D 0.002 .. 0.0246) at 768x512
+    ablation-bench  detector bench       the ablation configs beside dense and sparse at the KITTI geometry (the
+                                         vendored KITTI frames) and at 768x512 (detector.reproduce.ablations)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
+
+Opt in (``--steps ablations,report``, ``make reproduce-ablations``): ``ablations`` trains and evaluates the paper's
+ablations on this run's data (``--ablations``, ``--ablation-epochs``), then times them again with their weights.
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
