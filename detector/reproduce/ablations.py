@@ -17,9 +17,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from detector.reproduce.results import ABLATIONS, bench_weights
-from detector.reproduce.runner import REUSE_ENV, ROOT, Runner
+from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
 from detector.reproduce.scales import model_epochs
-from detector.reproduce.steps import CONFIGS, Plan, _tool, eval_model, train_command
+from detector.reproduce.steps import CONFIGS, Plan, eval_model, extra_step_outputs, train_command
 from mpchair.core.atomic import write_text
 
 #: The vendored KITTI frames (six frames of the KITTI object training set, cropped to the camera's view as the KITTI
@@ -27,17 +27,6 @@ from mpchair.core.atomic import write_text
 KITTI_DATA, KITTI_SPLIT = ROOT / "tests" / "data" / "kitti", "val"
 #: The models of the ablation benches, in table order.
 BENCH_MODELS = ("dense", "sparse", *ABLATIONS)
-
-
-def ablation_outputs(out: Path, ablations: tuple[str, ...] = ABLATIONS) -> dict[str, dict[str, Path]]:
-    """The files that mark the ablation steps done in work folder ``out``: ``ablation-bench`` (the two benches' JSON)
-    and ``ablations`` (each ablation's training and its two evals), by step, then by what each file is for."""
-    res, runs = out / "results", out / "runs"
-    trained = {f"{a} train": runs / a / "done" for a in ablations}
-    evals = {f"{a} {protocol}": res / f"eval_{a}" / name for a in ablations
-             for protocol, name in (("kitti", "metrics.json"), ("open3d-ml", "open3d_ml.json"))}
-    return {"ablation-bench": {g: res / f"bench_ablations_{g}.json" for g in ("kitti", "mpchair")},
-            "ablations": {**trained, **evals}}
 
 
 def ablation_epochs(plan: Plan) -> int | None:
@@ -64,7 +53,7 @@ def ablation_bench_command(plan: Plan, geometry: str, json_out: Path) -> list[st
     else:
         configs = [CONFIGS / f"mpchair_{m}.yaml" for m in BENCH_MODELS]
         data, split, frames = plan.data, "test", str(plan.scale.bench_frames)
-    cmd = [_tool("detector"), "bench"]
+    cmd = [str(BIN / "detector"), "bench"]
     for c in configs:
         cmd += ["--config", str(c)]
     cmd += ["--data", str(data), "--split", split, "--frames", frames, "--trials", str(plan.scale.bench_trials),
@@ -78,7 +67,7 @@ def ablation_bench_command(plan: Plan, geometry: str, json_out: Path) -> list[st
 
 def run_ablation_bench(plan: Plan, r: Runner) -> None:
     """``detector bench`` of the ablations beside dense and sparse at both geometries (allocator reuse)."""
-    outputs = ablation_outputs(plan.out)["ablation-bench"]
+    outputs = extra_step_outputs(plan.out)["ablation-bench"]
     for geometry, json_out in outputs.items():
         if plan.todo("ablation-bench", json_out):
             r.run(ablation_bench_command(plan, geometry, json_out), env=REUSE_ENV,
@@ -88,7 +77,7 @@ def run_ablation_bench(plan: Plan, r: Runner) -> None:
 def run_ablations(plan: Plan, r: Runner) -> None:
     """Opt in: train each ablation of ``plan.ablations`` on this run's data, evaluate it as the eval step evaluates
     dense and sparse, and, once every ablation is trained, time all six models at 768 x 512 with their weights."""
-    outputs = ablation_outputs(plan.out, plan.ablations)["ablations"]
+    outputs = extra_step_outputs(plan.out, plan.ablations)["ablations"]
     for a in plan.ablations:
         config = CONFIGS / f"mpchair_{a}_cpu.yaml"
         done = outputs[f"{a} train"]
@@ -97,7 +86,7 @@ def run_ablations(plan: Plan, r: Runner) -> None:
             if not plan.dry_run:
                 write_text(done, "trained\n")
         eval_model(plan, r, "ablations", a, config, outputs[f"{a} kitti"], outputs[f"{a} open3d-ml"])
-    bench = ablation_outputs(plan.out)["ablation-bench"]["mpchair"]
+    bench = extra_step_outputs(plan.out)["ablation-bench"]["mpchair"]
     trained = all(_checkpoint(plan, m).exists() for m in BENCH_MODELS)
     if "ablations" in plan.steps and trained and (plan.force or weights_are_random(bench)):
         print("[ablations] every ablation is trained: the 768 x 512 ablation bench again, with the trained weights")

@@ -48,14 +48,17 @@ def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
     }
 
 
-def extra_step_outputs(out: Path) -> dict[str, dict[str, Path]]:
-    """The outputs of the steps issue 30 added: the reference-head bench, the density curve, the ablations."""
-    from detector.reproduce.ablations import ablation_outputs
-
-    res = out / "results"
+def extra_step_outputs(out: Path, ablations: tuple[str, ...] = ABLATIONS) -> dict[str, dict[str, Path]]:
+    """The outputs of the steps issue 30 added: the reference-head bench, the density curve, the ablations' benches
+    (``ablation-bench``) and their trainings and evals (``ablations``, of ``ablations``)."""
+    res, runs = out / "results", out / "runs"
+    trained = {f"{a} train": runs / a / "done" for a in ablations}
+    evals = {f"{a} {protocol}": res / f"eval_{a}" / name for a in ablations
+             for protocol, name in (("kitti", "metrics.json"), ("open3d-ml", OPEN3D_ML_JSON))}
     return {"refhead": {"bench": res / "bench_reference_head.json"},
             "curve": {"curve": res / "density_curve.json", "plot": res / "density_curve.png"},
-            **ablation_outputs(out)}
+            "ablation-bench": {g: res / f"bench_ablations_{g}.json" for g in ("kitti", "mpchair")},
+            "ablations": {**trained, **evals}}
 
 
 @dataclass(frozen=True)
