@@ -191,7 +191,7 @@ def test_ablations_section_is_written_from_the_bench_and_eval_outputs(tiny, tmp_
     ratio = bench["dense"]["total"]["mean_ms"] / s1["total"]["mean_ms"]
     assert "random weights (timing only), allocator reuse" in text
     assert (f"| Sparse1+Dense23 | {s1['backbone']['mean_ms']:.1f} | {s1['total']['mean_ms']:.1f} | " in text
-            and f"| {ratio:.2f}x | 7.394 / 14.602 |" in text)
+            and f"| {ratio:.2f}x | 7.394 / 14.602 |" in text and "| 2.358 / 14.410 |" in text)
     assert "Runtime, Matterport geometry (768 x 512, 5 cm pillars; this run's test split): not run" in text
     assert "| PointPillars | 60.00 | 55.00 | 80.00 | 81.00 | 89.79 / 80.34 |" in text
     assert "| Sparse PointPillars | -3.00 | -4.50 | -1.00 | -3.00 | -6.53 / -7.83 |" in text

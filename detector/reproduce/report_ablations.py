@@ -48,7 +48,7 @@ def _runtime_table(res: Path, geometry: str) -> list[str]:
     paper = geometry == "kitti"
     head = "| model | Backbone (ms) | Total (ms) | dense / model, Backbone | dense / model, Total |"
     head += " paper Backbone / Total (ms, desktop GPU) |" if paper else ""
-    lines = [f"{title}, {said}, allocator reuse (`detector bench`; full table: "
+    lines = [f"{title}, {said}, allocator reuse (`detector bench`; its full table: the work folder's "
              f"results/bench_ablations_{geometry}.md):", "", head,
              "|---|---|---|---|---|" + ("---|" if paper else "")]
     for name, m in ours.items():
@@ -60,7 +60,7 @@ def _runtime_table(res: Path, geometry: str) -> list[str]:
             row += "n/a | n/a |"
         if paper:
             p = PAPER_TABLE4_MS.get(name)
-            row += f" {p[0]} / {p[1]} |" if p else " - |"
+            row += f" {p[0]:.3f} / {p[1]:.3f} |" if p else " - |"
         lines.append(row)
     return lines + [""]
 
