@@ -20,10 +20,17 @@ class Scale:
     bench_trials: int
     ops_frames: int
     precision: str | None = None
+    #: the density curve (tools/bench_density.py): synthetic frames per density, timed passes, densities (None: the
+    #: tool's eight from 0.002 to 0.0246) and real test frames timed at their own D
+    curve_frames: int = 3
+    curve_trials: int = 3
+    curve_densities: tuple[float, ...] | None = None
+    curve_real_frames: int = 5
 
 
 SCALES = {
-    "small": Scale(houses=2, frames_per_house=150, epochs=2, bench_frames=5, bench_trials=2, ops_frames=10),
+    "small": Scale(houses=2, frames_per_house=150, epochs=2, bench_frames=5, bench_trials=2, ops_frames=10,
+                   curve_frames=1, curve_trials=1, curve_densities=(0.002, 0.0075, 0.0246), curve_real_frames=2),
     # about 2 h on 2 idle cores: the full pipeline on 8 houses with fewer frames and epochs than the targets
     "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100),
     # the targets: dense 16 / sparse 20 bf16 epochs (24,000 / 30,000 steps; 15 epochs each reached dense
