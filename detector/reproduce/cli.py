@@ -27,10 +27,13 @@ ablations on this run's data (``--ablations``, ``--ablation-epochs``), then time
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
-``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
-1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
-CPU has native bf16 (AVX512-BF16 / AMX: about 4.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
-AVX2-only cores, measured 2026-12-02). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames,
+``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule that fits one 3-hour
+session of 2 cores together with ``make reproduce-stream``: 8 houses, 5,000 frames = 3,000 train / 1,000 val /
+1,000 test, dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in bfloat16 autocast where the CPU has native
+bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (about 4x slower to train on 2 AVX2-only cores). ``--scale recipe`` is
+the longer schedule, dense 16 / sparse 20 epochs (about 4.5 hours on 2 native-bf16 cores, about 16 hours on 2
+AVX2-only ones, measured 2026-12-02): a GPU's job or a machine that outlives a session. ``--scale small`` is a
+quick end-to-end check (2 houses, 300 frames,
 2 epochs: ~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
 with other jobs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
 
@@ -62,7 +65,8 @@ from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default=None,
-                   help="full (default): the issue's experiment, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
+                   help="full (default): the issue's experiment on a one-session schedule (dense 4 / sparse 5 "
+                        "epochs); recipe: dense 16 / sparse 20 epochs, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
                         "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
                         "loaded machine")
     p.add_argument("--steps", default=",".join(STEPS),
@@ -77,8 +81,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--epochs", type=int, default=None,
-                   help="the dense model's training epochs instead of the scale's (full: 16, medium: 10, small: 2); "
-                        "the sparse model trains ceil(1.25x) as many, the paper's 250 / 200 ratio")
+                   help="the dense model's training epochs instead of the scale's (full: 4, recipe: 16, medium: 10, "
+                        "small: 2); the sparse model trains ceil(1.25x) as many, the paper's 250 / 200 ratio")
     p.add_argument("--precision", choices=["fp32", "bf16", "auto"], default=None,
                    help="training precision of both models instead of the scale's (full: auto = bf16 where the CPU "
                         "computes bfloat16 natively, AVX512-BF16 / AMX, else fp32; medium / small: the "
@@ -158,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     total = time.perf_counter() - t0
     if "report" in steps and not args.dry_run:
         # only the scale replaces the committed report; a quick check keeps its report in its work folder
-        results = args.results or (ROOT / "docs" / "results.md" if args.scale == "full" else out / "results.md")
+        full = args.scale in ("full", "recipe")
+        results = args.results or (ROOT / "docs" / "results.md" if full else out / "results.md")
         write_report(results, out, plan.res, args.scale, sc, notes=args.note)
         print(f"wrote {results}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")

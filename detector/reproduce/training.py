@@ -44,13 +44,13 @@ def schedules_text(trained: Schedules, sc: Scale | None = None) -> str:
 
 def short_of_recipe(trained: Schedules, n_train: int | None) -> bool:
     """Whether a trained model saw fewer samples than the full recipe's epochs over the train split."""
-    recipe = model_epochs(SCALES["full"].epochs)
+    recipe = model_epochs(SCALES["recipe"].epochs)
     return bool(n_train) and any(v[0] * v[1] < recipe[m] * n_train for m, v in trained.items() if v)
 
 
 def schedule_why(trained: Schedules, n_train: int | None) -> str:
     """Why this run's schedule differs from the paper's, with the sparse/dense ratio of samples it actually had."""
-    full = model_epochs(SCALES["full"].epochs)
+    full = model_epochs(SCALES["recipe"].epochs)
     seen = {m: v[0] * v[1] for m, v in trained.items() if v}
     why = "CPU budget"
     if short_of_recipe(trained, n_train):

@@ -57,10 +57,12 @@ class Scale:
 
 SCALES = {
     "small": Scale(heldout_houses=1, episodes=1, duration=8.0, repeats=1, sweep_repeats=1, warmup=2),
-    # the protocol's 5 episodes per house (20 s each, look-around included: ~2,000 frames at 10 Hz on 2 houses) and
+    # the protocol's 5 episodes per house (12 s each, look-around included: ~1,200 frames at 10 Hz on 2 houses) and
     # median of 3 repeats on the headline stream; the sweep's other streams time 1 run per processed frame (a model
-    # that cannot keep up is busy for the whole stream on every repeat: docs/streaming.md, "Departures")
-    "full": Scale(heldout_houses=2, episodes=5, duration=20.0, repeats=3, sweep_repeats=1, warmup=10),
+    # that cannot keep up is busy for the whole stream on every repeat: docs/streaming.md, "Departures"). 12 s, not
+    # 20: a dense model that cannot keep up computes for the whole stream, so the run costs about the streams' total
+    # duration per setting and repeat, and it must fit the session of make reproduce (whose models it streams)
+    "full": Scale(heldout_houses=2, episodes=5, duration=12.0, repeats=3, sweep_repeats=1, warmup=10),
 }
 
 
