@@ -32,8 +32,7 @@ import numpy as np
 import torch
 
 from mpchair.core.jit import njit_cached
-from mpchair.geometry import pillar_coords
-from mpchair.geometry.pillars import grid_size
+from mpchair.geometry import grid_size, pillar_coords
 
 
 class Voxels(NamedTuple):
