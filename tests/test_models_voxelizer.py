@@ -289,3 +289,10 @@ def test_pillar_net_takes_the_fused_path_only_for_fp32_cpu_inference_and_trains_
     out.square().sum().backward()
     assert float(net.linear.weight.grad.abs().sum()) > 0 and float(net.norm.weight.grad.abs().sum()) > 0
     assert int(net.norm.num_batches_tracked) == 1
+
+
+def test_voxelizer_half_precision_points_take_the_torch_form() -> None:
+    pts = torch.from_numpy(_edge_cloud(np.random.default_rng(8), 300, 3).astype(np.float32)).half()
+    got = voxelize([pts], **KW, max_points=3, max_pillars=8)
+    assert got.pillars.dtype == torch.float16 and got.pillars.shape[0] == 8
+    _assert_same_voxels(got, voxelize_torch([pts], **KW, max_points=3, max_pillars=8))

@@ -17,7 +17,7 @@ Two implementations of that one rule, equal bit for bit (tested):
   than ``max_pillars`` are open) and takes the next slot while fewer than ``max_points`` are taken, which *is* the
   rule; a second pass copies the kept points into the padded ``(P, T, C)`` block. It computes the cell with the same
   float64 operations as ``pillar_coords``. On a GPU the points go to the host and the pillars come back (the indexing
-  rule is host code in either form).
+  rule is host code in either form); float32 and float64 points only (others take the torch form).
 * :func:`voxelize_torch` (the form before it: ``pillar_coords`` on the host, then one stable sort by pillar key in
   vectorised torch on the points' device), kept as the reference the kernel is tested and benchmarked against
   (``tools/bench_feature_extract.py``).
@@ -141,6 +141,9 @@ def voxelize(
     Returns :class:`Voxels` with pillars ordered by sample, then by first occurrence (no autograd to the points).
     """
     _check_batch(points_list)
+    if any(p.dtype not in (torch.float32, torch.float64) for p in points_list):  # the kernel is compiled for these
+        return voxelize_torch(points_list, point_cloud_range=point_cloud_range, voxel_size=voxel_size,
+                              output_shape=output_shape, max_points=max_points, max_pillars=max_pillars)
     grid_nx, grid_ny = grid_size(point_cloud_range, voxel_size)  # also validates range and voxel
     r = np.asarray(point_cloud_range, dtype=np.float64)
     voxel = np.asarray(voxel_size[:2], dtype=np.float64)
