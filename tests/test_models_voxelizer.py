@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -14,6 +15,7 @@ from detector.models.pillar_net import PillarFeatureNet
 from detector.models.voxelizer import voxelize, voxelize_torch
 from mpchair.geometry import pillar_coords
 
+ROOT = Path(__file__).resolve().parents[1]
 RANGE = (0.0, -1.0, -1.0, 2.0, 1.0, 1.0)
 VOXEL = (0.5, 0.5, 2.0)  # a 4 x 4 grid
 
@@ -296,3 +298,21 @@ def test_voxelizer_half_precision_points_take_the_torch_form() -> None:
     got = voxelize([pts], **KW, max_points=3, max_pillars=8)
     assert got.pillars.dtype == torch.float16 and got.pillars.shape[0] == 8
     _assert_same_voxels(got, voxelize_torch([pts], **KW, max_points=3, max_pillars=8))
+
+
+def test_bench_tool_compares_the_two_forms_on_a_model() -> None:
+    """tools/bench_feature_extract.py's measurement: both forms on the same frames, their outputs compared (no timing
+    is asserted)."""
+    from helpers_tools import load_tool
+
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    tool = load_tool("bench_feature_extract")
+    model = build_model(load_experiment(ROOT / "configs" / "models" / "mpchair_sparse_smoke.yaml").model).eval()
+    rng = np.random.default_rng(2)
+    frames = [rng.uniform([0, -4.8, -2], [6.4, 4.8, 2], size=(n, 3)).astype(np.float32) for n in (3000, 0, 800)]
+    got = tool.run(model, frames, trials=2)
+    assert got["voxels_bitwise_equal"] and got["features_max_abs_diff"] <= PFN_ATOL
+    assert got["pillars_per_frame"] > 300 and set(got["ms_per_frame"]) == {"old", "new"}
+    assert all(v > 0 for form in got["ms_per_frame"].values() for v in form.values())
