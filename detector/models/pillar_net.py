@@ -188,7 +188,7 @@ class PillarFeatureNet(nn.Module):
         xc, yc = self.centres(coords, torch.float32)
         bn = self.norm
         out = _fused_eval(
-            pillars.contiguous().numpy(),
+            pillars.detach().contiguous().numpy(),
             num_points.contiguous().numpy(),
             torch.stack([xc, yc], dim=1).numpy(),
             self.linear.weight.detach().t().contiguous().numpy(),
