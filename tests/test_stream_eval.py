@@ -1,5 +1,6 @@
 """``detector stream-eval``: the protocol's invariants on real streams (``mpchair stream`` on a synthetic house) —
-zero latency scores exactly the offline outputs, a perfect detector scores 100, a still robot loses only the queries
+zero latency scores exactly the offline outputs, a perfect detector scores 100 (with fewer than 41 chairs KITTI's
+ceiling, below 100), a still robot loses only the queries
 before the first output, staleness follows the schedule exactly, ego compensation never hurts a perfect detector, the
 JSON is byte-identical across runs — plus a model with measured latency, and the clear errors."""
 
@@ -15,10 +16,11 @@ import numpy as np
 import pytest
 from helpers_detector import write_test_config
 
+from detector.eval import evaluate
 from detector.infer import boxes_to_results
 from detector.stream import Source, prepare, read_stream, score
 from detector.stream.run import query_labels, query_sources
-from detector.stream.score import evaluate_overall
+from detector.stream.score import ap_ceiling, evaluate_overall
 from mpchair.core.errors import InputError
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Labels, write_labels
@@ -88,6 +90,41 @@ def test_oracle_with_zero_latency_scores_100(streams):
         s = score(prep, mode)
         assert s["num_gt"]["Chair"] >= 41  # enough chairs for AP to reach 100 (KITTI's 41 recall points)
         assert _ap_values(s["sAP"]) == [100.0] * 4 and _ap_values(s["offline_AP"]) == [100.0] * 4
+
+
+def _one_chair(score: float | None) -> Labels:
+    """One upright chair 3 m in front of the camera (rectified camera frame), as a label (``None``) or a result row."""
+    return Labels(names=["Chair"], truncated=[0.0], occluded=[0], alpha=[0.0], bbox=[[300.0, 100.0, 400.0, 250.0]],
+                  dims_hwl=[[0.9, 0.6, 0.6]], location=[[0.0, 0.5, 3.0]], rotation_y=[0.0],
+                  score=None if score is None else [score])
+
+
+@pytest.mark.parametrize("num_gt", [1, 2, 10, 18, 38, 40, 41, 42, 100])
+def test_ap_ceiling_is_what_a_perfect_detector_scores(num_gt):
+    # KITTI's few-GT saturation: one threshold per true positive, so N < 41 boxes fill only N of the 41 recall slots
+    expected_r40 = 100.0 if num_gt >= 41 else 100.0 * (num_gt - 1) / 40
+    expected_r11 = 100.0 if num_gt >= 41 else 100.0 * ((num_gt - 1) // 4 + 1) / 11
+    ceiling = ap_ceiling(num_gt)
+    assert ceiling["R40"] == pytest.approx(expected_r40, abs=1e-12)
+    assert ceiling["R11"] == pytest.approx(expected_r11, abs=1e-12)
+    perfect = evaluate([_one_chair(None)] * num_gt, [_one_chair(1.0)] * num_gt, ["Chair"])  # one chair per frame
+    for metric in ("3d", "bev"):
+        assert perfect.overall["Chair"][metric] == ceiling
+    assert ap_ceiling(0) == {"R40": 0.0, "R11": 0.0}
+
+
+def test_oracle_on_fewer_than_41_chairs_scores_the_kitti_ceiling(streams):
+    # a perfect detector on a short stream: every chair found, no false positive, and still below 100
+    _, still = streams
+    s = score(prepare(still, Source("oracle"), latency_ms=0.0), "ego")
+    assert s["num_gt"]["Chair"] == 18
+    assert s["ap_ceiling"]["Chair"] == {"R40": 42.5, "R11": pytest.approx(500.0 / 11, abs=1e-12)}
+    for ap in (s["sAP"], s["offline_AP"]):
+        for metric in ("3d", "bev"):
+            assert ap["Chair"][metric] == s["ap_ceiling"]["Chair"]
+    moving, _ = streams
+    assert score(prepare(moving, Source("oracle"), latency_ms=0.0), "raw")["ap_ceiling"]["Chair"] == {
+        "R40": 100.0, "R11": 100.0}
 
 
 def test_still_robot_loses_only_the_queries_before_the_first_output(streams, tmp_path):

@@ -16,7 +16,8 @@ otherwise count every detection of a DontCare chair as a false positive. The sam
 
 The kept boxes become 16-column KITTI result rows (:func:`detector.infer.boxes_to_results`) and all query frames of
 all sequences are evaluated together by the unchanged KITTI evaluator (:func:`detector.eval.evaluate`): AP over every
-ground-truth chair, 3D and BEV, R40 and R11 (:func:`overall_ap`).
+ground-truth chair, 3D and BEV, R40 and R11 (:func:`evaluate_overall`). With fewer than 41 ground-truth chairs pooled,
+KITTI's AP cannot reach 100 even for a perfect detector (:func:`ap_ceiling`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from detector.eval import EvalResult, evaluate
+from detector.eval import EvalResult, evaluate, get_thresholds
+from detector.eval.kitti import N_SAMPLE_PTS, ap_r11, ap_r40
 from detector.infer import boxes_to_results
 from detector.ops import rotated_iou_bev
 from detector.stream.data import Region
@@ -85,3 +87,20 @@ def evaluate_overall(gts: Sequence[Labels], dts: Sequence[Labels], classes: Sequ
     result = evaluate(gts, dts, classes, min_overlaps)
     return result, {c: {m: {v: result.overall[c][m][v] for v in ("R40", "R11")} for m in ("3d", "bev")}
                     for c in classes}
+
+
+def ap_ceiling(num_gt: int) -> dict[str, float]:
+    """``{"R40": x, "R11": y}``: the most any detector can score (percent, 3D or BEV) on ``num_gt`` valid ground-truth
+    boxes under the KITTI protocol, which a perfect detector reaches.
+
+    KITTI's ``get_thresholds`` takes at most one score threshold per true positive, so a perfect detector fills
+    ``min(num_gt, 41)`` of the 41 precision slots (recall 0, 1/40, ..., 1) with precision 1 and the rest stay 0: below
+    41 boxes that is R40 ``100 (N - 1) / 40`` and R11 ``100 (floor((N - 1) / 4) + 1) / 11``; from 41 boxes on, 100.
+    The slots do not depend on the scores (ties included), only on how many true positives there are.
+    """
+    if num_gt <= 0:
+        return {"R40": 0.0, "R11": 0.0}  # the evaluator's AP of a bucket without valid ground truth
+    slots = min(len(get_thresholds(np.ones(num_gt), num_gt)), N_SAMPLE_PTS)
+    precision = np.zeros(N_SAMPLE_PTS)
+    precision[:slots] = 1.0
+    return {"R40": float(ap_r40(precision)), "R11": float(ap_r11(precision))}
