@@ -27,6 +27,7 @@ from detector.models.pillar_net import PillarFeatureNet
 from detector.models.postprocess import Detections, postprocess
 from detector.models.scatter import canvas_channels_last, scatter_to_canvas
 from detector.models.voxelizer import Voxels, voxelize
+from detector.sparse.workspace import Workspace, inference_workspace
 
 
 class PointPillars(nn.Module):
@@ -36,6 +37,13 @@ class PointPillars(nn.Module):
     Geometry kwargs as :class:`detector.config.ModelConfig` (metres, sensor frame). ``sparse_input``: the
     backbone consumes a ``SparseTensor`` (no scatter) and returns ``(map, active)``; otherwise it consumes the dense
     canvas and returns a list of maps for ``neck``.
+
+    ``workspace``: ``None`` (the default: every stage allocates its outputs) or a
+    :class:`detector.sparse.workspace.Workspace`, set by a caller that streams frames (``detector bench``). Then
+    inference (autograd off) reuses its buffers from frame to frame: the canvases, the sparse layers' gathers, GEMM
+    outputs and site lookups, the dense neck and the head write into memory kept from the last frame, so a steady
+    stream allocates nothing big and pays no page faults for it. The tensors the stages return then live in that
+    memory: each is valid until the same stage runs again (clone what you keep). Training ignores it.
     """
 
     def __init__(
@@ -80,6 +88,7 @@ class PointPillars(nn.Module):
         self.dir_offset, self.dir_limit_offset = dir_offset, dir_limit_offset
         self.loss_params = dict(loss_params)
         self.nms_pre, self.score_thr, self.nms_iou = nms_pre, score_thr, nms_iou
+        self.workspace: Workspace | None = None
 
     # --- Feature Extract ---------------------------------------------------------------------------------------
     def voxelize(self, points_list: Sequence[torch.Tensor]) -> Voxels:
@@ -101,26 +110,28 @@ class PointPillars(nn.Module):
     # --- Feature Net --------------------------------------------------------------------------------------------
     def feature_net(self, features: torch.Tensor, coords: torch.Tensor, batch_size: int):
         """Dense: scatter into one (B, 64, ny, nx) canvas. Sparse: wrap as ``SparseTensor`` (no canvas is built)."""
+        ws = inference_workspace(self.workspace)
         if self.sparse_input:
             from detector.sparse import SparseTensor
 
-            return SparseTensor(features, coords, self.output_shape, batch_size)
+            return SparseTensor(features, coords, self.output_shape, batch_size, workspace=ws, origin=self)
         # channels-last for inference and bf16 training, NCHW for fp32 training (the faster layout of each; see
         # detector.models.scatter): at inference the dense and the sparse model hand the head the same layout
         cl = canvas_channels_last(features.device.type)
-        return scatter_to_canvas(features, coords, batch_size, self.output_shape, channels_last=cl)
+        return scatter_to_canvas(features, coords, batch_size, self.output_shape, channels_last=cl, workspace=ws,
+                                 owner=self)
 
     # --- Backbone -------------------------------------------------------------------------------------------------
     def backbone_neck(self, x) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Canvas or SparseTensor → ((B, 384, ny/2, nx/2) map, active (B, ny/2, nx/2) bool or None)."""
         if self.sparse_input:
             return self.backbone(x)
-        return self.neck(self.backbone(x)), None
+        return self.neck(self.backbone(x), workspace=inference_workspace(self.workspace)), None
 
     # --- Head -----------------------------------------------------------------------------------------------------
     def head(self, x: torch.Tensor, active: torch.Tensor | None = None) -> HeadOutput:
         """(B, 384, H, W) map (+ active mask) → :class:`HeadOutput` (B, H, W, C) maps."""
-        return self.anchor_head(x, active)
+        return self.anchor_head(x, active, workspace=inference_workspace(self.workspace))
 
     # --- BBox Extract ---------------------------------------------------------------------------------------------
     def postprocess(self, cls: torch.Tensor, reg: torch.Tensor, dir: torch.Tensor) -> list[Detections]:
