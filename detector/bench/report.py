@@ -75,8 +75,11 @@ def _notes(result: dict) -> list[str]:
     for m in result["models"]:
         what = (f"Open3D-ML {mach.get('open3d', '')}'s own PointPillars, the architecture and grid of "
                 f"{result['models'][0]['name']} (detector/bench/peer.py); " if m.get("peer") else "")
-        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame; "
-                     f"{m['detections_per_frame']:.1f} detections/frame")
+        by = m.get("page_faults_per_frame_by_component")
+        split = "" if not by else " (" + ", ".join(
+            f"{TITLES[k]} {by[k]:.0f}" for k in ("feature_extract", "feature_net", "backbone", "head") if k in by) + ")"
+        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame"
+                     f"{split}; {m['detections_per_frame']:.1f} detections/frame")
     return notes
 
 
