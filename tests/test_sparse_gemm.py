@@ -246,3 +246,32 @@ def test_model_with_workspace_equals_without(backbone: str, head: str) -> None:
             dets = reused.postprocess(*got)
             assert len(dets) == 1
     assert reused.workspace.nbytes() > 0
+
+
+def test_training_head_on_the_neck_rows_equals_the_head_on_the_canvas() -> None:
+    """What ``PointPillars.forward`` trains the all-sparse model with: the head on the neck's active rows gives the
+    head maps of the scattered canvas, and the same gradients for the input and every parameter (float64, 1e-9)."""
+    from detector.models.head import AnchorHead
+
+    torch.manual_seed(0)
+    backbone = SparseBackboneNeck(in_channels=4, layer_channels=(4, 6, 8), layer_nums=(1, 2, 1),
+                                  out_channels=(3, 3, 3)).double().train()
+    head = AnchorHead(in_channels=9, num_anchors=2, num_classes=1).double().train()
+    feats, coords = frames()[1]
+    params = [*backbone.parameters(), *head.parameters()]
+    results = []
+    for rows in (False, True):
+        f = feats.clone().requires_grad_(True)
+        x = SparseTensor(f, coords, (32, 24), 2)
+        out = head.on_sites(backbone.neck_rows(x)) if rows else head(backbone(x)[0])
+        r = [torch.randn(o.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(i))
+             for i, o in enumerate(out)]
+        grads = torch.autograd.grad(sum((o * ri).sum() for o, ri in zip(out, r)), [f, *params])
+        results.append(([o.detach() for o in out], grads))
+    (out_a, grad_a), (out_b, grad_b) = results
+    for a, b in zip(out_a, out_b):
+        assert a.shape == b.shape
+        torch.testing.assert_close(b, a, atol=TOL, rtol=0)
+    for a, b in zip(grad_a, grad_b):
+        torch.testing.assert_close(b, a, atol=TOL, rtol=0)
+    assert float(grad_a[-1].abs().sum()) > 0  # the dir bias gets gradient from every cell

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from detector.models.grad_layout import conv2d
+from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace
 
 CLS_PRIOR = 0.01  # initial foreground probability of every anchor (focal-loss prior), bias = -log((1 - p) / p)
@@ -95,6 +96,23 @@ class AnchorHead(nn.Module):
                                                              x.device)
         out = torch.baddbmm(bias[None, :, None], weight.expand(b, -1, -1), x.flatten(2), out=buf)
         return self.split(out.unflatten(2, (h, w)).permute(0, 2, 3, 1))
+
+
+    def on_sites(self, rows: SparseTensor) -> HeadOutput:
+        """The head of the map that is ``rows.features`` (N, C) at ``rows``' sites and zero elsewhere, computed on those
+        sites only: a 1x1 conv of a zero vector is its bias, so each output map is its bias with the N sites' values
+        written in. The same values as :meth:`forward` on the scattered map, and the same gradients, for every
+        parameter (the bias gets the gradient of every cell) and the rows, without the (B, C, H, W) canvas or its
+        gradient. Contiguous (B, H, W, C) maps; three products like the training convs (``PointPillars.forward`` uses
+        it when the backbone is all sparse and autograd is on)."""
+        b, (h, w) = rows.batch_size, rows.spatial_shape
+        keys = rows.keys()
+        maps = []
+        for conv in (self.conv_cls, self.conv_reg, self.conv_dir):
+            vals = F.linear(rows.features, conv.weight.view(conv.out_channels, conv.in_channels), conv.bias)
+            full = conv.bias.to(vals.dtype).expand(b * h * w, conv.out_channels).clone()
+            maps.append(full.index_put((keys,), vals).view(b, h, w, conv.out_channels))
+        return HeadOutput(*maps)
 
 
 class SparseExactHead(AnchorHead):

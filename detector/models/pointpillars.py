@@ -151,10 +151,16 @@ class PointPillars(nn.Module):
 
     # --- whole passes -----------------------------------------------------------------------------------------
     def forward(self, points_list: Sequence[torch.Tensor]) -> HeadOutput:
-        """B point clouds (N_i, C) (sensor frame, m) → head maps (B, H, W, C)."""
+        """B point clouds (N_i, C) (sensor frame, m) → head maps (B, H, W, C) (the stages chained; with autograd on,
+        the all-sparse model's head runs on the neck's active rows, the same maps without the canvas)."""
         voxels = self.voxelize(points_list)
         features, coords = self.pillar_net(voxels)
         x = self.feature_net(features, coords, voxels.batch_size)
+        if torch.is_grad_enabled() and self.sparse_input and getattr(self.backbone, "all_sparse", False):
+            # Training the all-sparse model: the head on the neck's active rows (AnchorHead.on_sites), the same maps
+            # and gradients as the head on the scattered 384-channel canvas, whose zero fill, 1x1 convs and their
+            # backward over every cell were most of the sparse step beyond the pillar net (docs/sparse.md).
+            return self.anchor_head.on_sites(self.backbone.neck_rows(x))
         x, active = self.backbone_neck(x)
         return self.head(x, active)
 

@@ -189,11 +189,14 @@ class SparseBackboneNeck(nn.Module):
                 # fan_out is the same number (drawn as for a contiguous weight; ours are stored channels-last)
                 init_weight_(m.weight, lambda w: nn.init.kaiming_normal_(w, mode="fan_out", nonlinearity="relu"))
 
-    def forward(self, x: SparseTensor) -> tuple[Tensor, Tensor | None]:
-        """SparseTensor on (ny, nx) → ((B, 384, ny/2, nx/2) map, (B, ny/2, nx/2) bool active set or None).
+    @property
+    def all_sparse(self) -> bool:
+        """True when every block and neck level is sparse (Sparse PointPillars; False for the ablations)."""
+        return self.sparse_blocks == len(self.blocks)
 
-        The map of the all-sparse model is in ``torch.channels_last`` memory format (``.contiguous()`` gives NCHW
-        strides); the ablations' map has the layout of :func:`detector.models.scatter.canvas_channels_last`."""
+    def _sparse_part(self, x: SparseTensor) -> tuple[SparseTensor, Tensor, list[SparseTensor]]:
+        """The sparse blocks and levels: (block-1 tensor, the levels' features concatenated on its sites, every
+        sparse block's output)."""
         sparse_outs: list[SparseTensor] = []
         for block in self.blocks[: self.sparse_blocks]:
             x = block(x)
@@ -210,7 +213,26 @@ class SparseBackboneNeck(nn.Module):
             width = sum(lv.shape[1] for lv in levels)
             feats = torch.cat(levels, dim=1, out=ws.take(self, "levels", (target.num_active, width), levels[0].dtype,
                                                           levels[0].device))
-        if self.sparse_blocks == len(self.blocks):
+        return target, feats, sparse_outs
+
+    def neck_rows(self, x: SparseTensor) -> SparseTensor:
+        """The all-sparse model's neck output before todense: a SparseTensor on the block-1 sites with the
+        ``sum(out_channels)`` concatenated level features (the map :meth:`forward` returns is this, scattered into
+        zeros). Training uses it to skip the canvas (see ``PointPillars.forward``)."""
+        if not self.all_sparse:
+            raise ValueError("neck_rows needs the all-sparse model (sparse_blocks == number of blocks)")
+        target, feats, _ = self._sparse_part(x)
+        return target.replace_feature(feats)
+
+    def forward(self, x: SparseTensor) -> tuple[Tensor, Tensor | None]:
+        """SparseTensor on (ny, nx) → ((B, 384, ny/2, nx/2) map, (B, ny/2, nx/2) bool active set or None).
+
+        The map of the all-sparse model is in ``torch.channels_last`` memory format (``.contiguous()`` gives NCHW
+        strides); the ablations' map has the layout of :func:`detector.models.scatter.canvas_channels_last`."""
+        target, feats, sparse_outs = self._sparse_part(x)
+        x = sparse_outs[-1]
+        ws = inference_workspace(target.workspace)
+        if self.all_sparse:
             # Channels-last canvas: each active site's 384 values are one contiguous row, so the scatter writes N
             # rows instead of 384 * N scattered floats, and the head reads rows too. The (B, 384, H, W) view has
             # torch.channels_last strides (measured on the Matterport map, 2 threads: todense 7.9 → 2.4 ms, dense

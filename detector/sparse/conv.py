@@ -32,12 +32,14 @@ from detector.sparse.workspace import Workspace, inference_workspace
 ConvAlgorithm = Literal["auto", "gemm", "rulebook"]
 SubMAlgorithm = ConvAlgorithm  # the name the SubM conv has always used
 
-# "auto" picks the one-GEMM form when at least this fraction of the (site, offset) pairs exist. The GEMM then
-# multiplies few zero rows and beats K separate small matmuls + index_add; on sparse tables (uniform occupancy, 9x9
-# kernels) the per-offset rulebook wastes nothing. Measured on a 2-core CPU with tools/bench_sparse.py (docs/sparse.md).
-GEMM_MIN_FILL = 0.7
+# "auto" picks the one-GEMM form when at least this fraction of the (site, offset) pairs exist: the GEMM multiplies
+# (1 - fill) zero rows, the per-offset rulebook pays K - 1 small matmuls and an index_add instead. Measured on the
+# 2-core AVX-512 EPYC (tools/bench_sparse.py forms rows, docs/sparse.md): rulebook / gemm time = 0.6-0.8 at fill
+# 0.45-0.67, 0.9-1.0 at 0.75-0.77, about 1.0 on real frames at fill 0.85; so the GEMM from 0.8 up.
+GEMM_MIN_FILL = 0.8
 # The transposed conv's GEMM form multiplies every coarse site by all s*s slots' weights; "auto" takes it when at
-# least this fraction of those products is needed by some target (docs/sparse.md).
+# least this fraction of those products is needed by some target (measured: gemm 1.05x faster at 0.54, 2x slower at
+# 0.29, docs/sparse.md).
 UP_GEMM_MIN_FILL = 0.5
 
 
