@@ -262,8 +262,10 @@ def active_counts(model: SparseBackboneNeck, x: SparseTensor) -> list[int]:
 
 
 def bench_backbone(repeats: int) -> list[dict[str, object]]:
-    """Full backbone + neck up to the dense 384-channel map."""
+    """Full backbone + neck up to the dense 384-channel map, each model with its inference workspace and without
+    (``*_alloc``: every buffer allocated per frame, as before the workspace)."""
     dense = dense_backbone_neck().eval()
+    backbone, neck = dense[0], dense[1]
     sparse = SparseBackboneNeck().eval()
     rows = []
     for name, shape, pattern, density in (
@@ -272,13 +274,18 @@ def bench_backbone(repeats: int) -> list[dict[str, object]]:
     ):
         coords = make_sites(pattern, shape, density, seed=2)
         feats = torch.randn(coords.shape[0], 64).relu()  # pillar features come out of a ReLU
-        canvas = SparseTensor(feats, coords, shape, 1).dense()
-
-        def run_sparse(feats: torch.Tensor = feats, coords: torch.Tensor = coords, shape=shape) -> object:
-            return sparse(SparseTensor(feats, coords, shape, 1))
-
+        # the model's inference canvas is channels-last (detector.models.scatter)
+        canvas = SparseTensor(feats, coords, shape, 1).dense().contiguous(memory_format=torch.channels_last)
+        ws_dense, ws_sparse = Workspace(), Workspace()
+        fns = {
+            "dense": lambda canvas=canvas, ws=ws_dense: neck(backbone(canvas), workspace=ws),
+            "dense_alloc": lambda canvas=canvas: neck(backbone(canvas)),
+            "sparse": lambda f=feats, c=coords, sh=shape, ws=ws_sparse: sparse(
+                SparseTensor(f, c, sh, 1, workspace=ws, origin="input")),
+            "sparse_alloc": lambda f=feats, c=coords, sh=shape: sparse(SparseTensor(f, c, sh, 1)),
+        }
         with torch.no_grad():
-            r = compare({"dense": lambda canvas=canvas: dense(canvas), "sparse": run_sparse}, repeats)
+            r = compare(fns, repeats)
         rows.append(
             {
                 "case": f"{name} {pattern} {100 * density:.2f}%",
@@ -320,11 +327,15 @@ def bench_end_to_end(repeats: int) -> list[dict[str, object]]:
         "dense": dense_cfg,
         "sparse+sparse_exact": dataclasses.replace(sparse_cfg, head="sparse_exact"),
         "sparse+dense_head": dataclasses.replace(sparse_cfg, head="dense"),
+        "dense_alloc": dense_cfg,
+        "sparse+sparse_exact_alloc": dataclasses.replace(sparse_cfg, head="sparse_exact"),
     }
     models = {}
     for name, cfg in variants.items():
         torch.manual_seed(0)
         models[name] = build_model(dataclasses.replace(cfg, score_thr=0.0)).eval()
+        if not name.endswith("_alloc"):  # *_alloc: without the inference workspace, as before it
+            models[name].workspace = Workspace()
     points = matterport_points()
     device = torch.device("cpu")
     stages: dict[str, list[dict[str, float]]] = {k: [] for k in models}
@@ -367,7 +378,10 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
     def step_dense() -> None:
         loss_of(head_d(dense(canvas))).backward()
 
-    def step_sparse() -> None:
+    def step_sparse() -> None:  # as PointPillars.forward trains it: the head on the neck's active rows
+        loss_of(head_s.on_sites(sparse.neck_rows(SparseTensor(feats, coords, shape, 1)))).backward()
+
+    def step_sparse_canvas() -> None:  # the head on the scattered canvas (before AnchorHead.on_sites)
         y, _ = sparse(SparseTensor(feats, coords, shape, 1))
         loss_of(head_s(y)).backward()
 
@@ -375,11 +389,12 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
         y, active = sparse(SparseTensor(feats, coords, shape, 1))
         loss_of(head_x(y, active)).backward()
 
-    r = compare({"dense": step_dense, "sparse": step_sparse}, repeats)
+    r = compare({"dense": step_dense, "sparse": step_sparse, "sparse_canvas": step_sparse_canvas}, repeats)
     rx = compare({"dense": step_dense, "sparse": step_sparse_exact}, repeats)
     return [
         {
-            "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head)",
+            "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head; sparse: on the neck rows as trained, "
+                    "sparse_canvas: on the scattered canvas)",
             "active": int(coords.shape[0]),
             "timings": r,
         },

@@ -103,15 +103,21 @@ class AnchorHead(nn.Module):
         sites only: a 1x1 conv of a zero vector is its bias, so each output map is its bias with the N sites' values
         written in. The same values as :meth:`forward` on the scattered map, and the same gradients, for every
         parameter (the bias gets the gradient of every cell) and the rows, without the (B, C, H, W) canvas or its
-        gradient. Contiguous (B, H, W, C) maps; three products like the training convs (``PointPillars.forward`` uses
-        it when the backbone is all sparse and autograd is on)."""
+        gradient. (B, H, W, C) views of channel-planar maps; three products like the training convs
+        (``PointPillars.forward`` uses it when the backbone is all sparse and autograd is on)."""
         b, (h, w) = rows.batch_size, rows.spatial_shape
         keys = rows.keys()
+        bi = torch.div(keys, h * w, rounding_mode="floor")
+        hw = keys - bi * (h * w)
         maps = []
         for conv in (self.conv_cls, self.conv_reg, self.conv_dir):
-            vals = F.linear(rows.features, conv.weight.view(conv.out_channels, conv.in_channels), conv.bias)
-            full = conv.bias.to(vals.dtype).expand(b * h * w, conv.out_channels).clone()
-            maps.append(full.index_put((keys,), vals).view(b, h, w, conv.out_channels))
+            o = conv.out_channels
+            vals = F.linear(rows.features, conv.weight.view(o, conv.in_channels), conv.bias)
+            # channel-planar (B, O, H*W) like the inference head: filling each channel's plane with its bias is a
+            # contiguous broadcast (an interleaved (B*H*W, O) fill ran 1.5 GB/s); the N sites written in place
+            full = conv.bias.to(vals.dtype)[None, :, None].expand(b, o, h * w).clone()
+            full.permute(0, 2, 1).index_put_((bi, hw), vals)
+            maps.append(full.view(b, o, h, w).permute(0, 2, 3, 1))
         return HeadOutput(*maps)
 
 

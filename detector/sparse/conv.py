@@ -24,6 +24,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from detector.sparse.autograd import GatherUnique, SubMGemm
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
@@ -34,9 +35,10 @@ SubMAlgorithm = ConvAlgorithm  # the name the SubM conv has always used
 
 # "auto" picks the one-GEMM form when at least this fraction of the (site, offset) pairs exist: the GEMM multiplies
 # (1 - fill) zero rows, the per-offset rulebook pays K - 1 small matmuls and an index_add instead. Measured on the
-# 2-core AVX-512 EPYC (tools/bench_sparse.py forms rows, docs/sparse.md): rulebook / gemm time = 0.6-0.8 at fill
-# 0.45-0.67, 0.9-1.0 at 0.75-0.77, about 1.0 on real frames at fill 0.85; so the GEMM from 0.8 up.
-GEMM_MIN_FILL = 0.8
+# 2-core AVX-512 EPYC, 1 thread (tools/bench_sparse.py forms rows, docs/sparse.md): inference rulebook / gemm time
+# 0.6-0.8 at fill 0.45-0.67, 1.0 at 0.82-0.88 (C = 256 ... 64), 1.14 at 0.88 (C = 64); training (forward +
+# backward) rulebook / gemm 0.7-0.8 at fill 0.57-0.68, 0.8 at 0.82, 1.0 at 0.88-0.93. So the GEMM from 0.85 up.
+GEMM_MIN_FILL = 0.85
 # The transposed conv's GEMM form multiplies every coarse site by all s*s slots' weights; "auto" takes it when at
 # least this fraction of those products is needed by some target (measured: gemm 1.05x faster at 0.54, 2x slower at
 # 0.29, docs/sparse.md).
@@ -110,18 +112,27 @@ def padded_rows(features: Tensor, workspace: Workspace | None = None, owner: obj
     return out
 
 
+def _training(*tensors: Tensor) -> bool:
+    """Whether autograd will record these tensors' ops (then the GEMM forms use the gathering backwards of
+    ``detector.sparse.autograd``; without autograd, e.g. for an exporter's trace, they are plain Gather + MatMul)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
 def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Workspace | None = None,
-                owner: object | None = None) -> Tensor:
+                owner: object | None = None, unique: bool = False) -> Tensor:
     """The one GEMM form of every conv with a gather table: rows ``index`` ``(M * K,)`` of ``padded`` ``(N + 1, C)``
     as one ``(M, K * C)`` matrix, times ``matrix.t()`` (``matrix`` ``(O, K * C)``, :func:`conv_matrix`) → ``(M, O)``.
 
     Only a Gather and a MatMul, no data-dependent branch: the form an exporter writes, with ``index`` built outside
-    the graph (``SubMTable.padded``, ``DownTable.gather_index``).
+    the graph (``SubMTable.padded``, ``DownTable.gather_index``). ``unique``: every row but the sentinel is gathered
+    at most once (the non-overlapping down-conv), so training's backward may write rows instead of adding them.
     """
     c = padded.shape[1]
     o, kc = matrix.shape
     m = index.numel() * c // kc
     if workspace is None:
+        if unique and _training(padded):
+            return GatherUnique.apply(padded, index).view(m, kc) @ matrix.t()
         return padded.index_select(0, index).view(m, kc) @ matrix.t()
     cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
     torch.index_select(padded, 0, index, out=cols)
@@ -139,7 +150,8 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     s = matrix.shape[1] // o
     if workspace is None:
         prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
-        return prod.index_select(0, index)
+        # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
+        return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
     prod = workspace.take(owner, "products", (m * s + 1, o), features.dtype, features.device)
     torch.mm(features, matrix, out=prod[: m * s].view(m, s * o))
     prod[m * s].zero_()
@@ -174,18 +186,22 @@ def subm_conv2d(
     k = kh * kw
     if algorithm == "auto":
         algorithm = "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook"
-    w = conv_matrix(weight)
-    if algorithm == "gemm":
-        out = gather_gemm(padded_rows(features, workspace, owner), table.padded, w, workspace, owner)
+    if algorithm == "gemm" and workspace is None and _training(features, weight):
+        # training: the same product, with the backward that gathers (a mirrored SubM) instead of scatter-adding
+        out = SubMGemm.apply(features, weight, table.padded)
+    elif algorithm == "gemm":
+        out = gather_gemm(padded_rows(features, workspace, owner), table.padded, conv_matrix(weight), workspace, owner)
     elif algorithm == "rulebook":
-        taps = w.view(o, k, c)
+        # unbind: one view per tap whose backward stacks the K gradients once (slicing each tap out of the matrix
+        # made every tap's backward fill and add a whole (O, K, C) gradient)
+        taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = features @ taps[:, centre].t()
+        out = features @ taps[centre].t()
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [g @ taps[:, j].t() for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            parts = [g @ taps[j].t() for g, j in zip(gathered.split(counts), others) if g.shape[0]]
             # in place into the fresh centre product (mm does not need its output for the backward)
             out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
@@ -317,7 +333,8 @@ class SparseConv2d(SparseModule):
         w = conv_matrix(self.weight)  # (O, k*k*C)
         m = t.out_coords.shape[0]
         if algorithm == "gemm":
-            out = gather_gemm(padded_rows(x.features, ws, self), t.gather_index(x.num_active, kk), w, ws, self)
+            out = gather_gemm(padded_rows(x.features, ws, self), t.gather_index(x.num_active, kk), w, ws, self,
+                              unique=k == s)
         elif k == s:
             f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
             # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
@@ -332,11 +349,11 @@ class SparseConv2d(SparseModule):
     def _per_tap(self, features: Tensor, t, w: Tensor) -> Tensor:
         """The wide conv's rulebook: per tap, the products of its (input, output) pairs, added into the output rows."""
         kk = self.kernel_size**2
-        taps = w.view(self.out_channels, kk, self.in_channels)
+        taps = w.view(self.out_channels, kk, self.in_channels).unbind(1)  # one backward stack, not kk fills
         order = torch.argsort(t.slots, stable=True)
         counts = torch.bincount(t.slots, minlength=kk).tolist()
         gathered = features.index_select(0, t.in_rows[order])
-        parts = [g @ taps[:, j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
         out = features.new_zeros(t.out_coords.shape[0], self.out_channels)
         if parts:
             out = out.index_add(0, t.out_rows[order], torch.cat(parts, dim=0))
@@ -404,10 +421,10 @@ class SparseConvTranspose2d(SparseModule):
             if algorithm == "gemm":
                 out = gemm_gather(x.features, t.gather_index(x.num_active, s), w, o, ws, self)
             else:
-                slot_w = w.view(c, s * s, o)
+                slot_w = w.view(c, s * s, o).unbind(1)
                 rows, parents, counts = t.by_slot(s)
                 g = x.features.index_select(0, parents)
-                parts = [gi @ slot_w[:, j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+                parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
                 y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
                 # targets without an active parent stay zero (+ bias)
                 out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
