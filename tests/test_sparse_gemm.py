@@ -275,3 +275,39 @@ def test_training_head_on_the_neck_rows_equals_the_head_on_the_canvas() -> None:
     for a, b in zip(grad_a, grad_b):
         torch.testing.assert_close(b, a, atol=TOL, rtol=0)
     assert float(grad_a[-1].abs().sum()) > 0  # the dir bias gets gradient from every cell
+
+
+@pytest.mark.parametrize(("backbone", "head"), [("dense", "dense"), ("sparse", "dense"), ("sparse", "sparse_exact")])
+def test_bf16_inference_is_fp32_up_to_bf16_rounding(backbone: str, head: str) -> None:
+    """``model.precision = "bf16"``: the head maps come out in bf16, with or without a workspace, equal to the fp32
+    maps up to bf16 rounding; the sparse convs take their one-GEMM form (fp32 sums), so a rulebook-only bf16 sum
+    cannot hide here. Tolerance 3 % of each map's range (bf16 keeps 8 bits of mantissa; a skipped or wrong layer
+    moves the maps by their whole range)."""
+    from detector.models import build_model
+    from tests.test_models_build import _scene, _tiny_config
+
+    torch.manual_seed(0)
+    ref_model = build_model(_tiny_config(backbone=backbone, head=head))
+    randomise_norms(ref_model, 4)
+    ref_model.float().eval()
+    models = []
+    for ws in (None, Workspace()):
+        m = build_model(_tiny_config(backbone=backbone, head=head))
+        m.load_state_dict(ref_model.state_dict())
+        m.eval()
+        m.workspace, m.precision = ws, "bf16"
+        models.append(m)
+    pts = _scene(1)[0]
+    with torch.no_grad():
+        ref = ref_model([pts])
+        for m in models:
+            for _ in range(2):  # twice: the workspace's second frame resets and reuses
+                out = m([pts])
+            for a, b in zip(ref, out):
+                assert b.dtype == torch.bfloat16 and b.shape == a.shape
+                scale = float(a.abs().max())
+                torch.testing.assert_close(b.float(), a, atol=0.03 * scale, rtol=0.02)
+            assert len(m.postprocess(*out)) == 1
+    # training ignores it: fp32 maps with autograd on
+    models[0].train()
+    assert models[0]([pts]).cls.dtype == torch.float32

@@ -91,10 +91,12 @@ class AnchorHead(nn.Module):
         b, _, h, w = x.shape
         # (O, C) @ (C, H*W) per sample: the output is channel-planar, (B, O, H*W), so each map's channels lie in one
         # contiguous block. x.flatten(2) is a view for channels-last and NCHW maps alike (BLAS reads it transposed).
-        reuse = workspace is not None and not torch.is_autocast_enabled(x.device.type)
-        buf = None if not reuse else workspace.take(self, "out", (b, weight.shape[0], h * w), x.dtype,
-                                                             x.device)
-        out = torch.baddbmm(bias[None, :, None], weight.expand(b, -1, -1), x.flatten(2), out=buf)
+        if workspace is None:
+            out = torch.baddbmm(bias[None, :, None], weight.expand(b, -1, -1), x.flatten(2))
+        else:  # out= is not autocast: cast to the map's dtype (bf16 inference) by hand
+            buf = workspace.take(self, "out", (b, weight.shape[0], h * w), x.dtype, x.device)
+            out = torch.baddbmm(bias.to(x.dtype)[None, :, None], weight.to(x.dtype).expand(b, -1, -1), x.flatten(2),
+                                out=buf)
         return self.split(out.unflatten(2, (h, w)).permute(0, 2, 3, 1))
 
 
@@ -135,8 +137,8 @@ class SparseExactHead(AnchorHead):
         weight, bias = self.fused()  # (O, C), (O,): the dense head's own fused layer
         # Gather the active sites' feature vectors: (N_active, C), rows in (b, y, x) order.
         bi, yi, xi = torch.nonzero(active, as_tuple=True)
-        if workspace is not None and not torch.is_autocast_enabled(x.device.type):
-            return self._reused(x, bi, yi, xi, weight, bias, workspace)
+        if workspace is not None:
+            return self._reused(x, bi, yi, xi, weight.to(x.dtype), bias.to(x.dtype), workspace)
         feats = x[bi, :, yi, xi]
         vals = F.linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's convs
         # (B, O, H, W), planar like the dense head's, in the dtype the convs would give (bias rounded as theirs is)

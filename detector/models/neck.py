@@ -48,7 +48,7 @@ class SecondFPN(nn.Module):
         channels-last map (:meth:`_into_map`), valid until the next call."""
         if len(feats) != len(self.deblocks):
             raise ValueError(f"SecondFPN: expected {len(self.deblocks)} maps, got {len(feats)}")
-        if workspace is not None and not self.training and not torch.is_autocast_enabled(feats[0].device.type):
+        if workspace is not None and not self.training:
             return self._into_map(feats, workspace)
         return torch.cat([d(f) for d, f in zip(self.deblocks, feats)], dim=1)
 
@@ -73,8 +73,9 @@ class SecondFPN(nn.Module):
             deconv, norm = deblock[0], deblock[1]
             cin, o, u = deconv.in_channels, deconv.out_channels, deconv.stride[0]
             _, _, h, w = f.shape
-            rows = f.permute(0, 2, 3, 1).reshape(b * h * w, cin)  # a view for a channels-last map
-            wmat = deconv.weight.permute(0, 2, 3, 1).reshape(cin, u * u * o)  # column (ky * u + kx) * O + o
+            rows = f.permute(0, 2, 3, 1).reshape(b * h * w, cin).to(x0.dtype)  # a view for a channels-last map
+            # column (ky * u + kx) * O + o; in the map's dtype (out= is not autocast: bf16 inference casts by hand)
+            wmat = deconv.weight.permute(0, 2, 3, 1).reshape(cin, u * u * o).to(x0.dtype)
             dst = out[..., col : col + o]  # (B, H, W, O) slice of the map
             if u == 1:
                 torch.mm(rows, wmat, out=dst.view(b * h * w, o))

@@ -15,7 +15,9 @@ targets and computes the losses; :meth:`predict` runs all five stages. Build ins
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
+from typing import Literal
 
 import torch
 from torch import nn
@@ -28,6 +30,12 @@ from detector.models.postprocess import Detections, postprocess
 from detector.models.scatter import canvas_channels_last, scatter_to_canvas
 from detector.models.voxelizer import Voxels, voxelize
 from detector.sparse.workspace import Workspace, inference_workspace
+
+
+def native_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX), the condition for ``precision="bf16"`` to
+    pay off (as training's ``auto`` precision decides from /proc/cpuinfo's flags)."""
+    return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
 
 
 class PointPillars(nn.Module):
@@ -44,6 +52,12 @@ class PointPillars(nn.Module):
     outputs and site lookups, the dense neck and the head write into memory kept from the last frame, so a steady
     stream allocates nothing big and pays no page faults for it. The tensors the stages return then live in that
     memory: each is valid until the same stage runs again (clone what you keep). Training ignores it.
+
+    ``precision``: ``"fp32"`` (default) or ``"bf16"``: inference runs Feature Net, Backbone and Head under bfloat16
+    autocast, the pseudo-image (dense canvas or sparse features) in bf16 from the start; every GEMM / convolution then
+    multiplies bf16 and accumulates in fp32 (oneDNN and MKL do), the sparse convs in their one-GEMM form (the
+    rulebook would add its offsets' products in bf16). Fast where the CPU computes bf16 natively (AVX512-BF16 / AMX;
+    :func:`native_bf16`). Feature Extract and BBox Extract stay fp32. Training ignores it (``train.precision``).
     """
 
     def __init__(
@@ -89,6 +103,7 @@ class PointPillars(nn.Module):
         self.loss_params = dict(loss_params)
         self.nms_pre, self.score_thr, self.nms_iou = nms_pre, score_thr, nms_iou
         self.workspace: Workspace | None = None
+        self.precision: Literal["fp32", "bf16"] = "fp32"
 
     # --- Feature Extract ---------------------------------------------------------------------------------------
     def voxelize(self, points_list: Sequence[torch.Tensor]) -> Voxels:
@@ -111,6 +126,8 @@ class PointPillars(nn.Module):
     def feature_net(self, features: torch.Tensor, coords: torch.Tensor, batch_size: int):
         """Dense: scatter into one (B, 64, ny, nx) canvas. Sparse: wrap as ``SparseTensor`` (no canvas is built)."""
         ws = inference_workspace(self.workspace)
+        if self._bf16():
+            features = features.to(torch.bfloat16)  # the canvas / sparse features in bf16 from the start
         if self.sparse_input:
             from detector.sparse import SparseTensor
 
@@ -124,14 +141,26 @@ class PointPillars(nn.Module):
     # --- Backbone -------------------------------------------------------------------------------------------------
     def backbone_neck(self, x) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Canvas or SparseTensor → ((B, 384, ny/2, nx/2) map, active (B, ny/2, nx/2) bool or None)."""
-        if self.sparse_input:
-            return self.backbone(x)
-        return self.neck(self.backbone(x), workspace=inference_workspace(self.workspace)), None
+        with self._autocast():
+            if self.sparse_input:
+                return self.backbone(x)
+            return self.neck(self.backbone(x), workspace=inference_workspace(self.workspace)), None
 
     # --- Head -----------------------------------------------------------------------------------------------------
     def head(self, x: torch.Tensor, active: torch.Tensor | None = None) -> HeadOutput:
         """(B, 384, H, W) map (+ active mask) → :class:`HeadOutput` (B, H, W, C) maps."""
-        return self.anchor_head(x, active, workspace=inference_workspace(self.workspace))
+        with self._autocast():
+            return self.anchor_head(x, active, workspace=inference_workspace(self.workspace))
+
+    def _bf16(self) -> bool:
+        """bf16 inference is on (``precision == "bf16"`` and autograd off)."""
+        return self.precision == "bf16" and not torch.is_grad_enabled()
+
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        """bfloat16 autocast on the model's device for bf16 inference, else nothing."""
+        if not self._bf16():
+            return contextlib.nullcontext()
+        return torch.autocast(self.anchors.device.type, dtype=torch.bfloat16)
 
     # --- BBox Extract ---------------------------------------------------------------------------------------------
     def postprocess(self, cls: torch.Tensor, reg: torch.Tensor, dir: torch.Tensor) -> list[Detections]:

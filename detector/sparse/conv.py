@@ -101,12 +101,25 @@ def transposed_matrix(weight: Tensor) -> Tensor:
     return weight.permute(0, 2, 3, 1).reshape(c, kh * kw * o)
 
 
+def compute_dtype(t: Tensor) -> torch.dtype:
+    """The dtype a matmul of ``t`` runs in: the autocast dtype inside ``torch.autocast`` (bf16 inference), else
+    ``t``'s. The workspace paths use explicit ``out=`` ops, which autocast does not cast, so they cast themselves."""
+    dev = t.device.type
+    return torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else t.dtype
+
+
+def low_precision(t: Tensor) -> bool:
+    """Whether ``t``'s matmuls run in bf16 / fp16 (a half-precision tensor, or under autocast)."""
+    return compute_dtype(t) in (torch.bfloat16, torch.float16)
+
+
 def padded_rows(features: Tensor, workspace: Workspace | None = None, owner: object | None = None) -> Tensor:
-    """``(N, C)`` → ``(N + 1, C)`` with a zero last row: the sentinel the gather tables point missing neighbours at."""
+    """``(N, C)`` → ``(N + 1, C)`` with a zero last row: the sentinel the gather tables point missing neighbours at.
+    With a workspace the rows are cast to :func:`compute_dtype` on the way (bf16 inference gathers half the bytes)."""
     n, c = features.shape
     if workspace is None:
         return torch.cat([features, features.new_zeros(1, c)], dim=0)
-    out = workspace.take(owner, "padded", (n + 1, c), features.dtype, features.device)
+    out = workspace.take(owner, "padded", (n + 1, c), compute_dtype(features), features.device)
     out[:n].copy_(features)
     out[n].zero_()
     return out
@@ -137,7 +150,7 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
     torch.index_select(padded, 0, index, out=cols)
     out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
-    return torch.mm(cols.view(m, kc), matrix.t(), out=out)
+    return torch.mm(cols.view(m, kc), matrix.to(padded.dtype).t(), out=out)
 
 
 def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: int,
@@ -152,10 +165,11 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
         prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
         # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
         return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
-    prod = workspace.take(owner, "products", (m * s + 1, o), features.dtype, features.device)
-    torch.mm(features, matrix, out=prod[: m * s].view(m, s * o))
+    dtype = compute_dtype(features)
+    prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
+    torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
     prod[m * s].zero_()
-    out = workspace.take(owner, "out", (index.numel(), o), features.dtype, features.device)
+    out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
     return torch.index_select(prod, 0, index, out=out)
 
 
@@ -185,7 +199,8 @@ def subm_conv2d(
     o, _, kh, kw = weight.shape
     k = kh * kw
     if algorithm == "auto":
-        algorithm = "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook"
+        # in bf16 the one GEMM also keeps every sum in fp32 (the rulebook adds the offsets' bf16 products)
+        algorithm = "gemm" if table.fill >= GEMM_MIN_FILL or low_precision(features) else "rulebook"
     if algorithm == "gemm" and workspace is None and _training(features, weight):
         # training: the same product, with the backward that gathers (a mirrored SubM) instead of scatter-adding
         out = SubMGemm.apply(features, weight, table.padded)
@@ -354,10 +369,10 @@ class SparseConv2d(SparseModule):
         counts = torch.bincount(t.slots, minlength=kk).tolist()
         gathered = features.index_select(0, t.in_rows[order])
         parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
-        out = features.new_zeros(t.out_coords.shape[0], self.out_channels)
-        if parts:
-            out = out.index_add(0, t.out_rows[order], torch.cat(parts, dim=0))
-        return out
+        if not parts:
+            return features.new_zeros(t.out_coords.shape[0], self.out_channels)
+        prods = torch.cat(parts, dim=0)  # bf16 under autocast
+        return prods.new_zeros(t.out_coords.shape[0], self.out_channels).index_add_(0, t.out_rows[order], prods)
 
     def extra_repr(self) -> str:
         return (
@@ -410,8 +425,9 @@ class SparseConvTranspose2d(SparseModule):
         w = transposed_matrix(self.weight)  # (C, s*s*O)
         if s == 1 and target.coords is x.coords:
             # same site set: a plain 1x1 matmul
+            dt = compute_dtype(x.features)
             out = x.features @ w if ws is None else torch.mm(
-                x.features, w, out=ws.take(self, "out", (x.num_active, o), w.dtype, w.device))
+                x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
             algorithm = self.algorithm

@@ -37,9 +37,12 @@ class SparseBatchNorm(nn.BatchNorm1d, SparseModule):
 
 def batch_norm_into(norm: nn.modules.batchnorm._BatchNorm, x: Tensor, out: Tensor) -> Tensor:
     """Eval-mode ``norm(x)`` written into ``out`` (which may be ``x`` itself: in place), the same values as
-    ``norm(x)`` (aten's ``native_batch_norm.out``, i.e. the kernel ``F.batch_norm`` runs). Inference only."""
+    ``norm(x)`` (aten's ``native_batch_norm.out``, i.e. the kernel ``F.batch_norm`` runs; a bfloat16 ``x`` with
+    float32 statistics is fine, as in ``F.batch_norm``). Inference only (autograd off)."""
+    stats = norm.running_mean if norm.running_mean is not None else x  # the dtype of the saved statistics
     torch.ops.aten.native_batch_norm.out(x, norm.weight, norm.bias, norm.running_mean, norm.running_var, False, 0.0,
-                                         norm.eps, out=out, save_mean=x.new_empty(0), save_invstd=x.new_empty(0))
+                                         norm.eps, out=out, save_mean=stats.new_empty(0),
+                                         save_invstd=stats.new_empty(0))
     return out
 
 
