@@ -311,3 +311,20 @@ def test_bf16_inference_is_fp32_up_to_bf16_rounding(backbone: str, head: str) ->
     # training ignores it: fp32 maps with autograd on
     models[0].train()
     assert models[0]([pts]).cls.dtype == torch.float32
+
+
+def test_subm_gemm_backward_under_bf16_autocast() -> None:
+    """bf16 training: the mirrored-kernel backward runs in the gradient's dtype and hands back fp32 gradients equal
+    to the fp32 ones up to bf16 rounding."""
+    x = sites("clustered", (17, 13), 0.3, seed=8)
+    x = x.replace_feature(x.features.detach().float().requires_grad_(True))
+    conv = SubMConv2d(3, 4, 3, algorithm="gemm")
+    r = torch.randn(x.num_active, 4, generator=torch.Generator().manual_seed(1))
+    ref = torch.autograd.grad((conv(x).features * r).sum(), (x.features, conv.weight))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = conv(x).features
+    assert y.dtype == torch.bfloat16
+    got = torch.autograd.grad((y.float() * r).sum(), (x.features, conv.weight))
+    for a, b in zip(ref, got):
+        assert b.dtype == torch.float32
+        torch.testing.assert_close(b, a, atol=0.03 * float(a.abs().max()), rtol=0.02)

@@ -41,7 +41,8 @@ class SubMGemm(torch.autograd.Function):
         n = features.shape[0]
         cols = _padded(features).index_select(0, index).view(n, -1)
         ctx.save_for_backward(cols, weight, index)
-        return cols @ _taps_matrix(weight).t()
+        ctx.features_dtype = features.dtype
+        return cols @ _taps_matrix(weight).t()  # bf16 under autocast (the backward runs in the gradient's dtype)
 
     @staticmethod
     @once_differentiable
@@ -49,15 +50,17 @@ class SubMGemm(torch.autograd.Function):
         cols, weight, index = ctx.saved_tensors
         o, c, kh, kw = weight.shape
         grad_out = grad_out.contiguous()
+        dt = grad_out.dtype  # bf16 after an autocast forward: the products run in it, the results in the inputs' dtypes
         grad_features = grad_weight = None
         if ctx.needs_input_grad[0]:
             mirrored = weight.flip(2, 3).transpose(0, 1)  # (C, O, kh, kw): tap k of the backward is W_{K-1-k}^T
             g = _padded(grad_out).index_select(0, index).view(grad_out.shape[0], -1)
-            grad_features = g @ _taps_matrix(mirrored).t()
+            grad_features = (g @ _taps_matrix(mirrored).to(dt).t()).to(ctx.features_dtype)
         if ctx.needs_input_grad[1]:
             # (O, K*C) in (O, kh, kw, C) order, handed back in the weight's (O, C, kh, kw) shape: for a channels-last
             # weight (conv.gemm_weight) these are its own strides
-            grad_weight = (grad_out.t() @ cols).view(o, kh, kw, c).permute(0, 3, 1, 2)
+            gw = (grad_out.t() @ cols.to(dt)).to(weight.dtype)
+            grad_weight = gw.view(o, kh, kw, c).permute(0, 3, 1, 2)
         return grad_features, grad_weight, None
 
 
