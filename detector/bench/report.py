@@ -66,7 +66,8 @@ def _notes(result: dict) -> list[str]:
     env = ", ".join(f"{k}={v}" for k, v in mach["malloc_env"].items() if v is not None) or "unset"
     notes = [
         f"ms per frame, mean ± std over {prot['trials']} trials of {prot['frames']} frames ({prot['split']} split), "
-        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame",
+        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame, precision "
+        f"{prot.get('precision', 'fp32')}",
         machine_line(mach),
         f"allocator: {mach['allocator']} ({env})",
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "

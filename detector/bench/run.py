@@ -131,9 +131,12 @@ def run_bench(
     seed: int = 0,
     peer: str | None = None,
     progress: bool = False,
+    precision: str = "fp32",
 ) -> dict:
     """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
-    bars on stderr (loading, warm-up and timed frames) when it is a terminal.
+    bars on stderr (loading, warm-up and timed frames) when it is a terminal. ``precision``: ``"fp32"`` or
+    ``"bf16"`` (our models' ``PointPillars.precision``: Feature Net, Backbone and Head in bf16; recorded as
+    ``protocol.precision``).
 
     ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "back_to_back": {shared
     key: {"mean_ms", "std_ms"}} (None for the peer and for a single model), "median_frame_ms",
@@ -146,6 +149,8 @@ def run_bench(
     """
     if not models:
         raise InputError("bench needs at least one --config")
+    if precision not in ("fp32", "bf16"):
+        raise InputError(f"unknown precision {precision!r} (choose fp32 or bf16)")
     if frames < 1 or trials < 1 or warmup < 0:
         raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
     dev = use_device(device, threads)
@@ -157,6 +162,7 @@ def run_bench(
         # a long-running process's steady state: every model reuses its inference buffers from frame to frame (the
         # stages' outputs are consumed before the next frame), see detector.sparse.workspace
         net.workspace = Workspace()
+        net.precision = precision  # type: ignore[assignment]
     rows = our_rows(models, cfgs, names, nets, dev, data_dir, split, frames, seed, progress)
     if peer is not None:
         rows.append(peer_row(rows[0], nets[0], peer))
@@ -174,7 +180,8 @@ def run_bench(
         "models": [model_record(row, j, timings) for j, row in enumerate(rows)],
         "density": density_record(rows[0]),
         "machine": machine_record(dev, peer),
-        "protocol": protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
+        "protocol": {**protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
+                     "precision": precision},
     }
 
 
