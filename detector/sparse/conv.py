@@ -34,11 +34,12 @@ ConvAlgorithm = Literal["auto", "gemm", "rulebook"]
 SubMAlgorithm = ConvAlgorithm  # the name the SubM conv has always used
 
 # "auto" picks the one-GEMM form when at least this fraction of the (site, offset) pairs exist: the GEMM multiplies
-# (1 - fill) zero rows, the per-offset rulebook pays K - 1 small matmuls and an index_add instead. Measured on the
-# 2-core AVX-512 EPYC, 1 thread (tools/bench_sparse.py forms rows, docs/sparse.md): inference rulebook / gemm time
-# 0.6-0.8 at fill 0.45-0.67, 1.0 at 0.82-0.88 (C = 256 ... 64), 1.14 at 0.88 (C = 64); training (forward +
-# backward) rulebook / gemm 0.7-0.8 at fill 0.57-0.68, 0.8 at 0.82, 1.0 at 0.88-0.93. So the GEMM from 0.85 up.
-GEMM_MIN_FILL = 0.85
+# (1 - fill) zero rows, the per-offset rulebook pays K - 1 small matmuls, an index_add and ~10 more ops per layer
+# (Python and dispatch time that does not shrink with threads). Measured on the 2-core AVX-512 EPYC (docs/sparse.md,
+# tools/bench_sparse.py forms rows): synthetic layers at 1 thread, rulebook / gemm time 0.6-0.8 at fill 0.45-0.67 and
+# 1.0 at 0.82-0.88; at 2 threads 0.89 at fill 0.58; real-frame layers (fill 0.78-0.90) equal at 1 and 2 threads,
+# and the whole real-frame backbone at 2 threads 17.8 ms with every such layer in gemm vs 19.4 ms with a 0.85 cut.
+GEMM_MIN_FILL = 0.7
 # The transposed conv's GEMM form multiplies every coarse site by all s*s slots' weights; "auto" takes it when at
 # least this fraction of those products is needed by some target (measured: gemm 1.05x faster at 0.54, 2x slower at
 # 0.29, docs/sparse.md).
@@ -211,12 +212,12 @@ def subm_conv2d(
         # made every tap's backward fill and add a whole (O, K, C) gradient)
         taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = features @ taps[centre].t()
+        out = torch.mm(features, taps[centre].t())
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [g @ taps[j].t() for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
             # in place into the fresh centre product (mm does not need its output for the backward)
             out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:

@@ -49,6 +49,7 @@ class Workspace:
 
     def __init__(self) -> None:
         self._flat: dict[tuple[Hashable, ...], Tensor] = {}
+        self._views: dict[tuple[Hashable, ...], Tensor] = {}  # the last view handed out per key (same shape: reused)
         self._canvases: dict[tuple[Hashable, ...], _Canvas] = {}
 
     def take(self, owner: Hashable, name: str, shape: Sequence[int], dtype: torch.dtype,
@@ -56,16 +57,20 @@ class Workspace:
         """A contiguous tensor of ``shape``, contents unspecified: the same memory as the previous call with this
         ``(owner, name)``, dtype and device whenever it fits."""
         shape = tuple(int(s) for s in shape)
+        key = (owner, name, dtype, str(device))
+        view = self._views.get(key)
+        if view is not None and view.shape == shape:
+            return view  # the same buffer and shape as last time: no new view (a frame asks for ~100 of them)
         numel = 1
         for s in shape:
             numel *= s
-        device = torch.device(device)
-        key = (owner, name, dtype, device)
         flat = self._flat.get(key)
         if flat is None or flat.numel() < numel:
             flat = torch.empty(max(numel, int(GROWTH * numel)), dtype=dtype, device=device)
             self._flat[key] = flat
-        return flat[:numel].view(shape)
+        view = flat[:numel].view(shape)
+        self._views[key] = view
+        return view
 
     def scatter(self, owner: Hashable, name: str, shape: Sequence[int], index: tuple[Tensor, ...], values: Tensor,
                 fill: float | Tensor = 0.0, dims: Sequence[int] | None = None) -> Tensor:
