@@ -27,8 +27,9 @@ forward with another 2-thread job running; the dense model loses far less). ``--
 ``OMP_WAIT_POLICY=PASSIVE`` (idle threads sleep at once) for such machines; the header prints the setting.
 
 The "forms" rows time each sparse conv kind (SubM, 2x2 and 9x9 down, s = 2 / 4 transposed) in its one-GEMM form
-against its rulebook form and the ``auto`` pick, on clustered and uniform sites; with ``--data`` also the whole sparse
-backbone on real frames with every conv of one kind forced to each form (docs/sparse.md, "Compute").
+against its rulebook form and the ``auto`` pick, on clustered and uniform sites (the SubMs also forward + backward,
+``*_train``); with ``--data`` also the whole sparse backbone on real frames with every conv of one kind forced to
+each form (docs/sparse.md, "Compute").
 
     PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json out.json]
         [--skip subm forms backbone e2e train] [--data DATASET [--frames 8]] [--reuse-allocator] [--omp-passive]
@@ -196,6 +197,11 @@ def bench_forms(repeats: int) -> list[dict[str, object]]:
             m.eval().load_state_dict(mods["auto"].state_dict())
         with torch.no_grad():
             r = compare(fns, repeats)
+        if kind == "subm":  # training: forward + backward of the layer (no workspace), input gradient included
+            xt = SparseTensor(x.features.clone().requires_grad_(True), coords, shape, 1)
+            g = torch.randn(coords.shape[0], cout)
+            r.update(compare({f"{a}_train": (lambda m=mods[a], xt=xt, g=g: m(xt).features.backward(g))
+                              for a in ("gemm", "rulebook")}, repeats))
         rows.append({"case": f"{kind} {k}x{k}/s{s} {cin}->{cout} {shape[0]}x{shape[1]} {pattern} {100 * density:.2f}%",
                      "active": int(coords.shape[0]), "fill": None if fill is None else round(fill, 3), "timings": r})
     return rows
@@ -237,7 +243,7 @@ def fmt_forms(title: str, rows: list[dict[str, object]]) -> str:
         extra = {k: v for k, v in row.items() if k not in ("case", "timings")}
         lines.append(f"{row['case']}  {extra}")
         for k, v in t.items():
-            ratio = t["rulebook"]["cpu_min_ms"] / v["cpu_min_ms"]
+            ratio = t["rulebook_train" if k.endswith("_train") else "rulebook"]["cpu_min_ms"] / v["cpu_min_ms"]
             lines.append(f"  {k:10s} wall min {v['min_ms']:8.3f} median {v['median_ms']:8.3f}  cpu min "
                          f"{v['cpu_min_ms']:8.3f} ms   rulebook / this (cpu) {ratio:5.2f}x")
     return "\n".join(lines)
