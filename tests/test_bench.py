@@ -49,6 +49,9 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
         assert m["components"]["total"]["mean_ms"] == pytest.approx(parts, rel=1e-9)  # stamps telescope
         assert m["weights"].startswith("random")
         assert m["page_faults_per_frame"] >= 0
+        by = m["page_faults_per_frame_by_component"]  # the stages' counts telescope to the frame's
+        assert set(by) == set(COMPONENTS) and by["total"] == pytest.approx(sum(by[k] for k in COMPONENTS[:-1]))
+        assert by["total"] <= m["page_faults_per_frame"]
     assert result["protocol"]["frames"] == 2 and result["protocol"]["trials"] == 2
     assert result["protocol"]["frame_ids"] == ["000000", "000001"]
     mach = result["machine"]

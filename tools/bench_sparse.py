@@ -26,8 +26,13 @@ hundreds of small parallel ops per forward, so it suffers most (measured: 4.6 s 
 forward with another 2-thread job running; the dense model loses far less). ``--omp-passive`` re-executes under
 ``OMP_WAIT_POLICY=PASSIVE`` (idle threads sleep at once) for such machines; the header prints the setting.
 
+The "forms" rows time each sparse conv kind (SubM, 2x2 and 9x9 down, s = 2 / 4 transposed) in its one-GEMM form
+against its rulebook form and the ``auto`` pick, on clustered and uniform sites (the SubMs also forward + backward,
+``*_train``); with ``--data`` also the whole sparse backbone on real frames with every conv of one kind forced to
+each form (docs/sparse.md, "Compute").
+
     PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json out.json]
-        [--skip subm backbone e2e train] [--reuse-allocator] [--omp-passive]
+        [--skip subm forms backbone e2e train] [--data DATASET [--frames 8]] [--reuse-allocator] [--omp-passive]
 """
 
 from __future__ import annotations
@@ -49,15 +54,18 @@ import torch
 from torch import nn
 
 from detector.bench.timing import COMPONENTS, time_frame
+from detector.checkpoint import load_model
 from detector.config import load_experiment
+from detector.data.experiment import load_eval_frames
 from detector.device import MALLOC_REUSE
 from detector.models import build_model
 from detector.models.backbone import SecondBackbone
 from detector.models.head import AnchorHead, SparseExactHead
 from detector.models.neck import SecondFPN
 from detector.models.sparse_backbone import SparseBackboneNeck
-from detector.sparse import SparseTensor, SubMConv2d
+from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d, Workspace
 from detector.sparse.conv import GEMM_MIN_FILL
+from detector.sparse.indices import down_table
 from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, uniform_sites
 from mpchair.core.atomic import write_text
 
@@ -142,6 +150,105 @@ def _subm_case(dense: nn.Conv2d, pattern: str, density: float, repeats: int) -> 
     }
 
 
+ALGORITHMS = ("gemm", "rulebook", "auto")
+#: (kind, grid, pattern, density, in, out, kernel, stride) of the conv shapes the Matterport model runs: SubMs at
+#: block 1 (384 x 256, 64 ch) and block 3 (96 x 64, 256 ch), the 2x2 and the 9x9 stride-2 down-convs on the pillar
+#: grid, the neck's s = 2 and s = 4 transposed convs onto the block-1 set.
+FORM_CASES = (
+    ("subm", (384, 256), "clustered", 0.013, 64, 64, 3, 1),
+    ("subm", (384, 256), "uniform", 0.013, 64, 64, 3, 1),
+    ("subm", (96, 64), "clustered", 0.02, 256, 256, 3, 1),
+    ("subm", (96, 64), "uniform", 0.02, 256, 256, 3, 1),
+    ("down", (768, 512), "clustered", 0.0075, 64, 64, 2, 2),
+    ("down", (768, 512), "uniform", 0.0075, 64, 64, 2, 2),
+    ("wide_down", (768, 512), "clustered", 0.0075, 64, 64, 9, 2),
+    ("wide_down", (768, 512), "uniform", 0.0075, 64, 64, 9, 2),
+    ("up", (384, 256), "clustered", 0.013, 128, 128, 2, 2),
+    ("up", (384, 256), "uniform", 0.013, 128, 128, 2, 2),
+    ("up", (384, 256), "clustered", 0.013, 256, 128, 4, 4),
+    ("up", (384, 256), "uniform", 0.013, 256, 128, 4, 4),
+)
+
+
+def bench_forms(repeats: int) -> list[dict[str, object]]:
+    """Each conv kind in its one-GEMM form vs its rulebook (and the ``auto`` pick), inference with a workspace, on
+    clustered and uniform sites (``detector.sparse.synthetic``), interleaved."""
+    rows = []
+    for kind, shape, pattern, density, cin, cout, k, s in FORM_CASES:
+        coords = make_sites(pattern, shape, density, seed=5)
+        ws = Workspace()
+        x = SparseTensor(torch.randn(coords.shape[0], cin).relu(), coords, shape, 1, workspace=ws, origin="input")
+        if kind == "up":  # the coarse input is the site set a down-conv of the target gives
+            t = down_table(coords, shape, s)
+            coarse = SparseTensor(torch.randn(t.out_coords.shape[0], cin), t.out_coords, t.out_shape, 1,
+                                  workspace=ws, origin="coarse")
+            mods = {a: SparseConvTranspose2d(cin, cout, k, s, algorithm=a) for a in ALGORITHMS}
+            fns = {a: (lambda m=m, c=coarse, x=x: m(c, x)) for a, m in mods.items()}
+            fill = float((t.in_rows.numel()) / max(1, t.out_coords.shape[0] * s * s))
+        elif kind == "subm":
+            mods = {a: SubMConv2d(cin, cout, k, indice_key="k", algorithm=a) for a in ALGORITHMS}
+            fns = {a: (lambda m=m, x=x: m(x)) for a, m in mods.items()}
+            fill = mods["auto"].table(x).fill
+        else:
+            mods = {a: SparseConv2d(cin, cout, k, s, algorithm=a) for a in ALGORITHMS}
+            fns = {a: (lambda m=m, x=x: m(x)) for a, m in mods.items()}
+            fill = None
+        for m in mods.values():
+            m.eval().load_state_dict(mods["auto"].state_dict())
+        with torch.no_grad():
+            r = compare(fns, repeats)
+        if kind == "subm":  # training: forward + backward of the layer (no workspace), input gradient included
+            xt = SparseTensor(x.features.clone().requires_grad_(True), coords, shape, 1)
+            g = torch.randn(coords.shape[0], cout)
+            r.update(compare({f"{a}_train": (lambda m=mods[a], xt=xt, g=g: m(xt).features.backward(g))
+                              for a in ("gemm", "rulebook")}, repeats))
+        rows.append({"case": f"{kind} {k}x{k}/s{s} {cin}->{cout} {shape[0]}x{shape[1]} {pattern} {100 * density:.2f}%",
+                     "active": int(coords.shape[0]), "fill": None if fill is None else round(fill, 3), "timings": r})
+    return rows
+
+
+def bench_forms_real(repeats: int, data: Path, frames: int) -> list[dict[str, object]]:
+    """The Matterport sparse backbone on real frames (``mpchair_sparse.yaml``, random weights, workspace) with every
+    conv of one kind forced to each form: whole-backbone ms per frame, interleaved."""
+    cfg = load_experiment(CONFIGS / "mpchair_sparse.yaml")
+    model = load_model(cfg, None, torch.device("cpu"), seed=0).eval()
+    model.workspace = Workspace()
+    with torch.no_grad():
+        inputs = [model.pillar_net(model.voxelize([torch.from_numpy(f.points)]))
+                  for f in load_eval_frames(cfg, data, "test", frames)]
+    rows = []
+    for kind, types in (("subm", SubMConv2d), ("down", SparseConv2d), ("up", SparseConvTranspose2d)):
+        mods = [m for m in model.modules() if isinstance(m, types)]
+
+        def run(a: str, mods: list[nn.Module] = mods) -> None:
+            for m in mods:
+                m.algorithm = a
+            for f, c in inputs:
+                model.backbone_neck(model.feature_net(f, c, 1))
+
+        with torch.no_grad():
+            r = compare({a: (lambda a=a: run(a)) for a in ALGORITHMS}, repeats)
+        for v in r.values():  # per frame
+            for key in ("min_ms", "median_ms", "cpu_min_ms"):
+                v[key] /= len(inputs)
+        rows.append({"case": f"backbone on {len(inputs)} real frames of {data}, every {kind} conv forced",
+                     "timings": r})
+    return rows
+
+
+def fmt_forms(title: str, rows: list[dict[str, object]]) -> str:
+    lines = [f"\n## {title}"]
+    for row in rows:
+        t: dict[str, dict[str, float]] = row["timings"]  # type: ignore[assignment]
+        extra = {k: v for k, v in row.items() if k not in ("case", "timings")}
+        lines.append(f"{row['case']}  {extra}")
+        for k, v in t.items():
+            ratio = t["rulebook_train" if k.endswith("_train") else "rulebook"]["cpu_min_ms"] / v["cpu_min_ms"]
+            lines.append(f"  {k:10s} wall min {v['min_ms']:8.3f} median {v['median_ms']:8.3f}  cpu min "
+                         f"{v['cpu_min_ms']:8.3f} ms   rulebook / this (cpu) {ratio:5.2f}x")
+    return "\n".join(lines)
+
+
 def dense_backbone_neck() -> nn.Module:
     """The dense SECOND backbone + FPN of detector.models (3x3 stride-2 down-convs), eval mode."""
     backbone = SecondBackbone(
@@ -161,8 +268,10 @@ def active_counts(model: SparseBackboneNeck, x: SparseTensor) -> list[int]:
 
 
 def bench_backbone(repeats: int) -> list[dict[str, object]]:
-    """Full backbone + neck up to the dense 384-channel map."""
+    """Full backbone + neck up to the dense 384-channel map, each model with its inference workspace and without
+    (``*_alloc``: every buffer allocated per frame, as before the workspace)."""
     dense = dense_backbone_neck().eval()
+    backbone, neck = dense[0], dense[1]
     sparse = SparseBackboneNeck().eval()
     rows = []
     for name, shape, pattern, density in (
@@ -171,13 +280,18 @@ def bench_backbone(repeats: int) -> list[dict[str, object]]:
     ):
         coords = make_sites(pattern, shape, density, seed=2)
         feats = torch.randn(coords.shape[0], 64).relu()  # pillar features come out of a ReLU
-        canvas = SparseTensor(feats, coords, shape, 1).dense()
-
-        def run_sparse(feats: torch.Tensor = feats, coords: torch.Tensor = coords, shape=shape) -> object:
-            return sparse(SparseTensor(feats, coords, shape, 1))
-
+        # the model's inference canvas is channels-last (detector.models.scatter)
+        canvas = SparseTensor(feats, coords, shape, 1).dense().contiguous(memory_format=torch.channels_last)
+        ws_dense, ws_sparse = Workspace(), Workspace()
+        fns = {
+            "dense": lambda canvas=canvas, ws=ws_dense: neck(backbone(canvas), workspace=ws),
+            "dense_alloc": lambda canvas=canvas: neck(backbone(canvas)),
+            "sparse": lambda f=feats, c=coords, sh=shape, ws=ws_sparse: sparse(
+                SparseTensor(f, c, sh, 1, workspace=ws, origin="input")),
+            "sparse_alloc": lambda f=feats, c=coords, sh=shape: sparse(SparseTensor(f, c, sh, 1)),
+        }
         with torch.no_grad():
-            r = compare({"dense": lambda canvas=canvas: dense(canvas), "sparse": run_sparse}, repeats)
+            r = compare(fns, repeats)
         rows.append(
             {
                 "case": f"{name} {pattern} {100 * density:.2f}%",
@@ -219,11 +333,15 @@ def bench_end_to_end(repeats: int) -> list[dict[str, object]]:
         "dense": dense_cfg,
         "sparse+sparse_exact": dataclasses.replace(sparse_cfg, head="sparse_exact"),
         "sparse+dense_head": dataclasses.replace(sparse_cfg, head="dense"),
+        "dense_alloc": dense_cfg,
+        "sparse+sparse_exact_alloc": dataclasses.replace(sparse_cfg, head="sparse_exact"),
     }
     models = {}
     for name, cfg in variants.items():
         torch.manual_seed(0)
         models[name] = build_model(dataclasses.replace(cfg, score_thr=0.0)).eval()
+        if not name.endswith("_alloc"):  # *_alloc: without the inference workspace, as before it
+            models[name].workspace = Workspace()
     points = matterport_points()
     device = torch.device("cpu")
     stages: dict[str, list[dict[str, float]]] = {k: [] for k in models}
@@ -266,7 +384,10 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
     def step_dense() -> None:
         loss_of(head_d(dense(canvas))).backward()
 
-    def step_sparse() -> None:
+    def step_sparse() -> None:  # as PointPillars.forward trains it: the head on the neck's active rows
+        loss_of(head_s.on_sites(sparse.neck_rows(SparseTensor(feats, coords, shape, 1)))).backward()
+
+    def step_sparse_canvas() -> None:  # the head on the scattered canvas (before AnchorHead.on_sites)
         y, _ = sparse(SparseTensor(feats, coords, shape, 1))
         loss_of(head_s(y)).backward()
 
@@ -274,11 +395,12 @@ def bench_train_step(repeats: int) -> list[dict[str, object]]:
         y, active = sparse(SparseTensor(feats, coords, shape, 1))
         loss_of(head_x(y, active)).backward()
 
-    r = compare({"dense": step_dense, "sparse": step_sparse}, repeats)
+    r = compare({"dense": step_dense, "sparse": step_sparse, "sparse_canvas": step_sparse_canvas}, repeats)
     rx = compare({"dense": step_dense, "sparse": step_sparse_exact}, repeats)
     return [
         {
-            "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head)",
+            "case": "matterport 768x512 clustered 0.75% fwd+bwd (+ dense head; sparse: on the neck rows as trained, "
+                    "sparse_canvas: on the scattered canvas)",
             "active": int(coords.shape[0]),
             "timings": r,
         },
@@ -342,7 +464,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--train-repeats", type=int, default=3)
-    p.add_argument("--skip", nargs="*", default=[], choices=["subm", "backbone", "e2e", "train"])
+    p.add_argument("--skip", nargs="*", default=[], choices=["subm", "forms", "backbone", "e2e", "train"])
+    p.add_argument("--data", type=Path, default=None,
+                   help="KITTI-format dataset: also time the forms on its first --frames test frames")
+    p.add_argument("--frames", type=int, default=8)
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this path")
     p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {MALLOC_REUSE}")
     p.add_argument("--omp-passive", action="store_true", help=f"re-run under {PASSIVE_ENV} (busy machines)")
@@ -379,6 +504,14 @@ def main(argv: list[str] | None = None) -> int:
         rows = fn(reps)
         results[key] = rows
         print(fmt_rows(title, rows), flush=True)
+    if "forms" not in args.skip:
+        forms = [("forms", "One GEMM form vs rulebook per conv kind (eval, no_grad, workspace)", bench_forms)]
+        if args.data is not None:
+            forms.append(("forms_real", "The same on real frames: the whole sparse backbone, one kind forced",
+                          lambda reps: bench_forms_real(reps, args.data, args.frames)))
+        for key, title, fn in forms:
+            results[key] = fn(args.repeats)
+            print(fmt_forms(title, results[key]), flush=True)
     results["load_average_end"] = os.getloadavg()
     results["summary"] = summary(results)
     print(fmt_summary(results["summary"], header))

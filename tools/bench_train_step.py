@@ -1,14 +1,18 @@
-"""Time training steps of ``detector train`` at fp32 and at bf16 (``train.precision``), side by side, in one run.
+"""Time training steps of ``detector train`` at fp32 and at bf16 (``train.precision``), side by side, in one run, and
+the step-time ratio of the first config to each other one (dense / sparse).
 
 Each measurement is a real ``detector.train.train`` call (the training loop itself, ``--max-steps`` steps on the first
 frames of ``--split``, a fresh run folder) and reads the per-step seconds the loop logs in ``metrics.jsonl`` (forward,
 target assignment, loss, backward, clipping and AdamW step; data loading excluded). The first ``--warmup`` steps are
 dropped. fp32 and bf16 alternate for ``--rounds`` rounds on identical batches, so drift of a noisy machine hits both.
-The GT-sampling database is built once and shared by every run.
+The GT-sampling database is built once per config and shared by its runs.
 
     python tools/bench_train_step.py --data out/reproduce-full-e12-bf16/dataset \\
         --config configs/models/mpchair_dense_cpu.yaml --config configs/models/mpchair_sparse_cpu.yaml \\
-        [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--json OUT]
+        [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--precision fp32 [--precision bf16]] [--json OUT]
+
+With several configs the rounds interleave them too (round 1: every config at every precision, then round 2, ...),
+so load drift hits every config alike; the table's last rows are ``first / other`` step-time ratios per precision.
 
 Set ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736`` as for training (docs/training.md, "Speed on CPU").
 """
@@ -49,43 +53,59 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=5, help="untimed steps at the start of every run")
     p.add_argument("--rounds", type=int, default=2, help="fp32 / bf16 alternations per config")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--precision", action="append", choices=PRECISIONS, default=None,
+                   help="precisions to time (repeat; default: all)")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON")
     args = p.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.rounds < 1:
         print("error: --steps and --rounds must be >= 1, --warmup >= 0", file=sys.stderr)
         return 2
 
-    rows = []
+    precisions = tuple(args.precision) if args.precision else PRECISIONS
+    times: dict[str, dict[str, list[float]]] = {c: {pr: [] for pr in precisions} for c in args.config}
     with tempfile.TemporaryDirectory(prefix="bench_train_step_") as tmp:
-        for config in args.config:
-            times: dict[str, list[float]] = {pr: [] for pr in PRECISIONS}
-            database = None
-            for rnd in range(args.rounds):
-                for pr in PRECISIONS:
+        database: dict[str, Path] = {}  # built once per config, then shared by its runs
+        for rnd in range(args.rounds):
+            for config in args.config:
+                for pr in precisions:
                     run = Path(tmp) / f"{Path(config).stem}-{pr}-{rnd}"
                     run.mkdir()
-                    if database is not None:
-                        shutil.copyfile(database, run / "gt_database.npz")
+                    if config in database:
+                        shutil.copyfile(database[config], run / "gt_database.npz")
                     train(config, args.data, run, max_steps=args.warmup + args.steps, threads=args.threads,
                           split=args.split, precision=pr, progress=False)
-                    database = database or run / "gt_database.npz"
-                    times[pr] += step_seconds(run, args.warmup)
-            ms = {pr: 1000 * statistics.mean(t) for pr, t in times.items()}
-            sd = {pr: 1000 * statistics.stdev(t) if len(t) > 1 else 0.0 for pr, t in times.items()}
-            rows.append({"config": config, "steps": {pr: len(t) for pr, t in times.items()},
-                         "mean_ms": ms, "std_ms": sd, "fp32_over_bf16": ms["fp32"] / ms["bf16"]})
+                    database.setdefault(config, run / "gt_database.npz")
+                    times[config][pr] += step_seconds(run, args.warmup)
+    rows = []
+    for config in args.config:
+        t = times[config]
+        ms = {pr: 1000 * statistics.mean(v) for pr, v in t.items()}
+        sd = {pr: 1000 * statistics.stdev(v) if len(v) > 1 else 0.0 for pr, v in t.items()}
+        row = {"config": config, "steps": {pr: len(v) for pr, v in t.items()}, "mean_ms": ms, "std_ms": sd}
+        if "fp32" in ms and "bf16" in ms:
+            row["fp32_over_bf16"] = ms["fp32"] / ms["bf16"]
+        rows.append(row)
+    ratios = [{"first": args.config[0], "other": r["config"],
+               "ratio": {pr: rows[0]["mean_ms"][pr] / r["mean_ms"][pr] for pr in precisions}} for r in rows[1:]]
 
     machine = {"cpu": platform.processor() or platform.machine(), "threads": args.threads, "torch": torch.__version__,
                "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
     print(f"training step time (threads {args.threads}, torch {torch.__version__}, "
           f"{machine['cpu_capability']}; {args.rounds} rounds x {args.steps} steps after {args.warmup} warm-up)")
-    print("| config | fp32 ms/step | bf16 ms/step | fp32 / bf16 |")
-    print("|---|---|---|---|")
+    print("| config | " + " | ".join(f"{pr} ms/step" for pr in precisions) + " |"
+          + (" fp32 / bf16 |" if len(precisions) == 2 else ""))
+    print("|---|" + "---|" * (len(precisions) + (len(precisions) == 2)))
     for r in rows:
-        print(f"| {Path(r['config']).name} | {r['mean_ms']['fp32']:.0f} ± {r['std_ms']['fp32']:.0f} | "
-              f"{r['mean_ms']['bf16']:.0f} ± {r['std_ms']['bf16']:.0f} | {r['fp32_over_bf16']:.2f}x |")
+        cells = [f"{r['mean_ms'][pr]:.0f} ± {r['std_ms'][pr]:.0f}" for pr in precisions]
+        if "fp32_over_bf16" in r:
+            cells.append(f"{r['fp32_over_bf16']:.2f}x")
+        print(f"| {Path(r['config']).name} | " + " | ".join(cells) + " |")
+    for q in ratios:
+        cells = [f"{q['ratio'][pr]:.2f}x" for pr in precisions]
+        print(f"| {Path(q['first']).stem} / {Path(q['other']).stem} | " + " | ".join(cells)
+              + (" |" if len(precisions) == 1 else " | |"))
     if args.json is not None:
-        args.json.write_text(json.dumps({"models": rows, "machine": machine}, indent=1) + "\n")
+        args.json.write_text(json.dumps({"models": rows, "ratios": ratios, "machine": machine}, indent=1) + "\n")
     return 0
 
 

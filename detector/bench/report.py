@@ -66,7 +66,8 @@ def _notes(result: dict) -> list[str]:
     env = ", ".join(f"{k}={v}" for k, v in mach["malloc_env"].items() if v is not None) or "unset"
     notes = [
         f"ms per frame, mean ± std over {prot['trials']} trials of {prot['frames']} frames ({prot['split']} split), "
-        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame",
+        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame, precision "
+        f"{prot.get('precision', 'fp32')}",
         machine_line(mach),
         f"allocator: {mach['allocator']} ({env})",
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
@@ -75,8 +76,11 @@ def _notes(result: dict) -> list[str]:
     for m in result["models"]:
         what = (f"Open3D-ML {mach.get('open3d', '')}'s own PointPillars, the architecture and grid of "
                 f"{result['models'][0]['name']} (detector/bench/peer.py); " if m.get("peer") else "")
-        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame; "
-                     f"{m['detections_per_frame']:.1f} detections/frame")
+        by = m.get("page_faults_per_frame_by_component")
+        split = "" if not by else " (" + ", ".join(
+            f"{TITLES[k]} {by[k]:.0f}" for k in ("feature_extract", "feature_net", "backbone", "head") if k in by) + ")"
+        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame"
+                     f"{split}; {m['detections_per_frame']:.1f} detections/frame")
     return notes
 
 

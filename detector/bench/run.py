@@ -46,6 +46,7 @@ from detector.config import ExperimentConfig, load_experiment, pseudoimage_geome
 from detector.data.experiment import EvalFrame, load_eval_frames
 from detector.device import machine_info, use_device
 from detector.models import PointPillars
+from detector.sparse.workspace import Workspace
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
 
@@ -65,7 +66,8 @@ class BenchModel:
 class TimedRow(NamedTuple):
     """One row of the result: its display ``name``, the ``model`` / ``cfg`` it was built from (the peer: the first
     model's), a description of its ``weights``, ``peer`` (None for ours), its ``timer`` and the ``frames`` it is fed
-    with their pseudo-image ``densities`` (pillars / canvas cells)."""
+    with their pseudo-image ``densities`` (pillars / canvas cells); ``faults`` collects ours' page faults per
+    component."""
 
     name: str
     model: BenchModel
@@ -75,6 +77,7 @@ class TimedRow(NamedTuple):
     timer: FrameTimer
     frames: list[EvalFrame]
     densities: list[float]
+    faults: dict[str, int] | None = None  # page faults per component, filled by the timer (ours; None: the peer)
 
 
 @dataclass(frozen=True)
@@ -128,9 +131,12 @@ def run_bench(
     seed: int = 0,
     peer: str | None = None,
     progress: bool = False,
+    precision: str = "fp32",
 ) -> dict:
     """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
-    bars on stderr (loading, warm-up and timed frames) when it is a terminal.
+    bars on stderr (loading, warm-up and timed frames) when it is a terminal. ``precision``: ``"fp32"`` or
+    ``"bf16"`` (our models' ``PointPillars.precision``: Feature Net, Backbone and Head in bf16; recorded as
+    ``protocol.precision``).
 
     ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "back_to_back": {shared
     key: {"mean_ms", "std_ms"}} (None for the peer and for a single model), "median_frame_ms",
@@ -143,6 +149,8 @@ def run_bench(
     """
     if not models:
         raise InputError("bench needs at least one --config")
+    if precision not in ("fp32", "bf16"):
+        raise InputError(f"unknown precision {precision!r} (choose fp32 or bf16)")
     if frames < 1 or trials < 1 or warmup < 0:
         raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
     dev = use_device(device, threads)
@@ -150,6 +158,11 @@ def run_bench(
     names = display_names(models, cfgs)
     _check_peer(peer, device)
     nets = [load_model(c, m.checkpoint, dev, seed=seed) for c, m in zip(cfgs, models)]
+    for net in nets:
+        # a long-running process's steady state: every model reuses its inference buffers from frame to frame (the
+        # stages' outputs are consumed before the next frame), see detector.sparse.workspace
+        net.workspace = Workspace()
+        net.precision = precision  # type: ignore[assignment]
     rows = our_rows(models, cfgs, names, nets, dev, data_dir, split, frames, seed, progress)
     if peer is not None:
         rows.append(peer_row(rows[0], nets[0], peer))
@@ -167,7 +180,8 @@ def run_bench(
         "models": [model_record(row, j, timings) for j, row in enumerate(rows)],
         "density": density_record(rows[0]),
         "machine": machine_record(dev, peer),
-        "protocol": protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
+        "protocol": {**protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
+                     "precision": precision},
     }
 
 
@@ -189,9 +203,10 @@ def our_rows(models: Sequence[BenchModel], cfgs: Sequence[ExperimentConfig], nam
     for model, cfg, name, net, fs in zip(models, cfgs, names, nets, data):
         geometry = pseudoimage_geometry(cfg.model)
         weights = str(model.checkpoint) if model.checkpoint else f"random (seed {seed}; untrained, timing only)"
+        faults: dict[str, int] = {}
         rows.append(TimedRow(name=name, model=model, cfg=cfg, weights=weights, peer=None,
-                             timer=lambda pts, net=net: time_frame(net, pts, device), frames=fs,
-                             densities=[frame_density(f.points, geometry)[2] for f in fs]))
+                             timer=lambda pts, net=net, faults=faults: time_frame(net, pts, device, faults), frames=fs,
+                             densities=[frame_density(f.points, geometry)[2] for f in fs], faults=faults))
     return rows
 
 
@@ -201,7 +216,7 @@ def peer_row(first: TimedRow, first_net: PointPillars, peer: str) -> TimedRow:
     peer_net = open3d_peer.build_peer(first.cfg.model, first_net)
     # looked up per call, not bound here: the module's timer is the one that runs (tests spy on it)
     return first._replace(name=open3d_peer.PEER_NAME, weights=f"{first.name}'s weights, copied: {first.weights}",
-                          peer=peer, timer=lambda pts: open3d_peer.time_peer_frame(peer_net, pts))
+                          peer=peer, timer=lambda pts: open3d_peer.time_peer_frame(peer_net, pts), faults=None)
 
 
 def warm_up(rows: Sequence[TimedRow], frames: int, bar: tqdm) -> None:
@@ -220,6 +235,9 @@ def time_rows(rows: Sequence[TimedRow], trials: int, bar: tqdm) -> Timings:
     per_frame = np.zeros((k, trials, n, len(COMPONENTS)))
     faults = np.zeros((k,), dtype=np.int64)
     dets = np.zeros((k,), dtype=np.int64)
+    for row in rows:  # per-component counts of the timed passes only (the warm-up filled them too)
+        if row.faults is not None:
+            row.faults.clear()
     for t in range(trials):
         bar.set_description(f"bench trial {t + 1}/{trials}")
         for i in range(n):
@@ -273,6 +291,8 @@ def model_record(row: TimedRow, j: int, timings: Timings) -> dict:
         "min_frame_ms": {key: float(frames[:, :, ci].min()) for ci, key in enumerate(COMPONENTS)},
         "detections_per_frame": float(timings.detections[j]) / count,
         "page_faults_per_frame": float(timings.faults[j]) / count,
+        "page_faults_per_frame_by_component": None if not row.faults else {
+            key: row.faults.get(key, 0) / count for key in COMPONENTS},
         "density_median": float(np.median(row.densities)),
     }
 
@@ -294,6 +314,7 @@ def protocol_record(first: TimedRow, data_dir: str | Path, split: str, peer: str
     return {"data": str(data_dir), "split": split, "frames": len(first.frames),
             "frame_ids": [f.frame_id for f in first.frames], "peer": peer, "trials": trials, "warmup": warmup,
             "batch_size": 1, "interleaved": True, "back_to_back": list(SHARED) if back_to_back else [],
+            "workspace": "every model of ours reuses its inference buffers (PointPillars.workspace)",
             "std": "population std over trials of the per-trial mean over frames"}
 
 

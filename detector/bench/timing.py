@@ -59,31 +59,38 @@ def stamps_to_ms(stamps: Sequence[float]) -> dict[str, float]:
 
 
 @torch.no_grad()
-def time_frame(model: PointPillars, points: np.ndarray, device: torch.device) -> tuple[dict[str, float], int]:
+def time_frame(model: PointPillars, points: np.ndarray, device: torch.device,
+               faults: dict[str, int] | None = None) -> tuple[dict[str, float], int]:
     """Run one frame (``points`` (N, C) float32, sensor frame) through the stages with a stamp after each:
-    ``({component: ms}, detections)``."""
-    stamps = []
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    ``({component: ms}, detections)``. ``faults``: add each component's page faults (:func:`page_faults`, read
+    just after its stamp; ``total`` too) to this dict."""
+    stamps: list[float] = []
+    counts: list[int] = []
+
+    def stamp() -> None:
+        synchronize(device)
+        stamps.append(time.perf_counter())
+        if faults is not None:
+            counts.append(page_faults())
+
+    stamp()
     pts = torch.from_numpy(points).to(device)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
     voxels = model.voxelize([pts])
     features, coords = model.pillar_net(voxels)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
     x = model.feature_net(features, coords, voxels.batch_size)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
     x, active = model.backbone_neck(x)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
     out = model.head(x, active)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
     dets = model.postprocess(out.cls, out.reg, out.dir)
-    synchronize(device)
-    stamps.append(time.perf_counter())
+    stamp()
+    if faults is not None:
+        for i, k in enumerate(COMPONENTS[:-1]):
+            faults[k] = faults.get(k, 0) + counts[i + 1] - counts[i]
+        faults["total"] = faults.get("total", 0) + counts[-1] - counts[0]
     return stamps_to_ms(stamps), int(sum(int(d.boxes.shape[0]) for d in dets))
 
 

@@ -32,9 +32,12 @@ import click
 @click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
 @click.option("--no-progress", is_flag=True,
               help="No progress bars (shown on stderr by default when it is a terminal, between the timed frames).")
+@click.option("--precision", type=click.Choice(["fp32", "bf16", "auto"]), default="fp32", show_default=True,
+              help="Inference precision of our models: bf16 runs Feature Net, Backbone and Head in bfloat16 (fp32 "
+                   "sums); auto = bf16 where the CPU computes it natively (AVX512-BF16 / AMX), else fp32.")
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
           warmup: int, device: str, threads: int | None, seed: int, peer: str | None, json_out: str | None,
-          markdown: bool, no_progress: bool) -> None:
+          markdown: bool, no_progress: bool, precision: str) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
@@ -73,8 +76,12 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         warning = oversubscription_warning(threads, cores, load) if threads >= 1 else None
         if warning:
             click.echo(f"warning: {warning}", err=True)
+    if precision == "auto":
+        from detector.models.pointpillars import native_bf16
+
+        precision = "bf16" if device == "cpu" and native_bf16() else "fp32"
     result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
-                       threads=threads, seed=seed, peer=peer, progress=not no_progress)
+                       threads=threads, seed=seed, peer=peer, progress=not no_progress, precision=precision)
     if json_out:
         write_text(json_out, json.dumps(result, indent=2) + "\n")
     click.echo(format_table(result, markdown=markdown))

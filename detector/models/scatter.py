@@ -19,6 +19,7 @@ import torch
 
 from detector.sparse.indices import flat_keys
 from detector.sparse.tensor import scatter_to_dense
+from detector.sparse.workspace import Workspace
 
 
 def canvas_channels_last(device_type: str) -> bool:
@@ -35,16 +36,20 @@ def scatter_to_canvas(
     batch_size: int,
     output_shape: tuple[int, int],
     channels_last: bool = False,
+    workspace: Workspace | None = None,
+    owner: object | None = None,
 ) -> torch.Tensor:
     """features (P, C), coords (P, 3) int64 [b, iy, ix] → canvas (B, C, ny, nx), zero where no pillar.
 
     Coordinates must be unique and inside the canvas (the voxelizer guarantees both). One zero canvas, written in
     place; ``channels_last=True`` returns it with ``torch.channels_last`` strides (the (B, ny, nx, C) buffer viewed as
     (B, C, ny, nx), no copy), otherwise contiguous NCHW. The values are the same either way; autograd flows to
-    ``features`` (the backward is a gather).
+    ``features`` (the backward is a gather). ``workspace`` (inference): the canvas is ``owner``'s reused buffer, where
+    only the previous call's pillars are reset (``detector.sparse.workspace``), valid until ``owner`` scatters again.
     """
     keys = flat_keys(coords, output_shape)
     if channels_last:
-        return scatter_to_dense(features, keys, output_shape, batch_size, channels_first=False).permute(0, 3, 1, 2)
-    return scatter_to_dense(features, keys, output_shape, batch_size)
+        return scatter_to_dense(features, keys, output_shape, batch_size, channels_first=False, workspace=workspace,
+                                owner=owner).permute(0, 3, 1, 2)
+    return scatter_to_dense(features, keys, output_shape, batch_size, workspace=workspace, owner=owner)
 

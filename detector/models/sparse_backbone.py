@@ -38,8 +38,10 @@ from detector.sparse import (
     SparseTensor,
     SubMConv2d,
 )
+from detector.sparse.conv import init_weight_
 from detector.sparse.indices import Downsample
 from detector.sparse.tensor import scatter_to_dense
+from detector.sparse.workspace import inference_workspace
 
 
 def sparse_block(
@@ -184,14 +186,17 @@ class SparseBackboneNeck(nn.Module):
                 m.eps, m.momentum = bn_eps, bn_momentum
             if isinstance(m, (SparseConv2d, SubMConv2d)):
                 # the dense backbone's init (Kaiming normal, fan_out, ReLU gain); weights have the Conv2d layout, so
-                # fan_out is the same number
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+                # fan_out is the same number (drawn as for a contiguous weight; ours are stored channels-last)
+                init_weight_(m.weight, lambda w: nn.init.kaiming_normal_(w, mode="fan_out", nonlinearity="relu"))
 
-    def forward(self, x: SparseTensor) -> tuple[Tensor, Tensor | None]:
-        """SparseTensor on (ny, nx) → ((B, 384, ny/2, nx/2) map, (B, ny/2, nx/2) bool active set or None).
+    @property
+    def all_sparse(self) -> bool:
+        """True when every block and neck level is sparse (Sparse PointPillars; False for the ablations)."""
+        return self.sparse_blocks == len(self.blocks)
 
-        The map of the all-sparse model is in ``torch.channels_last`` memory format (``.contiguous()`` gives NCHW
-        strides); the ablations' map has the layout of :func:`detector.models.scatter.canvas_channels_last`."""
+    def _sparse_part(self, x: SparseTensor) -> tuple[SparseTensor, Tensor, list[SparseTensor]]:
+        """The sparse blocks and levels: (block-1 tensor, the levels' features concatenated on its sites, every
+        sparse block's output)."""
         sparse_outs: list[SparseTensor] = []
         for block in self.blocks[: self.sparse_blocks]:
             x = block(x)
@@ -199,19 +204,51 @@ class SparseBackboneNeck(nn.Module):
         target = sparse_outs[0]
         levels = [deblock(s, target).features for deblock, s in zip(self.deblocks, sparse_outs)]
         # one scatter of the concatenated levels: the canvas is written once (it dominates the sparse model's time)
-        feats = levels[0] if len(levels) == 1 else torch.cat(levels, dim=1)
-        if self.sparse_blocks == len(self.blocks):
+        ws = inference_workspace(target.workspace)
+        if len(levels) == 1:
+            feats = levels[0]
+        elif ws is None:
+            feats = torch.cat(levels, dim=1)
+        else:
+            width = sum(lv.shape[1] for lv in levels)
+            feats = torch.cat(levels, dim=1, out=ws.take(self, "levels", (target.num_active, width), levels[0].dtype,
+                                                          levels[0].device))
+        return target, feats, sparse_outs
+
+    def neck_rows(self, x: SparseTensor) -> SparseTensor:
+        """The all-sparse model's neck output before todense: a SparseTensor on the block-1 sites with the
+        ``sum(out_channels)`` concatenated level features (the map :meth:`forward` returns is this, scattered into
+        zeros). Training uses it to skip the canvas (see ``PointPillars.forward``)."""
+        if not self.all_sparse:
+            raise ValueError("neck_rows needs the all-sparse model (sparse_blocks == number of blocks)")
+        target, feats, _ = self._sparse_part(x)
+        return target.replace_feature(feats)
+
+    def forward(self, x: SparseTensor) -> tuple[Tensor, Tensor | None]:
+        """SparseTensor on (ny, nx) → ((B, 384, ny/2, nx/2) map, (B, ny/2, nx/2) bool active set or None).
+
+        The map of the all-sparse model is in ``torch.channels_last`` memory format (``.contiguous()`` gives NCHW
+        strides); the ablations' map has the layout of :func:`detector.models.scatter.canvas_channels_last`."""
+        target, feats, sparse_outs = self._sparse_part(x)
+        x = sparse_outs[-1]
+        ws = inference_workspace(target.workspace)
+        if self.all_sparse:
             # Channels-last canvas: each active site's 384 values are one contiguous row, so the scatter writes N
             # rows instead of 384 * N scattered floats, and the head reads rows too. The (B, 384, H, W) view has
             # torch.channels_last strides (measured on the Matterport map, 2 threads: todense 7.9 → 2.4 ms, dense
             # 1x1 head 48 → 20 ms, exact sparse head gather 3.6 → 0.9 ms at 1 thread; docs/sparse.md).
-            hwc = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=False)
+            # With a workspace (inference) the canvas is reused: only last frame's sites are reset (docs/sparse.md).
+            hwc = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=False,
+                                   workspace=ws, owner=self)
             return hwc.permute(0, 3, 1, 2), target.active_mask()
         # the dense tail runs in the layout of the dense model's canvas (channels-last at inference, see
         # detector.models.scatter), so the head gets the same layout from every model
         cl = canvas_channels_last(feats.device.type)
-        canvas = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=not cl)
-        d = x.dense(channels_first=not cl)
+        canvas = scatter_to_dense(feats, target.keys(), target.spatial_shape, target.batch_size, channels_first=not cl,
+                                  workspace=ws, owner=self)
+        # the last sparse block owns the canvas of its own output
+        d = scatter_to_dense(x.features, x.keys(), x.spatial_shape, x.batch_size, channels_first=not cl,
+                             workspace=ws, owner=self.blocks[self.sparse_blocks - 1])
         if cl:
             canvas, d = canvas.permute(0, 3, 1, 2), d.permute(0, 3, 1, 2)
         maps = [canvas]

@@ -24,16 +24,26 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from detector.sparse.autograd import GatherUnique, SubMGemm
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
+from detector.sparse.workspace import Workspace, inference_workspace
 
-SubMAlgorithm = Literal["auto", "gemm", "rulebook"]
+ConvAlgorithm = Literal["auto", "gemm", "rulebook"]
+SubMAlgorithm = ConvAlgorithm  # the name the SubM conv has always used
 
-# "auto" picks the one-GEMM im2col path when at least this fraction of the (site, offset) pairs exist. The GEMM then
-# multiplies few zero rows and beats K separate small matmuls + index_add; on sparse tables (uniform occupancy, 9x9
-# kernels) the per-offset rulebook wastes nothing. Measured on a 2-core CPU with tools/bench_sparse.py (docs/sparse.md).
+# "auto" picks the one-GEMM form when at least this fraction of the (site, offset) pairs exist: the GEMM multiplies
+# (1 - fill) zero rows, the per-offset rulebook pays K - 1 small matmuls, an index_add and ~10 more ops per layer
+# (Python and dispatch time that does not shrink with threads). Measured on the 2-core AVX-512 EPYC (docs/sparse.md,
+# tools/bench_sparse.py forms rows): synthetic layers at 1 thread, rulebook / gemm time 0.6-0.8 at fill 0.45-0.67 and
+# 1.0 at 0.82-0.88; at 2 threads 0.89 at fill 0.58; real-frame layers (fill 0.78-0.90) equal at 1 and 2 threads,
+# and the whole real-frame backbone at 2 threads 17.8 ms with every such layer in gemm vs 19.4 ms with a 0.85 cut.
 GEMM_MIN_FILL = 0.7
+# The transposed conv's GEMM form multiplies every coarse site by all s*s slots' weights; "auto" takes it when at
+# least this fraction of those products is needed by some target (measured: gemm 1.05x faster at 0.54, 2x slower at
+# 0.29, docs/sparse.md).
+UP_GEMM_MIN_FILL = 0.5
 
 
 def _reset_like_torch(weight: Tensor, bias: Tensor | None) -> None:
@@ -45,54 +55,174 @@ def _reset_like_torch(weight: Tensor, bias: Tensor | None) -> None:
         nn.init.uniform_(bias, -bound, bound)
 
 
-def _taps_last(weight: Tensor) -> Tensor:
-    """``(O, C, kh, kw)`` conv weight → contiguous ``(O, kh * kw, C)`` (the weight in channels-last order).
+def gemm_weight(shape: tuple[int, int, int, int], bias: int) -> tuple[nn.Parameter, nn.Parameter | None]:
+    """A conv weight of the dense layout ``shape`` (and a ``(bias,)`` bias unless ``bias`` is 0) with torch's default
+    init, the weight stored ``torch.channels_last``.
 
-    Tap ``j = ky * kw + kx`` is then ``w[:, j]``, an ``(O, C)`` matrix with unit stride along C, so ``f @ w[:, j].t()``
-    runs as a BLAS product on a transposed operand without any copy. The copy made here reads the weight with
-    stride ``kh * kw`` along its innermost output axis: measured 3.4x cheaper than the ``(kh * kw, C, O)`` layout's
-    (0.19 vs 0.63 ms for a 256-channel 3x3 weight, 1 thread), which was about 12 % of the Matterport backbone.
+    The values and the ``(d0, d1, kh, kw)`` shape are ``nn.Conv2d``'s / ``nn.ConvTranspose2d``'s (so state dicts copy
+    across), but the memory is ``(d0, kh, kw, d1)``: the GEMM forms then view it as a matrix without a copy
+    (:func:`conv_matrix`). The init runs on a contiguous tensor first, so a seed gives the same values as before (an
+    in-place init of a channels-last tensor draws in memory order). Re-initialise with :func:`init_weight_`.
+    """
+    w = torch.empty(shape)
+    b = torch.empty(bias) if bias else None
+    _reset_like_torch(w, b)
+    # (d0, kh, kw, d1) memory seen as (d0, d1, kh, kw): the strides the backward of conv_matrix's permute hands the
+    # gradient back with, size-1 kernel dims included (DDP compares strides exactly, see models/grad_layout.py)
+    d0, d1, kh, kw = shape
+    stored = torch.empty(d0, kh, kw, d1).permute(0, 3, 1, 2)
+    stored.copy_(w)
+    return nn.Parameter(stored), None if b is None else nn.Parameter(b)
+
+
+def init_weight_(weight: Tensor, init: object) -> None:
+    """Re-initialise ``weight`` in place with ``init`` (an ``nn.init`` function of one tensor) drawing the values a
+    contiguous tensor would get, whatever ``weight``'s memory layout."""
+    w = torch.empty(weight.shape, dtype=weight.dtype, device=weight.device)
+    init(w)  # type: ignore[operator]
+    with torch.no_grad():
+        weight.copy_(w)
+
+
+def conv_matrix(weight: Tensor) -> Tensor:
+    """``(O, C, kh, kw)`` conv weight → ``(O, kh * kw * C)``: column ``(ky * kw + kx) * C + c`` multiplies channel c of
+    the neighbour at offset ``ky * kw + kx``. A view for a channels-last weight (:func:`gemm_weight`), else a copy.
+
+    Tap ``j`` is ``m.view(O, K, C)[:, j]``, an ``(O, C)`` block with unit stride along C, so ``f @ tap.t()`` is a BLAS
+    product of a transposed operand with no further copy.
     """
     o, c, kh, kw = weight.shape
-    return weight.permute(0, 2, 3, 1).contiguous().view(o, kh * kw, c)
+    return weight.permute(0, 2, 3, 1).reshape(o, kh * kw * c)
+
+
+def transposed_matrix(weight: Tensor) -> Tensor:
+    """``(C, O, s, s)`` transposed-conv weight → ``(C, s * s * O)``: columns ``slot * O + o`` with slot
+    ``ky * s + kx``. A view for a channels-last weight (:func:`gemm_weight`), else a copy."""
+    c, o, kh, kw = weight.shape
+    return weight.permute(0, 2, 3, 1).reshape(c, kh * kw * o)
+
+
+def compute_dtype(t: Tensor) -> torch.dtype:
+    """The dtype a matmul of ``t`` runs in: the autocast dtype inside ``torch.autocast`` (bf16 inference), else
+    ``t``'s. The workspace paths use explicit ``out=`` ops, which autocast does not cast, so they cast themselves."""
+    dev = t.device.type
+    return torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else t.dtype
+
+
+def low_precision(t: Tensor) -> bool:
+    """Whether ``t``'s matmuls run in bf16 / fp16 (a half-precision tensor, or under autocast)."""
+    return compute_dtype(t) in (torch.bfloat16, torch.float16)
+
+
+def padded_rows(features: Tensor, workspace: Workspace | None = None, owner: object | None = None) -> Tensor:
+    """``(N, C)`` → ``(N + 1, C)`` with a zero last row: the sentinel the gather tables point missing neighbours at.
+    With a workspace the rows are cast to :func:`compute_dtype` on the way (bf16 inference gathers half the bytes)."""
+    n, c = features.shape
+    if workspace is None:
+        return torch.cat([features, features.new_zeros(1, c)], dim=0)
+    out = workspace.take(owner, "padded", (n + 1, c), compute_dtype(features), features.device)
+    out[:n].copy_(features)
+    out[n].zero_()
+    return out
+
+
+def _training(*tensors: Tensor) -> bool:
+    """Whether autograd will record these tensors' ops (then the GEMM forms use the gathering backwards of
+    ``detector.sparse.autograd``; without autograd, e.g. for an exporter's trace, they are plain Gather + MatMul)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Workspace | None = None,
+                owner: object | None = None, unique: bool = False) -> Tensor:
+    """The one GEMM form of every conv with a gather table: rows ``index`` ``(M * K,)`` of ``padded`` ``(N + 1, C)``
+    as one ``(M, K * C)`` matrix, times ``matrix.t()`` (``matrix`` ``(O, K * C)``, :func:`conv_matrix`) → ``(M, O)``.
+
+    Only a Gather and a MatMul, no data-dependent branch: the form an exporter writes, with ``index`` built outside
+    the graph (``SubMTable.padded``, ``DownTable.gather_index``). ``unique``: every row but the sentinel is gathered
+    at most once (the non-overlapping down-conv), so training's backward may write rows instead of adding them.
+    """
+    c = padded.shape[1]
+    o, kc = matrix.shape
+    m = index.numel() * c // kc
+    if workspace is None:
+        if unique and _training(padded):
+            return GatherUnique.apply(padded, index).view(m, kc) @ matrix.t()
+        return padded.index_select(0, index).view(m, kc) @ matrix.t()
+    cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
+    torch.index_select(padded, 0, index, out=cols)
+    out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
+    return torch.mm(cols.view(m, kc), matrix.to(padded.dtype).t(), out=out)
+
+
+def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: int,
+                workspace: Workspace | None = None, owner: object | None = None) -> Tensor:
+    """The GEMM form of the transposed conv: every row of ``features`` ``(M, C)`` times every slot's weight
+    (``matrix`` ``(C, S * O)``, :func:`transposed_matrix`) as one ``(M, S * O)`` product, viewed as ``(M * S, O)``
+    with a zero row appended, then rows ``index`` (``UpTable.gather_index``) → ``(N_target, O)``. MatMul + Gather."""
+    m = features.shape[0]
+    o = out_channels
+    s = matrix.shape[1] // o
+    if workspace is None:
+        prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
+        # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
+        return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
+    dtype = compute_dtype(features)
+    prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
+    torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
+    prod[m * s].zero_()
+    out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
+    return torch.index_select(prod, 0, index, out=out)
+
+
+def _add_bias(out: Tensor, bias: Tensor | None, in_place: bool) -> Tensor:
+    if bias is None:
+        return out
+    return out.add_(bias) if in_place else out + bias
 
 
 def subm_conv2d(
-    features: Tensor, table: SubMTable, weight: Tensor, bias: Tensor | None = None, algorithm: SubMAlgorithm = "auto"
+    features: Tensor,
+    table: SubMTable,
+    weight: Tensor,
+    bias: Tensor | None = None,
+    algorithm: SubMAlgorithm = "auto",
+    workspace: Workspace | None = None,
+    owner: object | None = None,
 ) -> Tensor:
     """Submanifold conv of ``features`` ``(N, C)`` over ``table``, ``Conv2d`` weight ``(O, C, k, k)`` → ``(N, O)``.
 
-    ``"gemm"``: gather the K neighbour rows of every site into one ``(N, K*C)`` matrix (missing → a zero row) and
-    multiply once by ``(K*C, O)``. ``"rulebook"``: ``f W_centre`` plus, per other offset, the existing pairs' products
-    added into their output rows with ``index_add``.
+    ``"gemm"``: gather the K neighbour rows of every site into one ``(N, K*C)`` matrix (missing → the zero row) and
+    multiply once by ``(K*C, O)`` (:func:`gather_gemm`). ``"rulebook"``: ``f W_centre`` plus, per other offset, the
+    existing pairs' products added into their output rows with ``index_add``. ``workspace`` (inference only): the
+    gemm form's buffers are ``owner``'s, reused from frame to frame.
     """
     n, c = features.shape
     o, _, kh, kw = weight.shape
     k = kh * kw
     if algorithm == "auto":
-        algorithm = "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook"
-    # (O, C, kh, kw) -> (O, kh * kw, C): column (ky * kw + kx) * C + c multiplies channel c of the neighbour at
-    # offset ky * kw + kx
-    w = _taps_last(weight)
-    if algorithm == "gemm":
-        padded = torch.cat([features, features.new_zeros(1, c)], dim=0)
-        cols = padded.index_select(0, table.padded).view(n, k * c)
-        out = cols @ w.reshape(o, k * c).t()
+        # in bf16 the one GEMM also keeps every sum in fp32 (the rulebook adds the offsets' bf16 products)
+        algorithm = "gemm" if table.fill >= GEMM_MIN_FILL or low_precision(features) else "rulebook"
+    if algorithm == "gemm" and workspace is None and _training(features, weight):
+        # training: the same product, with the backward that gathers (a mirrored SubM) instead of scatter-adding
+        out = SubMGemm.apply(features, weight, table.padded)
+    elif algorithm == "gemm":
+        out = gather_gemm(padded_rows(features, workspace, owner), table.padded, conv_matrix(weight), workspace, owner)
     elif algorithm == "rulebook":
+        # unbind: one view per tap whose backward stacks the K gradients once (slicing each tap out of the matrix
+        # made every tap's backward fill and add a whole (O, K, C) gradient)
+        taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = features @ w[:, centre].t()
+        out = torch.mm(features, taps[centre].t())
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [g @ w[:, j].t() for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
             # in place into the fresh centre product (mm does not need its output for the backward)
             out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
         raise ValueError(f"unknown SubM algorithm {algorithm!r}")
-    if bias is not None:
-        out = out + bias
-    return out
+    return _add_bias(out, bias, workspace is not None)
 
 
 class SubMConv2d(SparseModule):
@@ -123,9 +253,8 @@ class SubMConv2d(SparseModule):
         self.kernel_size = kernel_size
         self.indice_key = indice_key
         self.algorithm: SubMAlgorithm = algorithm
-        self.weight = nn.Parameter(torch.empty(out_channels, in_channels, kernel_size, kernel_size))
-        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
-        _reset_like_torch(self.weight, self.bias)
+        self.weight, self.bias = gemm_weight((out_channels, in_channels, kernel_size, kernel_size),
+                                             out_channels if bias else 0)
 
     def table(self, x: SparseTensor) -> SubMTable:
         """The neighbour table of ``x``'s sites for this kernel size (cached under ``indice_key`` if one is set)."""
@@ -141,7 +270,8 @@ class SubMConv2d(SparseModule):
     def forward(self, x: SparseTensor) -> SparseTensor:
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"expected {self.in_channels} input channels, got {x.features.shape[1]}")
-        out = subm_conv2d(x.features, self.table(x), self.weight, self.bias, self.algorithm)
+        ws = inference_workspace(x.workspace)
+        out = subm_conv2d(x.features, self.table(x), self.weight, self.bias, self.algorithm, ws, self)
         return x.replace_feature(out)
 
     def extra_repr(self) -> str:
@@ -155,18 +285,23 @@ class SparseConv2d(SparseModule):
     """Strided down-conv to the ``(H//s, W//s)`` grid.
 
     Kernel = stride = s (the paper's 2x2): output sites ``unique(floor(c / s))``; every input lands in exactly one
-    output, at kernel slot ``(iy % s, ix % s)``; the layer scatters the inputs into an ``(M, s*s*C)`` matrix and does
-    one matmul with the ``(s*s*C, O)`` weight.
+    output, at kernel slot ``(iy % s, ix % s)``. ``"gemm"``: each output gathers its ``s*s`` inputs (missing → the zero
+    row) into one ``(M, s*s*C)`` matrix, one matmul (:func:`gather_gemm`); ``"rulebook"``: the inputs are scattered
+    into that matrix instead (``index_put``, each cell written at most once), then the same matmul.
 
     Odd kernel k > s (the released code's 9x9 stride-2 Sparse+WideConv down-conv): ``padding = k // 2``; output sites
     are every site whose k x k window holds an input (``indices.wide_down_table``), value ``F.conv2d(dense, w,
-    stride=s, padding=k // 2)`` there; computed per weight tap (gather, matmul, one ``index_add``).
+    stride=s, padding=k // 2)`` there. ``"gemm"``: the ``(M, k*k*C)`` gather and one matmul; ``"rulebook"``: per
+    weight tap, gather, matmul and one ``index_add``.
 
     Args:
         downsample: for kernel = stride, ``"floor"`` (standard, the paper) or ``"reference_quirk"``
             (MinkowskiEngine's ``expand_coordinates`` output set, as the released code ran it; see
             ``indices.down_table``). An odd kernel has one semantics (it is ME's for odd kernels) and takes
             ``"floor"`` only.
+        algorithm: ``"auto" | "gemm" | "rulebook"``; all give the same result. ``"auto"``: kernel = stride takes
+            ``"gemm"``; an odd kernel takes ``"gemm"`` when at least ``GEMM_MIN_FILL`` of the (output, tap) cells
+            have an input.
     """
 
     def __init__(
@@ -177,6 +312,7 @@ class SparseConv2d(SparseModule):
         stride: int = 2,
         bias: bool = False,
         downsample: Downsample = "floor",
+        algorithm: ConvAlgorithm = "auto",
     ) -> None:
         super().__init__()
         if kernel_size != stride and (kernel_size % 2 != 1 or kernel_size < stride):
@@ -186,46 +322,58 @@ class SparseConv2d(SparseModule):
             raise ValueError(f"unknown downsample mode {downsample!r}")
         if kernel_size != stride and downsample != "floor":
             raise ValueError(f"downsample {downsample!r} applies to kernel_size == stride only")
+        if algorithm not in ("auto", "gemm", "rulebook"):
+            raise ValueError(f"unknown algorithm {algorithm!r}")
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.kernel_size = kernel_size
         self.stride = stride
         self.downsample: Downsample = downsample
-        self.weight = nn.Parameter(torch.empty(out_channels, in_channels, kernel_size, kernel_size))
-        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
-        _reset_like_torch(self.weight, self.bias)
+        self.algorithm: ConvAlgorithm = algorithm
+        self.weight, self.bias = gemm_weight((out_channels, in_channels, kernel_size, kernel_size),
+                                             out_channels if bias else 0)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         if x.features.shape[1] != self.in_channels:
             raise ValueError(f"expected {self.in_channels} input channels, got {x.features.shape[1]}")
-        s, c, o = self.stride, self.in_channels, self.out_channels
-        if self.kernel_size != s:
-            return self._wide(x)
-        t = down_table(x.coords, x.spatial_shape, s, self.downsample)
+        k, s, c = self.kernel_size, self.stride, self.in_channels
+        ws = inference_workspace(x.workspace)
+        if k != s:
+            t = wide_down_table(x.coords, x.spatial_shape, k, s)
+        else:
+            t = down_table(x.coords, x.spatial_shape, s, self.downsample)
+        kk = k * k
+        algorithm = self.algorithm
+        if algorithm == "auto":
+            algorithm = "gemm" if k == s or t.fill(kk) >= GEMM_MIN_FILL else "rulebook"
+        w = conv_matrix(self.weight)  # (O, k*k*C)
         m = t.out_coords.shape[0]
-        f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
-        # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and deterministic
-        buf = f.new_zeros(m * s * s, c).index_put((t.out_rows * (s * s) + t.slots,), f)
-        out = buf.view(m, s * s * c) @ _taps_last(self.weight).reshape(o, s * s * c).t()
-        if self.bias is not None:
-            out = out + self.bias
-        return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size)
+        if algorithm == "gemm":
+            out = gather_gemm(padded_rows(x.features, ws, self), t.gather_index(x.num_active, kk), w, ws, self,
+                              unique=k == s)
+        elif k == s:
+            f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
+            # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
+            # deterministic
+            buf = f.new_zeros(m * kk, c).index_put((t.out_rows * kk + t.slots,), f)
+            out = buf.view(m, kk * c) @ w.t()
+        else:
+            out = self._per_tap(x.features, t, w)
+        out = _add_bias(out, self.bias, ws is not None)
+        return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size, workspace=x.workspace, origin=self)
 
-    def _wide(self, x: SparseTensor) -> SparseTensor:
-        """The odd-kernel path: per tap, the products of its (input, output) pairs, added into the output rows."""
-        k = self.kernel_size
-        t = wide_down_table(x.coords, x.spatial_shape, k, self.stride)
+    def _per_tap(self, features: Tensor, t, w: Tensor) -> Tensor:
+        """The wide conv's rulebook: per tap, the products of its (input, output) pairs, added into the output rows."""
+        kk = self.kernel_size**2
+        taps = w.view(self.out_channels, kk, self.in_channels).unbind(1)  # one backward stack, not kk fills
         order = torch.argsort(t.slots, stable=True)
-        counts = torch.bincount(t.slots, minlength=k * k).tolist()
-        w = _taps_last(self.weight)  # (O, k*k, C)
-        gathered = x.features.index_select(0, t.in_rows[order])
-        parts = [g @ w[:, j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
-        out = x.features.new_zeros(t.out_coords.shape[0], self.out_channels)
-        if parts:
-            out = out.index_add(0, t.out_rows[order], torch.cat(parts, dim=0))
-        if self.bias is not None:
-            out = out + self.bias
-        return SparseTensor(out, t.out_coords, t.out_shape, x.batch_size)
+        counts = torch.bincount(t.slots, minlength=kk).tolist()
+        gathered = features.index_select(0, t.in_rows[order])
+        parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        if not parts:
+            return features.new_zeros(t.out_coords.shape[0], self.out_channels)
+        prods = torch.cat(parts, dim=0)  # bf16 under autocast
+        return prods.new_zeros(t.out_coords.shape[0], self.out_channels).index_add_(0, t.out_rows[order], prods)
 
     def extra_repr(self) -> str:
         return (
@@ -238,25 +386,33 @@ class SparseConvTranspose2d(SparseModule):
     """Transposed conv (kernel = stride = s) evaluated only on a target active set.
 
     ``forward(x, target)``: for a target site ``q`` the output is ``W[:, :, q_y % s, q_x % s]^T f(floor(q / s))``
-    (+ bias), zero (+ bias) where that parent is inactive in ``x``. The layer groups the targets by kernel slot and
-    does one matmul per slot (only products some target needs). Weight ``(in, out, s, s)`` as in
+    (+ bias), zero (+ bias) where that parent is inactive in ``x``. Weight ``(in, out, s, s)`` as in
     ``ConvTranspose2d``.
+
+    ``"gemm"``: one ``(M, C) x (C, s*s*O)`` product of every coarse site with every slot's weight, then each target
+    gathers its row (``parent * s*s + slot``, or an appended zero row; :func:`gemm_gather`). ``"rulebook"``: the
+    targets grouped by slot, one ``(n_slot, C) x (C, O)`` product per slot over the targets that have an active
+    parent (only the products some target needs), then ``index_copy`` into the output rows. ``"auto"``: ``"gemm"``
+    when at least ``UP_GEMM_MIN_FILL`` of the ``M * s*s`` products are needed.
     """
 
     def __init__(
-        self, in_channels: int, out_channels: int, kernel_size: int = 2, stride: int | None = None, bias: bool = False
+        self, in_channels: int, out_channels: int, kernel_size: int = 2, stride: int | None = None,
+        bias: bool = False, algorithm: ConvAlgorithm = "auto",
     ) -> None:
         super().__init__()
         stride = kernel_size if stride is None else stride
         if kernel_size != stride:
             raise ValueError(f"SparseConvTranspose2d supports kernel_size == stride only, got {kernel_size}, {stride}")
+        if algorithm not in ("auto", "gemm", "rulebook"):
+            raise ValueError(f"unknown algorithm {algorithm!r}")
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.kernel_size = kernel_size
         self.stride = stride
-        self.weight = nn.Parameter(torch.empty(in_channels, out_channels, kernel_size, kernel_size))
-        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
-        _reset_like_torch(self.weight, self.bias)
+        self.algorithm: ConvAlgorithm = algorithm
+        self.weight, self.bias = gemm_weight((in_channels, out_channels, kernel_size, kernel_size),
+                                             out_channels if bias else 0)
 
     def forward(self, x: SparseTensor, target: SparseTensor) -> SparseTensor:  # type: ignore[override]
         """``x``: coarse input; ``target``: the fine active set (its features are ignored). Returns ``target``'s sites
@@ -265,27 +421,31 @@ class SparseConvTranspose2d(SparseModule):
             raise ValueError(f"expected {self.in_channels} input channels, got {x.features.shape[1]}")
         if x.batch_size != target.batch_size:
             raise ValueError(f"batch sizes differ: input {x.batch_size}, target {target.batch_size}")
-        s, o = self.stride, self.out_channels
-        # (C, O, s, s) -> (s * s, C, O): slot ky * s + kx as a contiguous (C, O) matrix. At s = 1 a plain view: the
-        # permute of a (C, O, 1, 1) weight is "contiguous" already, so its backward handed the gradient back with
-        # permuted strides on the size-1 dims, which DDP's bucket views flag ("Grad strides do not match").
-        w = (self.weight.view(1, self.in_channels, o) if s == 1
-             else self.weight.permute(2, 3, 0, 1).contiguous().view(s * s, self.in_channels, o))
+        s, c, o = self.stride, self.in_channels, self.out_channels
+        ws = inference_workspace(x.workspace)
+        w = transposed_matrix(self.weight)  # (C, s*s*O)
         if s == 1 and target.coords is x.coords:
-            out = x.features @ w[0]  # same site set: a plain 1x1 matmul
+            # same site set: a plain 1x1 matmul
+            dt = compute_dtype(x.features)
+            out = x.features @ w if ws is None else torch.mm(
+                x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
-            # Targets grouped by kernel slot: one (n_slot, C) x (C, O) product per slot over the targets that have an
-            # active parent. Only the products that some target needs are computed (multiplying every coarse site by
-            # all s*s slots costs 4x more at s = 4 on the Matterport map, where a coarse site has about 4 targets).
-            rows, parents, counts = t.by_slot(s)
-            g = x.features.index_select(0, parents)
-            parts = [gi @ w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
-            y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
-            # targets without an active parent stay zero (+ bias)
-            out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
-        if self.bias is not None:
-            out = out + self.bias
+            algorithm = self.algorithm
+            if algorithm == "auto":
+                needed = int((t.parent_rows >= 0).sum())
+                algorithm = "gemm" if needed >= UP_GEMM_MIN_FILL * x.num_active * s * s else "rulebook"
+            if algorithm == "gemm":
+                out = gemm_gather(x.features, t.gather_index(x.num_active, s), w, o, ws, self)
+            else:
+                slot_w = w.view(c, s * s, o).unbind(1)
+                rows, parents, counts = t.by_slot(s)
+                g = x.features.index_select(0, parents)
+                parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+                y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
+                # targets without an active parent stay zero (+ bias)
+                out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
+        out = _add_bias(out, self.bias, ws is not None)
         return target.replace_feature(out)
 
     def extra_repr(self) -> str:

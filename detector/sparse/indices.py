@@ -13,6 +13,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from detector.sparse.workspace import Workspace
+
 # A dense key -> row grid costs 4 bytes per cell (int32) but makes each query one gather; above this many cells
 # (32 MiB) the lookup switches to sorted keys + searchsorted, whose memory is proportional to the active sites only.
 DENSE_GRID_MAX_CELLS = 1 << 23
@@ -45,6 +47,8 @@ class SiteLookup:
         batch_size: ``B``.
         mode: ``"grid"`` (a dense ``B*H*W`` int32 map), ``"sorted"`` (sorted keys + ``searchsorted``) or ``"auto"``
             (grid up to ``DENSE_GRID_MAX_CELLS`` cells).
+        workspace, owner: keep the grid in ``owner``'s workspace buffer (inference), where only the cells set last
+            time are reset; the grid is then valid until ``owner`` builds its next lookup.
     """
 
     def __init__(
@@ -53,6 +57,8 @@ class SiteLookup:
         spatial_shape: tuple[int, int],
         batch_size: int,
         mode: Literal["auto", "grid", "sorted"] = "auto",
+        workspace: Workspace | None = None,
+        owner: object | None = None,
     ) -> None:
         cells = batch_size * spatial_shape[0] * spatial_shape[1]
         if mode == "auto":
@@ -62,8 +68,12 @@ class SiteLookup:
         n = keys.shape[0]
         if mode == "grid":
             # int32 halves the memory traffic of building and reading the map; rows are < 2**31 in any real batch.
-            self.grid = torch.full((cells,), -1, dtype=torch.int32, device=keys.device)
-            self.grid[keys] = torch.arange(n, dtype=torch.int32, device=keys.device)
+            rows = torch.arange(n, dtype=torch.int32, device=keys.device)
+            if workspace is not None:
+                self.grid = workspace.scatter(owner, "lookup", (cells,), (keys,), rows, fill=-1)
+            else:
+                self.grid = torch.full((cells,), -1, dtype=torch.int32, device=keys.device)
+                self.grid[keys] = rows
         elif mode == "sorted":
             self.sorted_keys, self.order = torch.sort(keys)
         else:
@@ -170,6 +180,21 @@ class DownTable:
     out_rows: Tensor  # (P,) int64
     slots: Tensor  # (P,) int64
 
+    def gather_index(self, num_inputs: int, kernel_cells: int) -> Tensor:
+        """The GEMM form's table: ``(M * kernel_cells,)`` int64, entry ``m * kernel_cells + slot`` = the input row
+        that output ``m`` takes through that slot, or ``num_inputs`` (the appended zero row) where none does.
+
+        Gathering these rows of the inputs padded with one zero row gives the ``(M, kernel_cells * C)`` matrix whose
+        product with the ``(kernel_cells * C, O)`` weight is the conv (``detector.sparse.conv.gather_gemm``).
+        """
+        m = self.out_coords.shape[0]
+        index = torch.full((m * kernel_cells,), num_inputs, dtype=torch.int64, device=self.in_rows.device)
+        return index.index_put_((self.out_rows * kernel_cells + self.slots,), self.in_rows)
+
+    def fill(self, kernel_cells: int) -> float:
+        """Fraction of the ``M * kernel_cells`` (output, slot) cells that an input feeds."""
+        return self.in_rows.numel() / max(1, self.out_coords.shape[0] * kernel_cells)
+
 
 def down_table(
     coords: Tensor, spatial_shape: tuple[int, int], stride: int, downsample: Downsample = "floor"
@@ -254,6 +279,14 @@ class UpTable:
 
     parent_rows: Tensor  # (N_target,) int64
     slots: Tensor  # (N_target,) int64
+
+    def gather_index(self, num_coarse: int, stride: int) -> Tensor:
+        """The GEMM form's table: ``(N_target,)`` int64 row ``parent * stride**2 + slot`` of the ``(num_coarse *
+        stride**2, O)`` products of every coarse site with every slot's weight, or ``num_coarse * stride**2`` (an
+        appended zero row) for a target without an active parent."""
+        s2 = stride * stride
+        rows = self.parent_rows * s2 + self.slots
+        return torch.where(self.parent_rows >= 0, rows, torch.full_like(rows, num_coarse * s2))
 
     def by_slot(self, stride: int) -> tuple[Tensor, Tensor, list[int]]:
         """Targets with an active parent, grouped by slot: ``(rows, parents, counts)``.

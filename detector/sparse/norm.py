@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
-from torch import nn
+from torch import Tensor, nn
 
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
+from detector.sparse.workspace import inference_workspace
 
 
 class SparseBatchNorm(nn.BatchNorm1d, SparseModule):
@@ -24,11 +26,32 @@ class SparseBatchNorm(nn.BatchNorm1d, SparseModule):
             # no active site anywhere in the batch: nothing to normalise, and empty batch statistics would write NaN
             # into the running buffers
             return x
-        return x.replace_feature(super().forward(x.features))
+        ws = inference_workspace(x.workspace)
+        if ws is None or self.training or self.running_mean is None or self.running_var is None:
+            return x.replace_feature(super().forward(x.features))
+        # inference into a reused buffer: batch_norm's own kernel (its out= form), so the values are the same
+        f = x.features
+        out = ws.take(self, "out", f.shape, f.dtype, f.device)
+        return x.replace_feature(batch_norm_into(self, f, out))
+
+
+def batch_norm_into(norm: nn.modules.batchnorm._BatchNorm, x: Tensor, out: Tensor) -> Tensor:
+    """Eval-mode ``norm(x)`` written into ``out`` (which may be ``x`` itself: in place), the same values as
+    ``norm(x)`` (aten's ``native_batch_norm.out``, i.e. the kernel ``F.batch_norm`` runs; a bfloat16 ``x`` with
+    float32 statistics is fine, as in ``F.batch_norm``). Inference only (autograd off)."""
+    stats = norm.running_mean if norm.running_mean is not None else x  # the dtype of the saved statistics
+    torch.ops.aten.native_batch_norm.out(x, norm.weight, norm.bias, norm.running_mean, norm.running_var, False, 0.0,
+                                         norm.eps, out=out, save_mean=stats.new_empty(0),
+                                         save_invstd=stats.new_empty(0))
+    return out
 
 
 class SparseReLU(SparseModule):
     """ReLU on the active rows."""
 
     def forward(self, x: SparseTensor) -> SparseTensor:
-        return x.replace_feature(F.relu(x.features))
+        ws = inference_workspace(x.workspace)
+        if ws is None:
+            return x.replace_feature(F.relu(x.features))
+        f = x.features
+        return x.replace_feature(torch.clamp_min(f, 0, out=ws.take(self, "out", f.shape, f.dtype, f.device)))

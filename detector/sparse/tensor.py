@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from detector.sparse.indices import SiteLookup, flat_keys
+from detector.sparse.workspace import Workspace, inference_workspace
 
 
 class SparseTensor:
@@ -24,6 +25,10 @@ class SparseTensor:
         spatial_shape: ``(H, W)`` of the grid.
         batch_size: ``B``; batch items with no active site are allowed.
         cache: neighbour tables shared between tensors on the same sites (keyed by ``indice_key``); leave ``None``.
+        workspace: buffers reused from frame to frame at inference (``detector.sparse.workspace``); the layers that
+            get this tensor pass it on to their outputs. ``None``: every op allocates, as in training.
+        origin: what made this site set (the layer, or the model for its input): the workspace keys this set's site
+            lookup by it, so it must be the same object every frame and unique among the sets alive at once.
 
     A tensor is never edited in place: ``replace_feature`` returns a new tensor on the same sites that shares the
     cache, so a block builds its neighbour table once and every SubM conv of the block reuses it.
@@ -36,6 +41,8 @@ class SparseTensor:
         spatial_shape: tuple[int, int] | list[int],
         batch_size: int,
         cache: dict[Any, Any] | None = None,
+        workspace: Workspace | None = None,
+        origin: object | None = None,
     ) -> None:
         if features.dim() != 2:
             raise ValueError(f"features must be (N, C), got shape {tuple(features.shape)}")
@@ -52,6 +59,9 @@ class SparseTensor:
         self.spatial_shape: tuple[int, int] = (int(spatial_shape[0]), int(spatial_shape[1]))
         self.batch_size = int(batch_size)
         self.cache: dict[Any, Any] = {} if cache is None else cache
+        self.workspace = workspace
+        if origin is not None:
+            self.cache["origin"] = origin
 
     # -- construction --------------------------------------------------------------------------------------------
     @classmethod
@@ -74,7 +84,7 @@ class SparseTensor:
         """New tensor on the same sites (same coords, shape and neighbour-table cache) with ``features`` (N, C')."""
         if features.shape[0] != self.features.shape[0]:
             raise ValueError(f"replace_feature needs {self.features.shape[0]} rows, got {features.shape[0]}")
-        return SparseTensor(features, self.coords, self.spatial_shape, self.batch_size, self.cache)
+        return SparseTensor(features, self.coords, self.spatial_shape, self.batch_size, self.cache, self.workspace)
 
     # -- queries --------------------------------------------------------------------------------------------------
     @property
@@ -93,15 +103,24 @@ class SparseTensor:
         """Site → row map of this tensor's active set (built once, cached with the neighbour tables)."""
         lk = self.cache.get("lookup")
         if lk is None:
-            lk = SiteLookup(self.keys(), self.spatial_shape, self.batch_size)
+            ws = inference_workspace(self.workspace)
+            origin = self.cache.get("origin")
+            lk = SiteLookup(self.keys(), self.spatial_shape, self.batch_size,
+                            workspace=None if origin is None else ws, owner=origin)
             self.cache["lookup"] = lk
         return lk
 
     def active_mask(self) -> Tensor:
         """``(B, H, W)`` bool, True on active sites."""
         h, w = self.spatial_shape
+        ws, origin = inference_workspace(self.workspace), self.cache.get("origin")
+        keys = self.keys()
+        if ws is not None and origin is not None:
+            ones = torch.ones(1, dtype=torch.bool, device=keys.device).expand(keys.numel())
+            return ws.scatter(origin, "mask", (self.batch_size * h * w,), (keys,), ones, fill=False).view(
+                self.batch_size, h, w)
         m = torch.zeros(self.batch_size * h * w, dtype=torch.bool, device=self.coords.device)
-        m[self.keys()] = True
+        m[keys] = True
         return m.view(self.batch_size, h, w)
 
     def dense(self, channels_first: bool = True) -> Tensor:
@@ -119,17 +138,32 @@ class SparseTensor:
 
 
 def scatter_to_dense(
-    features: Tensor, keys: Tensor, spatial_shape: tuple[int, int], batch_size: int, channels_first: bool = True
+    features: Tensor,
+    keys: Tensor,
+    spatial_shape: tuple[int, int],
+    batch_size: int,
+    channels_first: bool = True,
+    workspace: Workspace | None = None,
+    owner: object | None = None,
 ) -> Tensor:
     """Scatter ``(N, C)`` rows at flat site keys ``(b * H + iy) * W + ix`` into a zero canvas.
 
     Returns ``(B, C, H, W)`` (contiguous, the layout ``nn.Conv2d`` expects) or ``(B, H, W, C)``. The channels-first
     scatter writes the transposed ``(C, N)`` features straight to their strided positions, so no transposed copy of
-    the big canvas is made.
+    the big canvas is made. With a ``workspace`` (inference) the canvas is ``owner``'s reused buffer, zero but for
+    this call's sites (:meth:`Workspace.scatter`), valid until ``owner`` scatters again; keys must then be unique.
     """
     h, w = spatial_shape
     n, c = features.shape
     hw = h * w
+    if workspace is not None:
+        if channels_first:  # (B, C, H*W) viewed as (B, H*W, C): index (b, hw) takes a site's C values
+            b = torch.div(keys, hw, rounding_mode="floor")
+            buf = workspace.scatter(owner, "canvas_nchw", (batch_size, c, hw), (b, keys - b * hw), features,
+                                    dims=(0, 2, 1))
+            return buf.view(batch_size, c, h, w)
+        buf = workspace.scatter(owner, "canvas_nhwc", (batch_size * hw, c), (keys,), features)
+        return buf.view(batch_size, h, w, c)
     if not channels_first:
         out = features.new_zeros(batch_size * hw, c)
         return out.index_put_((keys,), features).view(batch_size, h, w, c)

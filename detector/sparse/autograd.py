@@ -1,0 +1,84 @@
+"""Backward passes of the GEMM forms that gather instead of scatter (training; the forward is the plain form).
+
+Autograd's backward of a row gather (``index_select``) is an ``index_add`` into a zero matrix, which CPU torch runs as
+a ``scatter_add`` over an expanded index: 40 ms for 5,654 x 64 rows on the 2-core EPYC, most of a sparse training
+step (docs/sparse.md, "Training"). Both convs here avoid it:
+
+- :class:`SubMGemm`: a submanifold conv's neighbour relation is symmetric (site j is the neighbour of site i at
+  offset d exactly when i is j's neighbour at -d, within one batch item and the grid), so the gradient w.r.t. the
+  input is the same SubM over the same table applied to the output gradient, with the kernel flipped in both spatial
+  axes and its in / out channels swapped: one gather and one GEMM, like the forward, deterministic on every device.
+- :class:`GatherUnique`: a gather whose indices are unique apart from the sentinel zero row (the 2x2 down-conv: each
+  input lands in one output slot; the transposed conv's GEMM form: each target reads its own (parent, slot) row), so
+  the backward writes each gradient row to its one source row (``index_put`` without accumulation).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+
+def _taps_matrix(weight: Tensor) -> Tensor:
+    """``(O, C, kh, kw)`` → ``(O, kh * kw * C)``, column ``(ky * kw + kx) * C + c`` (``conv.conv_matrix``)."""
+    o, c, kh, kw = weight.shape
+    return weight.permute(0, 2, 3, 1).reshape(o, kh * kw * c)
+
+
+def _padded(x: Tensor) -> Tensor:
+    return torch.cat([x, x.new_zeros(1, x.shape[1])], dim=0)
+
+
+class SubMGemm(torch.autograd.Function):
+    """``out (N, O) = gather(features padded, index).view(N, K*C) @ conv_matrix(weight).t()`` for a SubM table's
+    ``index`` (``SubMTable.padded``), with the mirrored-kernel backward described in the module docstring."""
+
+    @staticmethod
+    def forward(ctx: Any, features: Tensor, weight: Tensor, index: Tensor) -> Tensor:
+        n = features.shape[0]
+        cols = _padded(features).index_select(0, index).view(n, -1)
+        ctx.save_for_backward(cols, weight, index)
+        ctx.features_dtype = features.dtype
+        return cols @ _taps_matrix(weight).t()  # bf16 under autocast (the backward runs in the gradient's dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, Tensor | None, None]:
+        cols, weight, index = ctx.saved_tensors
+        o, c, kh, kw = weight.shape
+        grad_out = grad_out.contiguous()
+        dt = grad_out.dtype  # bf16 after an autocast forward: the products run in it, the results in the inputs' dtypes
+        grad_features = grad_weight = None
+        if ctx.needs_input_grad[0]:
+            mirrored = weight.flip(2, 3).transpose(0, 1)  # (C, O, kh, kw): tap k of the backward is W_{K-1-k}^T
+            g = _padded(grad_out).index_select(0, index).view(grad_out.shape[0], -1)
+            grad_features = (g @ _taps_matrix(mirrored).to(dt).t()).to(ctx.features_dtype)
+        if ctx.needs_input_grad[1]:
+            # (O, K*C) in (O, kh, kw, C) order, handed back in the weight's (O, C, kh, kw) shape: for a channels-last
+            # weight (conv.gemm_weight) these are its own strides
+            gw = (grad_out.t() @ cols.to(dt)).to(weight.dtype)
+            grad_weight = gw.view(o, kh, kw, c).permute(0, 3, 1, 2)
+        return grad_features, grad_weight, None
+
+
+class GatherUnique(torch.autograd.Function):
+    """``src[index]`` for an ``index`` whose entries are unique except the last row of ``src`` (the appended zero
+    row, which many entries may name); the backward puts each gradient row back into its one source row."""
+
+    @staticmethod
+    def forward(ctx: Any, src: Tensor, index: Tensor) -> Tensor:
+        ctx.save_for_backward(index)
+        ctx.rows = src.shape[0]
+        return src.index_select(0, index)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:
+        (index,) = ctx.saved_tensors
+        out = grad.new_zeros((ctx.rows, *grad.shape[1:]))
+        # no accumulation: rows other than the sentinel are written once; the sentinel's (a constant zero row, whose
+        # gradient the caller drops) may be written several times, by any of its entries
+        return out.index_put_((index,), grad.contiguous()), None
