@@ -183,3 +183,30 @@ class _NoSession:
 
     def run(self, feed: dict[str, np.ndarray]) -> np.ndarray:
         raise RuntimeError("this deployed model only builds graph inputs")
+
+
+def deploy_checkpoint(cfg, checkpoint: str | Path | None, runtime: str, precision: str, work_dir: str | Path, *,
+                      threads: int, data: str | Path | None = None, calibration_split: str = "train",
+                      calibration_frames: int = 8, seed: int = 0) -> DeployedPointPillars:
+    """The model of experiment ``cfg`` (weights from ``checkpoint``, or seeded random ones) deployed in ``runtime`` /
+    ``precision`` (:func:`build_deployed`, files in ``work_dir``); int8 calibrates on the first
+    ``calibration_frames`` frames of ``calibration_split`` of ``data``. A combination this CPU does not compute
+    natively, or a model the export cannot take, is an :class:`InputError`."""
+    from detector.checkpoint import load_model
+    from detector.data.experiment import load_eval_frames
+    from detector.deploy.cpu import cpu_flags, skip_reason
+    from mpchair.core.errors import InputError
+
+    why = skip_reason(runtime, precision, cpu_flags())
+    if why is not None:
+        raise InputError(f"cannot run {runtime} {precision} here: {why}")
+    eager = load_model(cfg, checkpoint, "cpu", seed=seed)
+    frames = []
+    if precision == "int8":
+        if data is None or calibration_frames < 1:
+            raise InputError("int8 needs calibration frames (a dataset and --calibration-frames >= 1)")
+        frames = [f.points for f in load_eval_frames(cfg, data, calibration_split, calibration_frames)]
+    try:
+        return build_deployed(eager, runtime, precision, work_dir, threads=threads, calibration=frames, seed=seed)
+    except ValueError as e:
+        raise InputError(f"cannot deploy this model: {e}") from None

@@ -52,8 +52,12 @@ def graph_inputs(graph: DenseGraph | SparseGraph, features: Tensor, coords: Tens
 
 def example_inputs(model: PointPillars, graph: DenseGraph | SparseGraph, seed: int = 0) -> dict[str, Tensor]:
     """Inputs to trace ``graph`` with: random pillar features on :data:`TRACE_DENSITY` of ``model``'s canvas
-    (clustered sites, :func:`detector.sparse.synthetic.clustered_sites`); the values do not matter, only the shapes."""
-    coords = clustered_sites(model.output_shape, TRACE_DENSITY, seed=seed)
+    (clustered sites, :func:`detector.sparse.synthetic.clustered_sites`); the values do not matter, only the shapes.
+
+    The sites sit at even coordinates: ``downsample: reference_quirk`` rounds an odd coordinate up, which on an
+    unpadded grid's last row would fall off the grid (a real frame of such a config stays inside its padding)."""
+    ny, nx = model.output_shape
+    coords = clustered_sites((ny // 2, nx // 2), TRACE_DENSITY, seed=seed) * torch.tensor([1, 2, 2])
     gen = torch.Generator().manual_seed(seed)
     features = torch.randn(coords.shape[0], model.pillar_encoder.out_channels, generator=gen)
     return graph_inputs(graph, features, coords)
