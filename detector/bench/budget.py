@@ -30,7 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
-from detector.bench.run import BenchModel, Variant, build_rows, check_variant, density_record, machine_record
+from detector.bench.run import (
+    BenchModel,
+    Skipped,
+    Variant,
+    build_rows,
+    check_variant,
+    density_record,
+    display_names,
+    machine_record,
+)
+from detector.config import load_experiment
+from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.device import peak_memory_bytes, reset_peak_memory, usable_cores, use_device
 from mpchair.core.errors import InputError
 
@@ -86,14 +97,11 @@ def fixed_rate(run: Callable[[np.ndarray], object], frames: Sequence[np.ndarray]
 
 def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
                 threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
-    """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record, or its skip."""
+    """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
     with tempfile.TemporaryDirectory(prefix="detector-budget-") as work:
-        rows, nets, skipped = build_rows([model], dev, data_dir, split, frames, seed, False, one, Path(work),
-                                         allow_none=True)
-        if not rows:
-            return {"skipped": asdict(skipped[0])}
+        rows, nets, _ = build_rows([model], dev, data_dir, split, frames, seed, False, one, Path(work))
         row, net = rows[0], nets[0]
         points = [f.points for f in row.frames]
 
@@ -127,18 +135,21 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
     check_variant(variant, "cpu")
     rows: list[dict] = []
     skipped: list[dict] = []
+    names = display_names(models, [load_experiment(m.config) for m in models])
+    flags = cpu_flags()
     # spawn, not fork: a fresh interpreter per row, so its CPU time, threads and peak memory are its own
     context = multiprocessing.get_context("spawn")
-    for model in models:
+    for model, name in zip(models, names):
         for runtime in variant.runtimes:
             for precision in variant.precisions:
+                why = skip_reason(runtime, precision, flags)
+                if why is not None:  # decided here: no process to start for it
+                    skipped.append(asdict(Skipped(name, runtime, precision, why)))
+                    continue
                 with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-                    rec = pool.submit(_budget_row, model, runtime, precision, str(data_dir), split, frames,
-                                      threads, seed, variant, rate, duration, warmup).result()
-                if "skipped" in rec:
-                    skipped.append(rec["skipped"])
-                else:
-                    rows.append(rec)
+                    rec = pool.submit(_budget_row, replace(model, name=name), runtime, precision, str(data_dir),
+                                      split, frames, threads, seed, variant, rate, duration, warmup).result()
+                rows.append(rec)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
                          + "; ".join(f"{s['name']} {s['runtime']} {s['precision']}: {s['reason']}" for s in skipped))

@@ -225,12 +225,11 @@ def check_variant(variant: Variant, device: str) -> None:
 
 
 def build_rows(models: Sequence[BenchModel], device: torch.device, data_dir: str | Path, split: str, frames: int,
-               seed: int, progress: bool, variant: Variant, work: Path,
-               allow_none: bool = False) -> tuple[list[TimedRow], list, list[Skipped]]:
+               seed: int, progress: bool, variant: Variant, work: Path) -> tuple[list[TimedRow], list, list[Skipped]]:
     """Every model x runtime x precision this CPU computes natively, as rows (deployed graphs exported into
     ``work``), the model object of each row (an eager :class:`PointPillars` or a
     :class:`detector.deploy.deployed.DeployedPointPillars`) and the skipped combinations; an :class:`InputError`
-    when every one is skipped, unless ``allow_none``."""
+    when every one is skipped."""
     cfgs = [load_experiment(m.config) for m in models]
     names = display_names(models, cfgs)
     eager = [load_model(c, m.checkpoint, device, seed=seed) for c, m in zip(cfgs, models)]
@@ -260,7 +259,7 @@ def build_rows(models: Sequence[BenchModel], device: torch.device, data_dir: str
                                          precision=precision,
                                          timer=lambda pts, net=deployed: time_frame(net, pts, device)))
                 nets.append(deployed)
-    if not rows and not allow_none:
+    if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
                          + "; ".join(f"{s.name} {s.runtime} {s.precision}: {s.reason}" for s in skipped))
     return rows, nets, skipped
