@@ -14,6 +14,9 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
                                          PointPillars as a peer row when Open3D-ML is installed
     ops       detector ops               exact MACs vs Table I's bound at 768x512
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
+    deploy    detector eval / bench      the trained models exported to ONNX Runtime / OpenVINO at every precision
+              --runtime --precision      the CPU computes natively: val AP, runtime at 768x512, the CPU budget at
+                                         1 Hz (AP drop vs speed; docs/deployment.md)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
+from detector.reproduce.deploy import deploy_section
 from detector.reproduce.results import (
     MODELS,
     BenchOutput,
@@ -537,6 +538,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         *_density_section(res, figure),
         *_runtime_sections(res),
         *_sparsity_section(res, figure),
+        *deploy_section(res),
         *_not_in_this_run(),
         "## Commands", "", "```",
         *log.rstrip().splitlines(), "```", "",

@@ -20,12 +20,15 @@ class Scale:
     bench_trials: int
     ops_frames: int
     precision: str | None = None
+    budget_seconds: float = 30.0  # each CPU-budget row of the deploy step (detector bench --rate)
 
 
 SCALES = {
-    "small": Scale(houses=2, frames_per_house=150, epochs=2, bench_frames=5, bench_trials=2, ops_frames=10),
+    "small": Scale(houses=2, frames_per_house=150, epochs=2, bench_frames=5, bench_trials=2, ops_frames=10,
+                   budget_seconds=5.0),
     # about 2 h on 2 idle cores: the full pipeline on 8 houses with fewer frames and epochs than the issue's targets
-    "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100),
+    "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100,
+                    budget_seconds=20.0),
     # the issue's targets: dense 16 / sparse 20 bf16 epochs (24,000 / 30,000 steps; 15 epochs each reached dense
     # 80.77 / sparse 79.32 3D AP Moderate, pre-issue-15 labels, in 184 min on 2 AVX512-BF16 cores)
     # (bench 30 frames: at 10, BBox Extract's 5-10 ms per frame swung 0.65-1.43x between the models on a noisy VM)

@@ -10,12 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from detector.reproduce import deploy
 from detector.reproduce.results import MODELS, OPEN3D_ML_JSON, read_run_config
 from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
 from detector.reproduce.scales import Scale, model_epochs
 from mpchair.core.atomic import write_text
 
-STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "ops", "viz", "report")
+STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "ops", "viz", "deploy", "report")
 #: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).
 CONFIGS = ROOT / "configs" / "models"
 
@@ -40,6 +41,7 @@ def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
         "bench": {alloc: res / f"bench_{alloc}.json" for alloc in ("default", "reuse")},
         "ops": {"ops": res / "ops.json"},
         "viz": {"panel": res / "viz" / "panel.png"},
+        "deploy": deploy.deploy_outputs(res),
     }
 
 
@@ -252,5 +254,11 @@ def run_viz(plan: Plan, r: Runner) -> None:
         r.run(cmd, stdout=plan.res / "viz.json")
 
 
+def run_deploy(plan: Plan, r: Runner) -> None:
+    """The trained models deployed in ONNX Runtime / OpenVINO: AP, runtime and CPU budget
+    (:func:`detector.reproduce.deploy.run_deploy`)."""
+    deploy.run_deploy(plan, r, _config)
+
+
 #: The steps before the report, in the order they run.
-COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_ops, run_viz)
+COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_ops, run_viz, run_deploy)
