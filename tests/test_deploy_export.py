@@ -98,6 +98,7 @@ def test_fp32_export_equals_eager_on_the_head_maps(runtime, kind, overrides, sli
     assert _max_diff(model, deployed, _frames()) <= TOL
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config, head", [(DENSE, "dense"), (SPARSE, "sparse_exact")], ids=["dense", "sparse-exact"])
 def test_the_full_architecture_exports_exactly(config, head, tmp_path):
     """The paper's widths and depths (64/128/256 channels, 3/5/5 layers) on the smoke grid, in both runtimes."""
@@ -107,6 +108,7 @@ def test_the_full_architecture_exports_exactly(config, head, tmp_path):
         assert _max_diff(model, deployed, _frames(2)) <= TOL, runtime
 
 
+@pytest.mark.slow
 def test_a_trained_model_exports_exactly(tmp_path):
     """A few training steps move every weight away from its init (BatchNorm running statistics included)."""
     from detector.train import train

@@ -156,7 +156,9 @@ def format_budget(result: dict, markdown: bool = False) -> str:
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
         f"{dens['median']:.5f} over {dens['frames']} frames",
     ]
-    notes += [f"{b['name']}: weights {b['weights']}" for b in result["budget"]]
+    weights = {b["weights"] for b in result["budget"]}
+    notes += ([f"weights of every row: {weights.pop()}"] if len(weights) == 1 else
+              [f"{b['name']}: weights {b['weights']}" for b in result["budget"]])
     notes += [f"skipped {s['name']} ({s['runtime']} {s['precision']}): {s['reason']}" for s in result["skipped"]]
     prefix = "- " if markdown else ""
     return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in notes)

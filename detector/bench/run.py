@@ -3,6 +3,13 @@
 The components and their stamps are :mod:`detector.bench.timing`'s; Open3D-ML's own PointPillars can be timed as a
 peer row (:mod:`detector.bench.peer`); :mod:`detector.bench.report` prints the result as the paper's tables.
 
+Runtimes and precisions (:class:`Variant`): every model x runtime (eager ``torch``, ``onnxruntime``, ``openvino``) x
+precision (``fp32``, ``bf16``, ``int8``) is one row, all interleaved per frame. A deployed row is a
+:class:`detector.deploy.deployed.DeployedPointPillars`: the same stage methods around the exported graph, so the same
+stamps time it (Backbone = the graph: backbone + neck + head). A combination this CPU does not compute natively is
+skipped with the reason (:func:`detector.deploy.cpu.skip_reason`); ``headline`` compares the fastest sparse row with
+the fastest dense row.
+
 Protocol: every model is warmed up on the first frames, then ``trials`` passes over the same ``frames`` frames are
 timed. Within a pass the models are **interleaved per frame** (the order alternates from frame to frame), so load
 spikes of a shared machine hit all models alike. A trial's value of a component is its mean over the frames (the
