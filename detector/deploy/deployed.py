@@ -22,26 +22,31 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import nn
 
+from detector.checkpoint import load_model
+from detector.config import ExperimentConfig
+from detector.data.experiment import load_eval_frames
+from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.deploy.export import graph_inputs, graph_module, write_onnx, write_openvino
 from detector.deploy.quantize import quantize_onnx, quantize_openvino
 from detector.deploy.runtimes import GraphSession, open_session
-from detector.deploy.sparse_graph import SparseGraph, SparseSpec
+from detector.deploy.sparse_graph import SparseGraph, SparseSpec, build_tables
 from detector.models import Detections, HeadOutput, PointPillars
 from detector.models.voxelizer import Voxels
+from mpchair.core.errors import InputError
 
 
-class GraphFeed:
+class GraphFeed(NamedTuple):
     """One frame's graph inputs (numpy, as the runtimes take them) and, for the sparse graph, the block-1 sites
     ``(N_1, 3)`` where the head rows land (None for the dense graph)."""
 
-    def __init__(self, arrays: dict[str, np.ndarray], sites: torch.Tensor | None) -> None:
-        self.arrays = arrays
-        self.sites = sites
+    arrays: dict[str, np.ndarray]
+    sites: torch.Tensor | None
 
 
 class DeployedPointPillars(nn.Module):
@@ -76,8 +81,6 @@ class DeployedPointPillars(nn.Module):
         if batch_size != 1:
             raise ValueError(f"a deployed model runs batch 1, got {batch_size}")
         if isinstance(self._graph, SparseGraph):
-            from detector.deploy.sparse_graph import build_tables
-
             tables = build_tables(self._graph.spec, features, coords)
             return GraphFeed({k: v.numpy() for k, v in tables.inputs.items()}, tables.sites)
         return GraphFeed({k: v.numpy() for k, v in graph_inputs(self._graph, features, coords).items()}, None)
@@ -185,18 +188,14 @@ class _NoSession:
         raise RuntimeError("this deployed model only builds graph inputs")
 
 
-def deploy_checkpoint(cfg, checkpoint: str | Path | None, runtime: str, precision: str, work_dir: str | Path, *,
-                      threads: int, data: str | Path | None = None, calibration_split: str = "train",
-                      calibration_frames: int = 8, seed: int = 0) -> DeployedPointPillars:
+def deploy_checkpoint(cfg: ExperimentConfig, checkpoint: str | Path | None, runtime: str, precision: str,
+                      work_dir: str | Path, *, threads: int, data: str | Path | None = None,
+                      calibration_split: str = "train", calibration_frames: int = 8,
+                      seed: int = 0) -> DeployedPointPillars:
     """The model of experiment ``cfg`` (weights from ``checkpoint``, or seeded random ones) deployed in ``runtime`` /
     ``precision`` (:func:`build_deployed`, files in ``work_dir``); int8 calibrates on the first
     ``calibration_frames`` frames of ``calibration_split`` of ``data``. A combination this CPU does not compute
     natively, or a model the export cannot take, is an :class:`InputError`."""
-    from detector.checkpoint import load_model
-    from detector.data.experiment import load_eval_frames
-    from detector.deploy.cpu import cpu_flags, skip_reason
-    from mpchair.core.errors import InputError
-
     why = skip_reason(runtime, precision, cpu_flags())
     if why is not None:
         raise InputError(f"cannot run {runtime} {precision} here: {why}")

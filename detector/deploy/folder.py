@@ -23,7 +23,7 @@ from detector.checkpoint import load_model
 from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
 from detector.deploy.deployed import write_graph
-from detector.deploy.export import FORMATS, GRAPH_FILES, OPSET
+from detector.deploy.export import FORMATS, GRAPH_FILES, OPSET, graph_module
 from detector.deploy.extra import require
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.errors import InputError
@@ -95,9 +95,7 @@ def export_folder(config: str | Path, checkpoint: str | Path | None, fmt: str, o
     cfg = load_experiment(config)
     eager = load_model(cfg, checkpoint, "cpu", seed=seed)
     try:
-        from detector.deploy.export import graph_module
-
-        graph_module(eager)
+        graph_module(eager)  # refuses the sparse + dense ablations before any file is written
     except ValueError as e:
         raise InputError(f"cannot export this model: {e}", config) from None
     frames = ([f.points for f in load_eval_frames(cfg, data, calibration_split, calibration_frames)]
