@@ -101,9 +101,10 @@ def test_a_run_resumes_in_the_precision_it_started_with(tmp_path: Path, capsys) 
     assert "--resume" not in train[1] and train[1].endswith("--precision bf16")
 
 
-def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, capsys) -> None:
-    """``make reproduce`` (no flags) is the issue's experiment: 8 houses x 625 frames, dense 16 epochs and sparse 20
-    (the paper's 250 / 200 ratio), bf16 where the CPU computes it natively, else fp32."""
+def test_default_reproduction_is_the_one_session_full_scale(tmp_path: Path, capsys) -> None:
+    """``make reproduce`` (no flags) is the issue's experiment on the one-session schedule: 8 houses x 625 frames,
+    dense 4 epochs and sparse 5 (the paper's 250 / 200 ratio), bf16 where the CPU computes it natively, else fp32;
+    ``--scale recipe`` is the same data with dense 16 / sparse 20 epochs."""
     assert main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
     lines = capsys.readouterr().out.splitlines()
     synth = [ln for ln in lines if " synth " in ln]
@@ -112,14 +113,20 @@ def test_default_reproduction_is_the_measured_full_scale_recipe(tmp_path: Path, 
     assert len(synth) == 1 and "--houses 8" in synth[0]
     assert len(generate) == 1 and "--frames 625" in generate[0]
     auto = "bf16" if cpu_has_native_bf16() else "fp32"
-    assert len(train) == 2 and f"--epochs 16 --precision {auto}" in train[0] and "dense_cpu" in train[0]
-    assert f"--epochs 20 --precision {auto}" in train[1] and "sparse_cpu" in train[1]
+    assert len(train) == 2 and f"--epochs 4 --precision {auto}" in train[0] and "dense_cpu" in train[0]
+    assert f"--epochs 5 --precision {auto}" in train[1] and "sparse_cpu" in train[1]
+    assert main(["--dry-run", "--scale", "recipe", "--out", str(tmp_path / "recipe")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    train = [ln for ln in lines if " train " in ln]
+    assert any(" generate " in ln and "--frames 625" in ln for ln in lines)
+    assert len(train) == 2 and f"--epochs 16 --precision {auto}" in train[0]
+    assert f"--epochs 20 --precision {auto}" in train[1]
 
     # a flag overrides the scale's precision; the quick scale keeps the configs' precision
     assert main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
-    assert len(train) == 2 and train[0].endswith("--epochs 16 --precision fp32")
-    assert train[1].endswith("--epochs 20 --precision fp32")
+    assert len(train) == 2 and train[0].endswith("--epochs 4 --precision fp32")
+    assert train[1].endswith("--epochs 5 --precision fp32")
     assert main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
     train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
     assert len(train) == 2 and train[0].endswith("--epochs 2") and train[1].endswith("--epochs 3")

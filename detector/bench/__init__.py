@@ -7,7 +7,11 @@
   ``peer``);
 - :mod:`detector.bench.budget`: ``--rate``, each row alone at a fixed sensor rate: CPU share, deadline misses,
   latency, peak memory (imports ``run``);
-- :mod:`detector.bench.report`: the result as the paper's tables (imports ``timing``; reads only the result dict).
+- :mod:`detector.bench.report`: the result as the paper's tables (imports ``timing``; reads only the result dict);
+- :mod:`detector.bench.reference_head` (the total time with the reference's head layout) and
+  :mod:`detector.bench.density` (the backbone ratio against density D): benches of their own, for the tools of the
+  same names (``reference_head`` imports ``timing`` and ``run``, ``density`` :mod:`detector.opcount`; nothing here
+  imports them).
 
 The modules import each other directly, in that one direction; this file only re-exports the names callers use. The
 machine a result describes is :func:`detector.device.machine_info`.

@@ -6,15 +6,109 @@ centre ``x_c = ix * vx + vx / 2 + x_min`` (same for y). That is 8 features for x
 extra ``z - z_c`` is not used). Padded slots are zeroed *after* decoration, then Linear(F → 64, no bias),
 BatchNorm1d(eps 1e-3, momentum 0.01), ReLU and a max over the slots; padded slots take part in the BN statistics and
 in the max (as zeros after the linear layer), exactly as the reference.
+
+Two forms of the forward pass:
+
+* :meth:`PillarFeatureNet.forward_torch`: the layers above in torch on the padded ``(P, T, F)`` block; training, GPUs,
+  autocast and any grad-enabled call use it (autograd flows through Linear, BN, ReLU and max).
+* :meth:`PillarFeatureNet.forward_fused` (what :meth:`~PillarFeatureNet.forward` runs for fp32 inference on the CPU:
+  eval mode, autograd off): one compiled pass per pillar (``_fused_eval``, numba) over its *real* points only. In eval
+  mode BatchNorm is the per-channel affine map ``y * alpha + beta`` of the running statistics, so every padded slot
+  (zero after decoration, zero after the bias-free linear layer) comes out as the same ``relu(beta)``; the max over
+  the slots is then the max of the real points' values and, if the pillar has a padded slot, ``relu(beta)``. That
+  skips the ~85 % of the block that is padding and never materialises the ``(P, T, 64)`` activations. It computes
+  in the order torch's CPU kernels use (decorations as in :meth:`~PillarFeatureNet.decorate`, the pillar mean as
+  ``torch.sum``'s four interleaved partial sums, the linear layer and BN with fused multiply-adds as MKL's GEMM and
+  the BN kernel do), so on the CPUs measured its output equals ``forward_torch`` bit for bit; where a library
+  accumulates differently they differ by fp32 rounding only (tested to 1e-5; ``tools/bench_feature_extract.py``
+  prints the bitwise fraction).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
+from mpchair.core.jit import njit_cached
+
 BN_EPS = 1e-3  # reference BatchNorm eps and momentum (Open3D-ML / mmdet3d SECOND settings)
 BN_MOMENTUM = 0.01
+
+
+@njit_cached(contract=True)
+def _fused_eval(
+    pillars: np.ndarray,
+    num_points: np.ndarray,
+    centres: np.ndarray,
+    weight_t: np.ndarray,
+    bn_weight: np.ndarray,
+    bn_bias: np.ndarray,
+    running_mean: np.ndarray,
+    running_var: np.ndarray,
+    eps: np.float32,
+) -> np.ndarray:
+    """Eval-mode pillar net, float32: pillars (P, T, C) with C 3 or 4, num_points (P,), centres (P, 2) [x_c, y_c]
+    (m), weight_t (C + 5, O) = linear weight transposed, BN parameters and running stats (O,) → features (P, O)."""
+    n_pillars, t, c = pillars.shape
+    n_out = weight_t.shape[1]
+    # BN in eval mode as torch's CPU kernel evaluates it: alpha = weight / sqrt(var + eps), beta = bias - mean * alpha
+    alpha = np.empty(n_out, dtype=np.float32)
+    beta = np.empty(n_out, dtype=np.float32)
+    pad = np.empty(n_out, dtype=np.float32)
+    for o in range(n_out):
+        alpha[o] = (np.float32(1) / np.sqrt(running_var[o] + eps)) * bn_weight[o]
+        beta[o] = bn_bias[o] - running_mean[o] * alpha[o]
+        pad[o] = max(beta[o], np.float32(0))  # a padded slot: relu(0 * alpha + beta)
+    # rows of the transposed weight, in the decorated features' order: x, y, z, [r,] x - x_m, y - y_m, z - z_m,
+    # x - x_c, y - y_c. Without reflectance its row is zeros and its value 0: adding 0 * 0 leaves a sum unchanged
+    w_x, w_y, w_z = weight_t[0], weight_t[1], weight_t[2]
+    w_r = weight_t[3] if c == 4 else np.zeros(n_out, dtype=np.float32)
+    w_xm, w_ym, w_zm, w_xc, w_yc = weight_t[c], weight_t[c + 1], weight_t[c + 2], weight_t[c + 3], weight_t[c + 4]
+    out = np.empty((n_pillars, n_out), dtype=np.float32)
+    part = np.empty((4, 3), dtype=np.float32)
+    t4 = t - t % 4
+    for p in range(n_pillars):
+        n = num_points[p]
+        # pillar mean of x, y, z: torch.sum over the T slots keeps four partial sums (slot k into k % 4, slots past
+        # the last multiple of 4 into the first), added in order at the end; padded slots add zeros, so skip them
+        part[:] = 0
+        for k in range(min(n, t4)):
+            for j in range(3):
+                part[k % 4, j] += pillars[p, k, j]
+        for k in range(t4, n):
+            for j in range(3):
+                part[0, j] += pillars[p, k, j]
+        count = np.float32(max(n, 1))
+        x_m = (((part[0, 0] + part[1, 0]) + part[2, 0]) + part[3, 0]) / count
+        y_m = (((part[0, 1] + part[1, 1]) + part[2, 1]) + part[3, 1]) / count
+        z_m = (((part[0, 2] + part[1, 2]) + part[2, 2]) + part[3, 2]) / count
+        best = out[p]
+        # ReLU outputs are >= 0, so starting the max at 0 (a full pillar) or at relu(beta) (one with a padded slot)
+        # gives the reference's max over all T slots
+        for o in range(n_out):
+            best[o] = pad[o] if n < t else np.float32(0)
+        for k in range(n):
+            x, y, z = pillars[p, k, 0], pillars[p, k, 1], pillars[p, k, 2]
+            r = pillars[p, k, 3] if c == 4 else np.float32(0)
+            dxm, dym, dzm = x - x_m, y - y_m, z - z_m
+            dxc, dyc = x - centres[p, 0], y - centres[p, 1]
+            for o in range(n_out):
+                # the GEMM's sum: one multiply-add per feature in order. "0 +" starts it from a sum (MKL: 0 + x*w),
+                # so that the compiler has exactly one way to fuse each step (two products would give it a choice)
+                acc = np.float32(0) + x * w_x[o]
+                acc = acc + y * w_y[o]
+                acc = acc + z * w_z[o]
+                acc = acc + r * w_r[o]
+                acc = acc + dxm * w_xm[o]
+                acc = acc + dym * w_ym[o]
+                acc = acc + dzm * w_zm[o]
+                acc = acc + dxc * w_xc[o]
+                acc = acc + dyc * w_yc[o]
+                v = acc * alpha[o] + beta[o]
+                b = best[o]
+                best[o] = v if (v > b or v != v) else b  # a NaN wins, as in torch's max
+    return out
 
 
 class PillarFeatureNet(nn.Module):
@@ -43,6 +137,12 @@ class PillarFeatureNet(nn.Module):
         self.norm = nn.BatchNorm1d(out_channels, eps=BN_EPS, momentum=BN_MOMENTUM)
         self.out_channels = out_channels
 
+    def centres(self, coords: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P, 3) [b, iy, ix] → pillar centres ``(x_c (P,), y_c (P,))`` (sensor frame, m) in ``dtype``."""
+        xc = coords[:, 2].to(dtype) * self.vx + self.x_offset
+        yc = coords[:, 1].to(dtype) * self.vy + self.y_offset
+        return xc, yc
+
     def decorate(self, pillars: torch.Tensor, num_points: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         """(P, T, C) pillars, (P,) counts, (P, 3) [b, iy, ix] → (P, T, C + 5) decorated features, padded slots 0."""
         p, t, c = pillars.shape
@@ -52,15 +152,56 @@ class PillarFeatureNet(nn.Module):
         # Padded slots are zero, so the plain sum over slots is the sum over real points.
         mean = pillars[:, :, :3].sum(dim=1, keepdim=True) / n
         f_cluster = pillars[:, :, :3] - mean
-        xc = coords[:, 2].to(pillars.dtype) * self.vx + self.x_offset
-        yc = coords[:, 1].to(pillars.dtype) * self.vy + self.y_offset
+        xc, yc = self.centres(coords, pillars.dtype)
         f_center = torch.stack([pillars[:, :, 0] - xc[:, None], pillars[:, :, 1] - yc[:, None]], dim=2)
         feats = torch.cat([pillars, f_cluster, f_center], dim=2)
         mask = torch.arange(t, device=pillars.device)[None, :] < num_points[:, None]
         return feats * mask.unsqueeze(2).to(feats.dtype)
 
+    def fused_applies(self, pillars: torch.Tensor) -> bool:
+        """Whether :meth:`forward` takes the compiled eval path: eval mode, autograd and autocast off, float32 on the
+        CPU (anything else, training included, runs :meth:`forward_torch`)."""
+        return (
+            not self.training
+            and not torch.is_grad_enabled()
+            and pillars.device.type == "cpu"
+            and not torch.is_autocast_enabled("cpu")
+            and pillars.dtype == self.linear.weight.dtype == torch.float32
+            and self.norm.track_running_stats  # eval BN normalises with the running statistics
+            and self.in_channels in (3, 4)
+        )
+
     def forward(self, pillars: torch.Tensor, num_points: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         """pillars (P, T, C), num_points (P,), coords (P, 3) int64 [b, iy, ix] → features (P, out_channels)."""
+        if pillars.shape[0] == 0:
+            return pillars.new_zeros((0, self.out_channels))
+        if self.fused_applies(pillars):
+            return self.forward_fused(pillars, num_points, coords)
+        return self.forward_torch(pillars, num_points, coords)
+
+    @torch.no_grad()
+    def forward_fused(self, pillars: torch.Tensor, num_points: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """The eval-mode forward as one compiled pass over the real points (module docstring); float32, CPU, no
+        autograd. Same arguments and result as :meth:`forward_torch` in eval mode."""
+        if pillars.shape[2] != self.in_channels:
+            raise ValueError(f"PillarFeatureNet: expected {self.in_channels} point features, got {pillars.shape[2]}")
+        xc, yc = self.centres(coords, torch.float32)
+        bn = self.norm
+        out = _fused_eval(
+            pillars.detach().contiguous().numpy(),
+            num_points.contiguous().numpy(),
+            torch.stack([xc, yc], dim=1).numpy(),
+            self.linear.weight.detach().t().contiguous().numpy(),
+            bn.weight.detach().numpy(),
+            bn.bias.detach().numpy(),
+            bn.running_mean.numpy(),
+            bn.running_var.numpy(),
+            np.float32(bn.eps),
+        )
+        return torch.from_numpy(out)
+
+    def forward_torch(self, pillars: torch.Tensor, num_points: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """The layers in torch on the padded block (P, T, F): any mode, device and dtype, differentiable."""
         if pillars.shape[0] == 0:
             return pillars.new_zeros((0, self.out_channels))
         p, t, _ = pillars.shape

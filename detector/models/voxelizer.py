@@ -1,15 +1,26 @@
 """Points → pillars: crop, index, cap, pad (the first half of the paper's "Feature Extract" timer).
 
-The pillar index of a point comes from :func:`mpchair.geometry.pillar_coords` (the one indexing rule of the project:
-keep ``min <= p < max`` on x, y, z; cell ``floor((p - min) / voxel)``). That function works on numpy arrays, so the
-xyz columns are copied to the host once per sample; everything after it is vectorised torch on the points' device.
+The pillar index of a point is the project's one indexing rule, :func:`mpchair.geometry.pillar_coords`: keep
+``min <= p < max`` on x, y, z (float64); cell ``floor((p - min) / voxel)`` on y and x, held at ``n - 1`` of the real
+grid. Pillars whose cell lies outside the padded canvas ``output_shape`` are dropped (the reference's upstream fix);
+with a canvas at least as large as the real grid none are.
 
 Caps (reference: 32 points per pillar, 16,000 pillars in training, 40,000 in testing). The reference op does not say
 which points/pillars survive a cap, so the rule here is fixed and documented: **pillars are numbered in order of
 their first point in the input order** and the first ``max_pillars`` are kept; **within a pillar, the first
-``max_points`` points in input order** are kept. Both fall out of one stable sort by pillar key (no Python loop over
-points). Pillars whose cell lies outside the padded canvas ``output_shape`` are dropped (the reference's upstream
-fix); with a canvas at least as large as the real grid none are.
+``max_points`` points in input order** are kept.
+
+Two implementations of that one rule, equal bit for bit (tested):
+
+* :func:`voxelize` (used by the models): one compiled pass over the points in input order (``_pillars_of_sample``,
+  numba) with a canvas-sized table ``cell → pillar``: a point opens a pillar on its cell's first arrival (while fewer
+  than ``max_pillars`` are open) and takes the next slot while fewer than ``max_points`` are taken, which *is* the
+  rule; a second pass copies the kept points into the padded ``(P, T, C)`` block. It computes the cell with the same
+  float64 operations as ``pillar_coords``. On a GPU the points go to the host and the pillars come back (the indexing
+  rule is host code in either form); float32 and float64 points only (others take the torch form).
+* :func:`voxelize_torch` (the form before it: ``pillar_coords`` on the host, then one stable sort by pillar key in
+  vectorised torch on the points' device), kept as the reference the kernel is tested and benchmarked against
+  (``tools/bench_feature_extract.py``).
 """
 
 from __future__ import annotations
@@ -20,7 +31,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from mpchair.geometry import pillar_coords
+from mpchair.core.jit import njit_cached
+from mpchair.geometry import grid_size, pillar_coords
 
 
 class Voxels(NamedTuple):
@@ -39,7 +51,120 @@ class Voxels(NamedTuple):
     batch_size: int
 
 
-def _sample_pillars(
+@njit_cached
+def _pillars_of_sample(
+    points: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    voxel: np.ndarray,
+    grid_ny: int,
+    grid_nx: int,
+    canvas_ny: int,
+    canvas_nx: int,
+    max_points: int,
+    max_pillars: int,
+    sample: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """points (N, C) (sensor frame, m) → pillars (P, T, C) zero-padded, num_points (P,), coords (P, 3) [b, iy, ix]."""
+    n = points.shape[0]
+    c = points.shape[1]
+    # table[cell] = pillar index + 1 (0: no pillar yet); slot[i] = pillar * T + rank of point i, or -1 if dropped
+    table = np.zeros(canvas_ny * canvas_nx, dtype=np.int32)
+    slot = np.empty(n, dtype=np.int64)
+    counts = np.zeros(min(n, max_pillars), dtype=np.int64)
+    cells = np.empty(min(n, max_pillars), dtype=np.int64)
+    n_pillars = 0
+    for i in range(n):
+        slot[i] = -1
+        # pillar_coords' rule, with its float64 operations: keep min <= p < max, floor((p - min) / v), held at n - 1
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
+        if not (x >= lo[0] and x < hi[0] and y >= lo[1] and y < hi[1] and z >= lo[2] and z < hi[2]):
+            continue
+        ix = min(np.int64(np.floor((x - lo[0]) / voxel[0])), grid_nx - 1)
+        iy = min(np.int64(np.floor((y - lo[1]) / voxel[1])), grid_ny - 1)
+        if iy >= canvas_ny or ix >= canvas_nx:
+            continue
+        cell = iy * canvas_nx + ix
+        pid = table[cell] - 1
+        if pid < 0:
+            if n_pillars == max_pillars:
+                continue
+            pid = n_pillars
+            table[cell] = pid + 1
+            cells[pid] = cell
+            n_pillars += 1
+        rank = counts[pid]
+        if rank < max_points:
+            slot[i] = pid * max_points + rank
+            counts[pid] = rank + 1
+    pillars = np.zeros((n_pillars, max_points, c), dtype=points.dtype)
+    flat = pillars.reshape(n_pillars * max_points, c)
+    for i in range(n):
+        s = slot[i]
+        if s >= 0:
+            for k in range(c):
+                flat[s, k] = points[i, k]
+    coords = np.empty((n_pillars, 3), dtype=np.int64)
+    for p in range(n_pillars):
+        coords[p, 0] = sample
+        coords[p, 1] = cells[p] // canvas_nx
+        coords[p, 2] = cells[p] % canvas_nx
+    return pillars, counts[:n_pillars].copy(), coords
+
+
+def _check_batch(points_list: Sequence[torch.Tensor]) -> None:
+    if len(points_list) == 0:
+        raise ValueError("voxelize: empty batch")
+    for b, pts in enumerate(points_list):
+        if pts.dim() != 2 or pts.shape[1] < 3:
+            raise ValueError(f"voxelize: sample {b} has shape {tuple(pts.shape)}, expected (N, C>=3)")
+
+
+def voxelize(
+    points_list: Sequence[torch.Tensor],
+    *,
+    point_cloud_range: tuple[float, float, float, float, float, float],
+    voxel_size: tuple[float, float, float],
+    output_shape: tuple[int, int],
+    max_points: int,
+    max_pillars: int,
+) -> Voxels:
+    """Group each sample's points into pillars and concatenate the batch.
+
+    points_list: B tensors (N_i, C) float, columns x, y, z (sensor frame, metres) then optional extra features
+        (e.g. reflectance). All on one device.
+    point_cloud_range: [x_min, y_min, z_min, x_max, y_max, z_max] (m); voxel_size: [vx, vy, vz] (m).
+    output_shape: [ny, nx] cells of the (padded) canvas; pillars outside it are dropped.
+    max_points / max_pillars: caps per pillar / per sample (rule in the module docstring).
+    Returns :class:`Voxels` with pillars ordered by sample, then by first occurrence (no autograd to the points).
+    """
+    _check_batch(points_list)
+    if any(p.dtype not in (torch.float32, torch.float64) for p in points_list):  # the kernel is compiled for these
+        return voxelize_torch(points_list, point_cloud_range=point_cloud_range, voxel_size=voxel_size,
+                              output_shape=output_shape, max_points=max_points, max_pillars=max_pillars)
+    grid_nx, grid_ny = grid_size(point_cloud_range, voxel_size)  # also validates range and voxel
+    r = np.asarray(point_cloud_range, dtype=np.float64)
+    voxel = np.asarray(voxel_size[:2], dtype=np.float64)
+    canvas_ny, canvas_nx = int(output_shape[0]), int(output_shape[1])
+    device = points_list[0].device
+    parts = []
+    for b, pts in enumerate(points_list):
+        host = np.ascontiguousarray(pts.detach().cpu().numpy())
+        parts.append(_pillars_of_sample(host, r[:3], r[3:], voxel, grid_ny, grid_nx, canvas_ny, canvas_nx,
+                                        int(max_points), int(max_pillars), b))
+    if len(parts) == 1:
+        pillars, counts, coords = (torch.from_numpy(a) for a in parts[0])
+    else:
+        pillars, counts, coords = (torch.from_numpy(np.concatenate(a)) for a in zip(*parts))
+    return Voxels(pillars.to(device), counts.to(device), coords.to(device), len(points_list))
+
+
+# --------------------------------------------------------------------------- the vectorised-torch form (reference)
+
+
+def _sample_pillars_torch(
     points: torch.Tensor,
     pc_range: tuple[float, ...],
     voxel_size: tuple[float, ...],
@@ -88,7 +213,7 @@ def _sample_pillars(
     return pillars, counts, cells[first_of_pillar]
 
 
-def voxelize(
+def voxelize_torch(
     points_list: Sequence[torch.Tensor],
     *,
     point_cloud_range: tuple[float, float, float, float, float, float],
@@ -97,22 +222,12 @@ def voxelize(
     max_points: int,
     max_pillars: int,
 ) -> Voxels:
-    """Group each sample's points into pillars and concatenate the batch.
-
-    points_list: B tensors (N_i, C) float, columns x, y, z (sensor frame, metres) then optional extra features
-        (e.g. reflectance). All on one device.
-    point_cloud_range: [x_min, y_min, z_min, x_max, y_max, z_max] (m); voxel_size: [vx, vy, vz] (m).
-    output_shape: [ny, nx] cells of the (padded) canvas; pillars outside it are dropped.
-    max_points / max_pillars: caps per pillar / per sample (rule in the module docstring).
-    Returns :class:`Voxels` with pillars ordered by sample, then by first occurrence.
-    """
-    if len(points_list) == 0:
-        raise ValueError("voxelize: empty batch")
+    """:func:`voxelize` in vectorised torch on the points' device (the reference form; same arguments, same output
+    bit for bit, autograd to the points' features)."""
+    _check_batch(points_list)
     parts_p, parts_n, parts_c = [], [], []
     for b, pts in enumerate(points_list):
-        if pts.dim() != 2 or pts.shape[1] < 3:
-            raise ValueError(f"voxelize: sample {b} has shape {tuple(pts.shape)}, expected (N, C>=3)")
-        p, n, c = _sample_pillars(pts, point_cloud_range, voxel_size, output_shape, max_points, max_pillars)
+        p, n, c = _sample_pillars_torch(pts, point_cloud_range, voxel_size, output_shape, max_points, max_pillars)
         bcol = torch.full((c.shape[0], 1), b, dtype=torch.int64, device=c.device)
         parts_p.append(p)
         parts_n.append(n)

@@ -7,9 +7,11 @@ writes its reports from their output files; it imports only the floor of ``mpcha
     scales    the sizes of each scale (houses, frames, epochs, bench trials) and the bf16 detection
     runner    runs and logs command lines (``commands.log``)
     steps     each step's command lines and the files that mark it done (``step_outputs``)
+    ablations the ablation steps: their benches at both geometries, their opt-in trainings and evals
     results   typed readers of every file the steps write that the report reads
     training  what the work folder's trainings were: schedules, precision, seconds
-    report    ``docs/results.md`` from those records
+    report    ``docs/results.md`` from those records (``report_runtime``: training time, reference head, density
+              curve; ``report_ablations``: the ablations' runtime and AP)
     status    ``--status``: where a work folder stands
     cli       ``main(argv)`` of ``tools/reproduce.py``
     stream/   the streaming reproduction (``tools/reproduce_stream.py``, ``docs/streaming.md``)

@@ -12,19 +12,31 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     bench     detector bench             per-component runtime at 768x512 (trained weights load at any grid size),
                                          under the default allocator and the reuse setting, with Open3D-ML's own
                                          PointPillars as a peer row when Open3D-ML is installed
+    refhead   tools/bench_reference_head.py  dense / sparse total time with the reference's head layout (three NCHW
+                                         1x1 convs) beside our fused head at 768x512: the ratio the paper's 4.6x is
     ops       detector ops               exact MACs vs Table I's bound at 768x512
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
+    curve     tools/bench_density.py     dense / sparse backbone runtime and op-count ratios against density D
+                                         (clustered synthetic sites, random weights, D 0.002 .. 0.0246) at 768x512
     deploy    detector eval / bench      the trained models exported to ONNX Runtime / OpenVINO at every precision
               --runtime --precision      the CPU computes natively: val AP, runtime at 768x512, the CPU budget at
                                          1 Hz (AP drop vs speed; docs/deployment.md)
+    ablation-bench  detector bench       the ablation configs beside dense and sparse at the KITTI geometry (the
+                                         vendored KITTI frames) and at 768x512 (detector.reproduce.ablations)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
+
+Opt in (``--steps ablations,report``, ``make reproduce-ablations``): ``ablations`` trains and evaluates the paper's
+ablations on this run's data (``--ablations``, ``--ablation-epochs``), then times them again with their weights.
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
-``--scale full`` (the default, ``make reproduce``) is the issue's experiment: 8 houses, 5,000 frames = 3,000 train /
-1,000 val / 1,000 test, dense 16 epochs and sparse 20 (the paper's 200 / 250 ratio), in bfloat16 autocast where the
-CPU has native bf16 (AVX512-BF16 / AMX: about 4.5 hours on 2 cores) and fp32 elsewhere (about 16 hours on 2
-AVX2-only cores, measured 2026-12-02). ``--scale small`` is a quick end-to-end check (2 houses, 300 frames,
+``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule that fits one 3-hour
+session of 2 cores together with ``make reproduce-stream``: 8 houses, 5,000 frames = 3,000 train / 1,000 val /
+1,000 test, dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in bfloat16 autocast where the CPU has native
+bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (about 4x slower to train on 2 AVX2-only cores). ``--scale recipe`` is
+the longer schedule, dense 16 / sparse 20 epochs (about 4.5 hours on 2 native-bf16 cores, about 16 hours on 2
+AVX2-only ones, measured 2026-12-02): a GPU's job or a machine that outlives a session. ``--scale small`` is a
+quick end-to-end check (2 houses, 300 frames,
 2 epochs: ~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
 with other jobs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
 
@@ -44,20 +56,25 @@ import sys
 import time
 from pathlib import Path
 
+from detector.reproduce.ablations import run_ablation_bench, run_ablations
 from detector.reproduce.report import write_report
+from detector.reproduce.results import ABLATIONS
 from detector.reproduce.runner import ROOT, Runner
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
-from detector.reproduce.steps import COMMAND_STEPS, STEPS, Plan
+from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default=None,
-                   help="full (default): the issue's experiment, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
+                   help="full (default): the issue's experiment on a one-session schedule (dense 4 / sparse 5 "
+                        "epochs); recipe: dense 16 / sparse 20 epochs, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
                         "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
                         "loaded machine")
-    p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
+    p.add_argument("--steps", default=",".join(STEPS),
+                   help=f"comma-separated subset of {','.join(STEPS)}, or the opt-in {','.join(OPT_IN_STEPS)} "
+                        "(the ablations' trainings: make reproduce-ablations)")
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/reproduce-<scale>)")
     p.add_argument("--results", type=Path, default=None,
                    help="report file (default: docs/results.md for --scale full, <work folder>/results.md otherwise)")
@@ -67,8 +84,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--epochs", type=int, default=None,
-                   help="the dense model's training epochs instead of the scale's (full: 16, medium: 10, small: 2); "
-                        "the sparse model trains ceil(1.25x) as many, the paper's 250 / 200 ratio")
+                   help="the dense model's training epochs instead of the scale's (full: 4, recipe: 16, medium: 10, "
+                        "small: 2); the sparse model trains ceil(1.25x) as many, the paper's 250 / 200 ratio")
     p.add_argument("--precision", choices=["fp32", "bf16", "auto"], default=None,
                    help="training precision of both models instead of the scale's (full: auto = bf16 where the CPU "
                         "computes bfloat16 natively, AVX512-BF16 / AMX, else fp32; medium / small: the "
@@ -79,6 +96,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--status", action="store_true",
                    help="print where the work folder's reproduction stands (each step; each model's training step, "
                         "pace and time left; whether a training runs now) and exit")
+    p.add_argument("--ablations", default=",".join(ABLATIONS),
+                   help="the ablations the ablations step trains and evaluates (comma-separated; default all four)")
+    p.add_argument("--ablation-epochs", type=int, default=None,
+                   help="training epochs of each ablation (default: the sparse model's of the scale)")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 30, medium: 20)")
     return p
@@ -111,9 +132,14 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     scale_given, args.scale = args.scale is not None, args.scale or "full"
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
-    bad = [s for s in steps if s not in STEPS]
+    bad = [s for s in steps if s not in (*STEPS, *OPT_IN_STEPS)]
     if bad:
-        print(f"error: unknown step(s) {bad}; choose from {list(STEPS)}", file=sys.stderr)
+        print(f"error: unknown step(s) {bad}; choose from {list(STEPS + OPT_IN_STEPS)}", file=sys.stderr)
+        return 2
+    ablations = tuple(a.strip() for a in args.ablations.split(",") if a.strip())
+    if not ablations or [a for a in ablations if a not in ABLATIONS] or (args.ablation_epochs or 1) < 1:
+        print(f"error: --ablations takes a comma-separated subset of {','.join(ABLATIONS)} and --ablation-epochs a "
+              "number >= 1", file=sys.stderr)
         return 2
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     if args.status:
@@ -131,15 +157,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out.mkdir(parents=True, exist_ok=True)
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
-                force=args.force, dry_run=args.dry_run)
+                force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs)
     r = Runner(args.dry_run, out / "commands.log")
     t0 = time.perf_counter()
-    for run_step in COMMAND_STEPS:
+    for run_step in (*COMMAND_STEPS, run_ablations, run_ablation_bench):
         run_step(plan, r)
     total = time.perf_counter() - t0
     if "report" in steps and not args.dry_run:
         # only the issue's scale replaces the committed report; a quick check keeps its report in its work folder
-        results = args.results or (ROOT / "docs" / "results.md" if args.scale == "full" else out / "results.md")
+        full = args.scale in ("full", "recipe")
+        results = args.results or (ROOT / "docs" / "results.md" if full else out / "results.md")
         write_report(results, out, plan.res, args.scale, sc, notes=args.note)
         print(f"wrote {results}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")

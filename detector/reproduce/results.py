@@ -17,6 +17,8 @@ from pathlib import Path
 #: The eval step's second output per model (``results/eval_<model>/``): ``detector eval --protocol open3d-ml --json``.
 OPEN3D_ML_JSON = "open3d_ml.json"
 MODELS = ("dense", "sparse")
+#: The paper's ablation backbones (section V-B), both Sparse+WideConv variants: the opt-in ablations step trains them.
+ABLATIONS = ("sparse1_dense23", "sparse12_dense3", "sparse_wide", "sparse_wide_down")
 
 
 def read_text(path: Path) -> str | None:
@@ -97,11 +99,11 @@ class EvalOutputs:
     open3d_ml: Mapping[str, Open3dMlMetrics]
 
 
-def read_eval_outputs(res: Path) -> EvalOutputs:
-    """The eval step's outputs under results folder ``res`` (``eval_<model>/``)."""
-    kitti = {m: KittiMetrics.from_json(d) for m in MODELS if (d := _read_json(res / f"eval_{m}" / "metrics.json"))
+def read_eval_outputs(res: Path, models: tuple[str, ...] = MODELS) -> EvalOutputs:
+    """The eval outputs of ``models`` under results folder ``res`` (``eval_<model>/``)."""
+    kitti = {m: KittiMetrics.from_json(d) for m in models if (d := _read_json(res / f"eval_{m}" / "metrics.json"))
              is not None}
-    o3d = {m: Open3dMlMetrics.from_json(d) for m in MODELS if (d := _read_json(res / f"eval_{m}" / OPEN3D_ML_JSON))
+    o3d = {m: Open3dMlMetrics.from_json(d) for m in models if (d := _read_json(res / f"eval_{m}" / OPEN3D_ML_JSON))
            is not None}
     return EvalOutputs(kitti=kitti, open3d_ml=o3d)
 
@@ -150,6 +152,91 @@ def read_bench(path: Path) -> BenchOutput | None:
     """A bench JSON (None when the bench step did not write it)."""
     d = _read_json(path)
     return None if d is None else BenchOutput.from_json(d)
+
+
+def bench_weights(path: Path) -> tuple[str, ...]:
+    """The ``weights`` line of each model of a bench JSON, in its order (empty when there is no file)."""
+    d = _read_json(path)
+    return tuple(m["weights"] for m in d["models"]) if d else ()
+
+
+# --- tools/bench_reference_head.py --json (bench_reference_head.json) -------------------------------------------------
+@dataclass(frozen=True)
+class ReferenceHeadBench:
+    """Each model's mean ms per frame by component (``head``, ``total``, ``head_reference``,
+    ``total_reference_head``, ...), by name in the file's order, and the CPU and torch threads it ran on."""
+
+    mean_ms: Mapping[str, Mapping[str, float]]
+    cpu: str = ""
+    threads: int | None = None
+
+    @classmethod
+    def from_json(cls, d: dict) -> ReferenceHeadBench:
+        mach = d.get("machine") or {}
+        return cls(mean_ms={m["name"]: dict(m["mean_ms"]) for m in d["models"]}, cpu=mach.get("cpu", ""),
+                   threads=mach.get("torch_threads"))
+
+    def ratio(self, numerator: str, denominator: str, key: str) -> float | None:
+        """``numerator``'s ``key`` ms over ``denominator``'s (None when either model is absent)."""
+        if numerator not in self.mean_ms or denominator not in self.mean_ms:
+            return None
+        return self.mean_ms[numerator][key] / max(self.mean_ms[denominator][key], 1e-9)
+
+
+def read_reference_head(path: Path) -> ReferenceHeadBench | None:
+    """The refhead step's JSON (None when absent)."""
+    d = _read_json(path)
+    return None if d is None else ReferenceHeadBench.from_json(d)
+
+
+# --- tools/bench_density.py --json (density_curve.json) ---------------------------------------------------------------
+@dataclass(frozen=True)
+class CurvePoint:
+    """One density of the curve: D, pillars, both backbones' median ms, their ratio and the op-count ratio (dense
+    MACs / sparse exact MACs); ``frame_id`` for a real frame (None: synthetic sites)."""
+
+    density: float
+    pillars: float
+    dense_ms: float
+    sparse_ms: float
+    runtime_ratio: float
+    op_ratio: float
+    frame_id: str | None = None
+
+    @classmethod
+    def from_json(cls, d: dict) -> CurvePoint:
+        return cls(density=d["density"], pillars=d["pillars"], dense_ms=d["dense_ms"], sparse_ms=d["sparse_ms"],
+                   runtime_ratio=d["runtime_ratio"], op_ratio=d["op_ratio"], frame_id=d.get("frame_id"))
+
+
+@dataclass(frozen=True)
+class DensityCurve:
+    """The density curve: its synthetic points, the real frames, the two crossings (D or None: ``ratio_one``,
+    ``meets_ops``, ``ratio_one_extrapolated``), the canvas (ny, nx), how the sites were made, the weights, the CPU."""
+
+    points: tuple[CurvePoint, ...]
+    real: tuple[CurvePoint, ...]
+    crossings: Mapping[str, float | None]
+    output_shape: tuple[int, ...]
+    sites: str
+    weights: str
+    cpu: str
+    threads: int | None
+
+    @classmethod
+    def from_json(cls, d: dict) -> DensityCurve:
+        mach = d.get("machine") or {}
+        return cls(points=tuple(CurvePoint.from_json(p) for p in d["points"]),
+                   real=tuple(CurvePoint.from_json(p) for p in d.get("real") or ()),
+                   crossings=dict(d.get("crossings") or {}), output_shape=tuple(d["geometry"]["output_shape"]),
+                   sites=d.get("sites", ""), weights=(d.get("protocol") or {}).get("weights", ""),
+                   cpu=mach.get("cpu", ""), threads=mach.get("torch_threads"))
+
+
+def read_density_curve(path: Path) -> DensityCurve | None:
+    """The curve step's JSON (None when absent)."""
+    d = _read_json(path)
+    return None if d is None else DensityCurve.from_json(d)
 
 
 # --- mpchair stats --density --json (density.json) --------------------------------------------------------------------

@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from detector.reproduce.results import MODELS, read_run_config, step_records
+from detector.reproduce.results import ABLATIONS, MODELS, read_run_config, step_records
 from detector.reproduce.steps import step_outputs
 from detector.reproduce.training import trained_schedules
 
@@ -20,7 +20,7 @@ def train_status(out: Path, model: str) -> str:
     run = out / "runs" / model
     if (run / "done").exists():
         return f"{model}: trained"
-    schedule = trained_schedules(out)[model]  # (epochs, samples per epoch) of the run's config
+    schedule = trained_schedules(out, (model,))[model]  # (epochs, samples per epoch) of the run's config
     steps = step_records(run)
     if schedule is None or not steps:
         return f"{model}: not started"
@@ -54,4 +54,6 @@ def status_lines(out: Path, others: dict[str, Path] | None = None) -> list[str]:
         lines.append(f"  {step:<9} {'done' if have == len(paths) else f'{have} of {len(paths)} outputs'}")
         if step == "train":
             lines += [f"    {train_status(out, m)}" for m in MODELS]
+        if step == "ablations":
+            lines += [f"    {train_status(out, a)}" for a in ABLATIONS]
     return lines

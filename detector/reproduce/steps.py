@@ -7,16 +7,20 @@ A step whose outputs exist is skipped unless ``force``; paths are those of the w
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from detector.reproduce import deploy
-from detector.reproduce.results import MODELS, OPEN3D_ML_JSON, read_run_config
+from detector.reproduce.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
 from detector.reproduce.scales import Scale, model_epochs
 from mpchair.core.atomic import write_text
 
-STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "ops", "viz", "deploy", "report")
+STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "deploy",
+         "ablation-bench", "report")
+#: Steps that run only when asked for (``--steps``): the ablations' trainings (``make reproduce-ablations``).
+OPT_IN_STEPS = ("ablations",)
 #: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).
 CONFIGS = ROOT / "configs" / "models"
 
@@ -42,7 +46,21 @@ def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
         "ops": {"ops": res / "ops.json"},
         "viz": {"panel": res / "viz" / "panel.png"},
         "deploy": deploy.deploy_outputs(res),
+        **extra_step_outputs(out),
     }
+
+
+def extra_step_outputs(out: Path, ablations: tuple[str, ...] = ABLATIONS) -> dict[str, dict[str, Path]]:
+    """The outputs of the steps issue 30 added: the reference-head bench, the density curve, the ablations' benches
+    (``ablation-bench``) and their trainings and evals (``ablations``, of ``ablations``)."""
+    res, runs = out / "results", out / "runs"
+    trained = {f"{a} train": runs / a / "done" for a in ablations}
+    evals = {f"{a} {protocol}": res / f"eval_{a}" / name for a in ablations
+             for protocol, name in (("kitti", "metrics.json"), ("open3d-ml", OPEN3D_ML_JSON))}
+    return {"refhead": {"bench": res / "bench_reference_head.json"},
+            "curve": {"curve": res / "density_curve.json", "plot": res / "density_curve.png"},
+            "ablation-bench": {g: res / f"bench_ablations_{g}.json" for g in ("kitti", "mpchair")},
+            "ablations": {**trained, **evals}}
 
 
 @dataclass(frozen=True)
@@ -58,6 +76,9 @@ class Plan:
     seed: int = 0
     force: bool = False
     dry_run: bool = False
+    #: the opt-in ablations step: which ablations to train, and their epochs (None: the sparse model's)
+    ablations: tuple[str, ...] = ABLATIONS
+    ablation_epochs: int | None = None
 
     @property
     def houses(self) -> Path:
@@ -133,16 +154,20 @@ def run_stats(plan: Plan, r: Runner) -> None:
         r.run([*cmd, "--json"], stdout=density)
 
 
-def train_command(plan: Plan, model: str) -> list[str]:
-    """``detector train`` of one model's CPU config: the scale's epochs and precision, ``--resume`` for a cut run
-    (in the precision it started with: a session on another CPU may resolve ``auto`` to the other one, and detector
-    train refuses a changed config)."""
+def train_command(plan: Plan, model: str, config: Path | None = None, epochs: int | None = None) -> list[str]:
+    """``detector train`` of one model's CPU config (``config``, default ``mpchair_<model>_cpu.yaml``) into
+    ``runs/<model>``: the scale's epochs (or ``epochs``) and precision, ``--resume`` for a cut run (in the precision
+    it started with: a session on another CPU may resolve ``auto`` to the other one, and detector train refuses a
+    changed config)."""
     # no bars (they would fill a log), but detector train still prints its estimate and one line per epoch, which
     # pass through (the Runner leaves the child's stdout alone)
-    cmd = [_tool("detector"), "train", "--config", _config(f"mpchair_{model}_cpu"), "--data", str(plan.data),
+    config_path = str(config) if config is not None else _config(f"mpchair_{model}_cpu")
+    cmd = [_tool("detector"), "train", "--config", config_path, "--data", str(plan.data),
            "--out", str(plan.runs / model), *_threads(plan), "--no-progress"]
-    if plan.scale.epochs is not None:
-        cmd += ["--epochs", str(model_epochs(plan.scale.epochs)[model])]
+    if epochs is None and plan.scale.epochs is not None:
+        epochs = model_epochs(plan.scale.epochs)[model]
+    if epochs is not None:
+        cmd += ["--epochs", str(epochs)]
     precision = plan.scale.precision
     if (plan.runs / model / "last.pt").exists() and not plan.force:
         cmd.append("--resume")
@@ -174,16 +199,24 @@ def run_eval(plan: Plan, r: Runner) -> None:
     (Open3D-ML's mAP, as its reference computed it) on the same result files."""
     outputs = step_outputs(plan.out)["eval"]
     for m in MODELS:
-        ev = plan.res / f"eval_{m}"
-        kitti_ran = plan.todo("eval", outputs[f"{m} kitti"])
-        if kitti_ran:
-            r.run([_tool("detector"), "eval", "--config", _config(f"mpchair_{m}_cpu"), "--data", str(plan.data),
-                   "--checkpoint", str(plan.runs / m / "last.pt"), "--split", "val", "--out", str(ev),
-                   *_threads(plan)])
-        if kitti_ran or plan.todo("eval", outputs[f"{m} open3d-ml"]):
-            r.run([_tool("detector"), "eval", "--labels", str(plan.data / "training" / "label_2"), "--results",
-                   str(ev / "data"), "--split", str(plan.data / "ImageSets" / "val.txt"), "--classes", "Chair",
-                   "--protocol", "open3d-ml", "--json"], stdout=outputs[f"{m} open3d-ml"])
+        eval_model(plan, r, "eval", m, Path(_config(f"mpchair_{m}_cpu")), outputs[f"{m} kitti"],
+                   outputs[f"{m} open3d-ml"])
+
+
+def eval_model(plan: Plan, r: Runner, step: str, model: str, config: Path, kitti_out: Path, o3d_out: Path) -> None:
+    """``detector eval`` of ``runs/<model>/last.pt`` (experiment ``config``) on the val split into
+    ``results/eval_<model>/`` (``kitti_out``: its metrics.json), then the reference's metric on the same result
+    files (``o3d_out``), each unless step ``step`` finds its output."""
+    ev = plan.res / f"eval_{model}"
+    kitti_ran = plan.todo(step, kitti_out)
+    if kitti_ran:
+        r.run([_tool("detector"), "eval", "--config", str(config), "--data", str(plan.data),
+               "--checkpoint", str(plan.runs / model / "last.pt"), "--split", "val", "--out", str(ev),
+               *_threads(plan)])
+    if kitti_ran or plan.todo(step, o3d_out):
+        r.run([_tool("detector"), "eval", "--labels", str(plan.data / "training" / "label_2"), "--results",
+               str(ev / "data"), "--split", str(plan.data / "ImageSets" / "val.txt"), "--classes", "Chair",
+               "--protocol", "open3d-ml", "--json"], stdout=o3d_out)
 
 
 def peer_available(dry_run: bool) -> bool:
@@ -254,11 +287,59 @@ def run_viz(plan: Plan, r: Runner) -> None:
         r.run(cmd, stdout=plan.res / "viz.json")
 
 
+def reference_head_command(plan: Plan, json_out: Path) -> list[str]:
+    """``tools/bench_reference_head.py`` at 768 x 512: dense and sparse with our fused head and the reference's three
+    NCHW 1x1 convs, interleaved per frame (the trained weights once both exist)."""
+    cmd = [sys.executable, str(ROOT / "tools" / "bench_reference_head.py"), "--config", _config("mpchair_dense"),
+           "--config", _config("mpchair_sparse"), "--data", str(plan.data), "--split", "test", "--frames",
+           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json",
+           str(json_out)]
+    ckpts = _checkpoints(plan)
+    if all(Path(c).exists() for c in ckpts):
+        for c in ckpts:
+            cmd += ["--checkpoint", c]
+    return cmd
+
+
+def run_refhead(plan: Plan, r: Runner) -> None:
+    """The total-time ratio with the reference's head layout (allocator reuse), its table to
+    ``bench_reference_head.md``."""
+    json_out = step_outputs(plan.out)["refhead"]["bench"]
+    if plan.todo("refhead", json_out):
+        r.run(reference_head_command(plan, json_out), env=REUSE_ENV, stdout=json_out.with_suffix(".md"))
+
+
+def curve_command(plan: Plan, json_out: Path, png: Path) -> list[str]:
+    """``tools/bench_density.py``: the dense / sparse backbone ratio against D (clustered synthetic sites, random
+    weights) at 768 x 512, the test split's first real frames at their own D, the dataset's median D marked."""
+    sc = plan.scale
+    cmd = [sys.executable, str(ROOT / "tools" / "bench_density.py"), "--dense-config", _config("mpchair_dense"),
+           "--sparse-config", _config("mpchair_sparse"), "--frames", str(sc.curve_frames), "--trials",
+           str(sc.curve_trials), *_threads(plan), "--data", str(plan.data), "--split", "test", "--real-frames",
+           str(sc.curve_real_frames), "--json", str(json_out), "--plot", str(png)]
+    if sc.curve_densities:
+        cmd += ["--densities", ",".join(f"{d:g}" for d in sc.curve_densities)]
+    density = read_density(step_outputs(plan.out)["stats"]["density"])
+    median = density.values.get("median") if density else None
+    if median:
+        cmd += ["--mark", f"this dataset (median)={median:.5f}"]
+    return cmd
+
+
+def run_curve(plan: Plan, r: Runner) -> None:
+    """The density curve: its JSON, its PNG and its table (``density_curve.md``)."""
+    files = step_outputs(plan.out)["curve"]
+    if plan.todo("curve", *files.values()):
+        r.run(curve_command(plan, files["curve"], files["plot"]), env=REUSE_ENV,
+              stdout=files["curve"].with_suffix(".md"))
+
+
 def run_deploy(plan: Plan, r: Runner) -> None:
     """The trained models deployed in ONNX Runtime / OpenVINO: AP, runtime and CPU budget
     (:func:`detector.reproduce.deploy.run_deploy`)."""
     deploy.run_deploy(plan, r, _config)
 
 
-#: The steps before the report, in the order they run.
-COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_ops, run_viz, run_deploy)
+#: The steps before the report, in the order they run (the ablation steps: detector.reproduce.ablations).
+COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_refhead, run_ops, run_viz,
+                 run_curve, run_deploy)

@@ -3,9 +3,11 @@ samples per epoch), precision, and the seconds the reproduction and its training
 
 from __future__ import annotations
 
+import statistics
+from dataclasses import dataclass
 from pathlib import Path
 
-from detector.reproduce.results import MODELS, epoch_records, read_run_config
+from detector.reproduce.results import MODELS, epoch_records, read_run_config, step_records
 from detector.reproduce.runner import logged_commands
 from detector.reproduce.scales import SCALES, SPARSE_EPOCH_RATIO, Scale, epochs_text, model_epochs
 
@@ -21,12 +23,12 @@ def train_split_size(out: Path) -> int | None:
     return len(read_imageset(split)) if split.is_file() else None
 
 
-def trained_schedules(out: Path) -> Schedules:
+def trained_schedules(out: Path, models: tuple[str, ...] = MODELS) -> Schedules:
     """{model: (epochs, samples per epoch)} as each run of work folder ``out`` was trained (its config.yaml; an epoch
     without ``train.samples_per_epoch`` is one pass over the train split), None for a model not trained."""
     n_train = train_split_size(out)
     found: Schedules = {}
-    for m in MODELS:
+    for m in models:
         cfg = read_run_config(out / "runs" / m)
         spe = (cfg and cfg.samples_per_epoch) or n_train
         found[m] = (cfg.epochs, spe) if cfg and cfg.epochs and spe else None
@@ -42,13 +44,13 @@ def schedules_text(trained: Schedules, sc: Scale | None = None) -> str:
 
 def short_of_recipe(trained: Schedules, n_train: int | None) -> bool:
     """Whether a trained model saw fewer samples than the full recipe's epochs over the train split."""
-    recipe = model_epochs(SCALES["full"].epochs)
+    recipe = model_epochs(SCALES["recipe"].epochs)
     return bool(n_train) and any(v[0] * v[1] < recipe[m] * n_train for m, v in trained.items() if v)
 
 
 def schedule_why(trained: Schedules, n_train: int | None) -> str:
     """Why this run's schedule differs from the paper's, with the sparse/dense ratio of samples it actually had."""
-    full = model_epochs(SCALES["full"].epochs)
+    full = model_epochs(SCALES["recipe"].epochs)
     seen = {m: v[0] * v[1] for m, v in trained.items() if v}
     why = "CPU budget"
     if short_of_recipe(trained, n_train):
@@ -94,3 +96,25 @@ def elapsed_seconds(log: str, runs: Path) -> tuple[float, dict[str, float]]:
             logged[model] += seconds
     train = {m: max(t, epoch_seconds(runs / m)) for m, t in logged.items()}
     return total + sum(train.values()), train
+
+
+@dataclass(frozen=True)
+class TrainingTime:
+    """How long one run trained, from its metrics.jsonl: finished epochs, the median seconds of an epoch and of a
+    step, and the sum of its epochs' seconds (the whole run, resumed parts included)."""
+
+    epochs: int
+    epoch_s: float
+    step_s: float | None
+    total_s: float
+
+
+def training_time(run: Path) -> TrainingTime | None:
+    """The :class:`TrainingTime` of run folder ``run`` (None before its first finished epoch)."""
+    epochs = epoch_records(run)
+    if not epochs:
+        return None
+    steps = step_records(run)
+    return TrainingTime(epochs=len(epochs), epoch_s=statistics.median(e.time_s for e in epochs),
+                        step_s=statistics.median(s.time_s for s in steps) if steps else None,
+                        total_s=sum(e.time_s for e in epochs))

@@ -11,6 +11,10 @@ and warns once, naming the fix (``NUMBA_CACHE_DIR``).
 numba invalidates a cached kernel when *its own* source file changes, not when a kernel it calls from another file
 does; so a kernel must only call kernels from its own file (``detector/ops/iou.py`` holds every kernel of
 ``detector.ops`` for that reason).
+
+``@njit_cached(contract=True)`` lets LLVM fuse ``a * b + c`` into one fused multiply-add (numba's
+``fastmath={"contract"}``, no other fast-math licence): a kernel that must reproduce torch's CPU numbers, whose GEMM
+and BatchNorm kernels accumulate with FMA, needs it (``detector/models/pillar_net.py``).
 """
 
 from __future__ import annotations
@@ -26,11 +30,17 @@ F = TypeVar("F", bound=Callable[..., Any])
 _warned = False
 
 
-def njit_cached(fn: F) -> F:
-    """``numba.njit(cache=True)(fn)``, or ``numba.njit(fn)`` (with one warning per process) if nothing can be cached."""
+def njit_cached(fn: F | None = None, *, contract: bool = False) -> Any:
+    """``numba.njit(cache=True)(fn)``, or ``numba.njit(fn)`` (with one warning per process) if nothing can be cached.
+
+    Use bare (``@njit_cached``) or with ``contract=True`` (``@njit_cached(contract=True)``: FMA contraction allowed).
+    """
+    if fn is None:
+        return lambda f: njit_cached(f, contract=contract)
     global _warned
+    options = {"fastmath": {"contract"}} if contract else {}
     try:
-        return numba.njit(cache=True)(fn)
+        return numba.njit(cache=True, **options)(fn)
     except RuntimeError as e:
         if "no locator available" not in str(e):
             raise
@@ -43,4 +53,4 @@ def njit_cached(fn: F) -> F:
                 RuntimeWarning,
                 stacklevel=2,
             )
-        return numba.njit(fn)
+        return numba.njit(**options)(fn)

@@ -1,23 +1,28 @@
 """``make reproduce-stream``: the paper's open question measured — streaming AP of dense vs sparse PointPillars on a
-robot driving through the test houses, with latencies measured on this CPU (``docs/streaming.md``).
+robot driving through houses the models were not trained on, with latencies measured on this CPU at the paper's
+768 x 512 grid and the CPU-sized 288 x 144 one, under 2 and 1 torch threads (``docs/streaming.md``).
 
 Steps (each a list of exact ``mpchair`` / ``detector`` command lines, run as subprocesses and recorded):
 
+    houses    mpchair synth           held-out houses for the streams (a seed other than make reproduce's, checked
+                                      against its training dataset in the report); --houses streams given ones
     streams   mpchair stream          one stream per (speed, rate): the speeds at 10 Hz, the rates at 0.5 m/s (the
                                       headline stream, 0.5 m/s at 10 Hz, is shared)
-    measure   detector stream-eval    per model and stream: latency measured per processed frame (--latency-log),
-                                      2 torch threads, and the outputs (--save-results): of every frame on the
-                                      headline stream (for the offline AP), of the processed frames elsewhere
+    measure   detector stream-eval    per model and setting (grid x threads): latency measured per processed frame
+                                      (--latency-log) and the outputs (--save-results): on the headline stream
+                                      every setting, with one offline pass per grid (the offline AP); on the other
+                                      streams the headline setting (768 x 512, 2 threads)
     score     detector stream-eval    ego and raw from the saved outputs, replaying the measured latencies exactly
                                       (--results, --latency LOG); and the oracle (a perfect detector) at each
-                                      model's median latency on the headline stream: what the latency alone costs
-    report    docs/streaming.md       the results section between its markers: the table, the curves (PNG), the
-                                      speed at which sparse overtakes dense
+                                      measured median latency on the headline stream: what the latency alone costs
+    report    docs/streaming.md       the results section between its markers: the tables, the highest rate each
+                                      model keeps up with, the curves (PNG), the speed at which sparse overtakes dense
 
 A step whose outputs exist is skipped (``--force`` redoes it). ``--scale full`` (the default) replaces the results
 section of ``docs/streaming.md``; ``--scale small`` is a few-minute end-to-end check that writes
 ``<work folder>/streaming.md`` instead. The trained models default to ``make reproduce``'s
-(``out/reproduce-full/runs/{dense,sparse}/last.pt``), the houses to its synthetic houses.
+(``out/reproduce-full/runs/{dense,sparse}/last.pt``), and its dataset (``--dataset``) is what the streamed houses are
+checked against.
 """
 
 from __future__ import annotations
@@ -30,11 +35,24 @@ import time
 from pathlib import Path
 
 from detector.reproduce.runner import REUSE_ENV, ROOT, Runner
-from detector.reproduce.steps import CONFIGS, house_ids
-from detector.reproduce.stream.report import logged_text, plot_curves, results_section, write_section
-from detector.reproduce.stream.results import read_runs, stream_frames
+from detector.reproduce.steps import CONFIGS
+from detector.reproduce.stream.report import houses_text, logged_text, plot_curves, results_section, write_section
+from detector.reproduce.stream.results import check_houses, read_runs, stream_frames
 from detector.reproduce.stream.steps import COMMAND_STEPS, STEPS, StreamPlan
-from detector.reproduce.stream.sweep import MODELS, SCALES, Scale, sweep_points
+from detector.reproduce.stream.sweep import (
+    GRIDS,
+    HEADLINE,
+    MODELS,
+    SCALES,
+    THREADS,
+    Scale,
+    settings,
+    stream_dir,
+    sweep_points,
+)
+
+#: The seed of the held-out houses (make reproduce synthesizes its houses with its --seed, 0 by default).
+HELDOUT_SEED = 1000
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -42,20 +60,31 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", choices=sorted(SCALES), default="full")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/reproduce-stream-<scale>)")
-    p.add_argument("--houses", type=Path, default=ROOT / "out" / "reproduce-full" / "houses",
-                   help="houses root (default: make reproduce's synthetic houses)")
-    p.add_argument("--house", action="append", default=None, help="house id (repeatable; default: every house)")
+    p.add_argument("--houses", type=Path, default=None,
+                   help="stream these houses instead of synthesizing held-out ones (the report says whether the "
+                        "models were trained on them)")
+    p.add_argument("--house", action="append", default=None, help="house id of --houses (repeatable; default: all)")
+    p.add_argument("--heldout-seed", type=int, default=HELDOUT_SEED,
+                   help=f"mpchair synth seed of the held-out houses (default {HELDOUT_SEED}; make reproduce's "
+                        "houses use its --seed, 0)")
+    p.add_argument("--dataset", type=Path, default=ROOT / "out" / "reproduce-full" / "dataset",
+                   help="the models' training dataset, to check that the streamed houses are not in it")
     for m in MODELS:
-        p.add_argument(f"--{m}-config", type=Path, default=CONFIGS / f"mpchair_{m}_cpu.yaml")
         p.add_argument(f"--{m}-checkpoint", type=Path, default=ROOT / "out" / "reproduce-full" / "runs" / m / "last.pt")
+    p.add_argument("--grids", default=",".join(GRIDS),
+                   help="pseudo-image grids to measure at (the first is the headline's and the sweep's)")
+    p.add_argument("--threads", default=",".join(map(str, THREADS)),
+                   help="torch thread budgets to measure under (the first is the sweep's)")
     p.add_argument("--speeds", default="0.25,0.5,1.0", help="robot speeds of the speed sweep, m/s (at 10 Hz)")
     p.add_argument("--rates", default="5,10,20", help="sensor rates of the rate sweep, Hz (at 0.5 m/s)")
+    p.add_argument("--heldout-houses", type=int, default=None, help="held-out houses instead of the scale's")
     p.add_argument("--episodes", type=int, default=None, help="episodes per house instead of the scale's")
     p.add_argument("--duration", type=float, default=None, help="episode cap, seconds, instead of the scale's")
     p.add_argument("--repeats", type=int, default=None,
-                   help="measured latency: median of this many runs per processed frame instead of the scale's "
-                        "(full: 2); 1 halves the measuring time")
-    p.add_argument("--threads", type=int, default=2, help="torch threads of the measured detectors")
+                   help="measured latency on the headline stream: median of this many runs per processed frame "
+                        "instead of the scale's (full: 3)")
+    p.add_argument("--sweep-repeats", type=int, default=None,
+                   help="the same on the sweep's other streams (full: 1)")
     p.add_argument("--allocator", choices=["reuse", "default"], default="reuse",
                    help="glibc allocator setting while measuring (docs/benchmarks.md; reuse = what a deployment sets)")
     p.add_argument("--workers", type=int, default=2, help="mpchair stream worker processes")
@@ -74,13 +103,13 @@ def _floats(text: str) -> list[float]:
 
 
 def _plan(args: argparse.Namespace, sc: Scale, steps: list[str], out: Path) -> StreamPlan:
-    """The invocation's plan: the scale's houses of the houses root (or ``--house``), the sweep, the models."""
-    houses = args.house or house_ids(args.houses) or [f"<house ids from {args.houses}>"]
-    houses = houses[: sc.houses] if sc.houses else houses
-    return StreamPlan(out=out, scale=sc, steps=tuple(steps), houses_root=args.houses, houses=tuple(houses),
-                      configs={m: getattr(args, f"{m}_config") for m in MODELS},
-                      checkpoints={m: getattr(args, f"{m}_checkpoint") for m in MODELS},
-                      points=tuple(sweep_points(_floats(args.speeds), _floats(args.rates))), threads=args.threads,
+    """The invocation's plan: the held-out houses (or ``--houses``), the sweep, the settings, the models."""
+    given = args.houses is not None
+    return StreamPlan(out=out, scale=sc, steps=tuple(steps), houses_root=args.houses if given else out / "houses",
+                      houses=tuple(args.house or ()), heldout_seed=None if given else args.heldout_seed,
+                      configs=CONFIGS, checkpoints={m: getattr(args, f"{m}_checkpoint") for m in MODELS},
+                      points=tuple(sweep_points(_floats(args.speeds), _floats(args.rates))),
+                      settings=tuple(settings(args.grids.split(","), [int(t) for t in args.threads.split(",")])),
                       env=REUSE_ENV if args.allocator == "reuse" else {}, workers=args.workers, seed=args.seed,
                       force=args.force, dry_run=args.dry_run)
 
@@ -88,20 +117,47 @@ def _plan(args: argparse.Namespace, sc: Scale, steps: list[str], out: Path) -> S
 def _report(args: argparse.Namespace, plan: StreamPlan) -> Path:
     """Write the results section of the report (docs/streaming.md for the full scale) and its curves; its path."""
     speeds, rates = _floats(args.speeds), _floats(args.rates)
-    runs = read_runs(plan.out, list(plan.points))
+    runs = read_runs(plan.out, list(plan.points), list(plan.settings))
     doc = args.docs or (ROOT / "docs" / "streaming.md" if args.scale == "full" else plan.out / "streaming.md")
     img_dir = doc.parent / "img" / ("streaming" if args.scale == "full" else "streaming-" + args.scale)
-    figures = plot_curves(runs, speeds, rates, img_dir)
+    figures = plot_curves(runs, plan.settings[0], speeds, rates, img_dir)
     rel = {k: os.path.relpath(v, doc.parent) for k, v in figures.items()}
     frames = stream_frames(plan.out, list(plan.points))
     sc = plan.scale
-    note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(plan.houses)} house(s) x "
-            f"{sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
+    check = check_houses(stream_dir(plan.out, *HEADLINE), args.dataset)
+    note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(check.streamed) if check else 0} "
+            f"house(s) x {sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
             + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {logged_text(plan.out / 'commands.log')}; "
-            "latencies are this machine's under its load at the time, see the machine line)."
-            + "".join(" " + n.strip() for n in args.note))
-    write_section(doc, results_section(runs, speeds, rates, rel, note))
+            "latencies are this machine's under its load at the time, see the machine line). "
+            f"Models: {_relative(plan.checkpoints['dense'])} and {_relative(plan.checkpoints['sparse'])}, loaded "
+            "into each grid's model (conv weights do not depend on the grid)."
+            + "".join(" " + n.strip() for n in args.note) + "\n\n" + houses_text(check, plan.heldout_seed))
+    write_section(doc, results_section(runs, list(plan.settings), speeds, rates, rel, note))
     return doc
+
+
+def _relative(path: Path) -> str:
+    """``path`` relative to the checkout when it lies in it (the report reads the same on every machine)."""
+    path = path.resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def _check_args(args: argparse.Namespace) -> str | None:
+    """The error line of bad options (None when they are fine)."""
+    try:
+        threads = [int(t) for t in args.threads.split(",")]
+        _floats(args.speeds), _floats(args.rates)
+    except ValueError:
+        return "--threads, --speeds and --rates take comma-separated numbers"
+    grids = args.grids.split(",")
+    if not grids or [g for g in grids if g not in GRIDS]:
+        return f"--grids takes a comma-separated subset of {','.join(GRIDS)}"
+    if not threads or min(threads) < 1:
+        return "--threads must be >= 1"
+    for name in ("repeats", "sweep_repeats", "heldout_houses", "episodes"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            return f"--{name.replace('_', '-')} must be >= 1"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,12 +168,14 @@ def main(argv: list[str] | None = None) -> int:
     if [s for s in steps if s not in STEPS]:
         print(f"error: unknown step(s) in {args.steps!r}; choose from {list(STEPS)}", file=sys.stderr)
         return 2
-    sc = SCALES[args.scale]
-    sc = dataclasses.replace(sc, episodes=args.episodes or sc.episodes, duration=args.duration or sc.duration,
-                             repeats=sc.repeats if args.repeats is None else args.repeats)
-    if sc.repeats < 1:
-        print("error: --repeats must be >= 1", file=sys.stderr)
+    bad = _check_args(args)
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
+    sc = SCALES[args.scale]
+    overrides = {k: getattr(args, k) for k in ("heldout_houses", "episodes", "duration", "repeats", "sweep_repeats")
+                 if getattr(args, k) is not None}
+    sc = dataclasses.replace(sc, **overrides)
     out = (args.out or ROOT / "out" / f"reproduce-stream-{args.scale}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     r = Runner(args.dry_run, out / "commands.log")

@@ -1,18 +1,22 @@
-"""The results section of ``docs/streaming.md`` (between its markers): the headline table of both models and of the
-oracle at each model's latency, the machine line, sAP against speed and rate (tables and PNG curves), and the speed at
-which sparse overtakes dense. AP in percent (R40, Chair, IoU 0.5), times in ms."""
+"""The results section of ``docs/streaming.md`` (between its markers): the headline table of both models under every
+setting (grid x thread budget) and of the oracle at each measured latency, the highest sensor rate each model keeps up
+with, the machine line, sAP against speed and rate under the headline setting (tables and PNG curves), and the speed
+at which sparse overtakes dense. AP in percent (R40, Chair, IoU 0.5), times in ms."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from detector.reproduce.runner import logged_commands
-from detector.reproduce.stream.results import RunKey, StreamSummary
-from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES
+from detector.reproduce.stream.results import HouseCheck, RunKey, StreamSummary
+from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting
 from mpchair.core.atomic import atomic_open, write_text
 
 BEGIN, END = "<!-- reproduce-stream results: begin -->", "<!-- reproduce-stream results: end -->"
 Runs = dict[RunKey, StreamSummary]
+#: The paper's conclusion this page tests: Sparse PointPillars at 1 Hz on the robot's 4-core CPU (236.7 ms per frame,
+#: Table II) "with more than 75 % of the CPU left".
+PAPER_ROBOT_SPARSE_MS, PAPER_ROBOT_CORES = 236.737, 4
 
 
 def crossover(xs: list[float], dense: list[float], sparse: list[float]) -> float | None:
@@ -27,6 +31,12 @@ def crossover(xs: list[float], dense: list[float], sparse: list[float]) -> float
     return None
 
 
+def keeps_up_hz(p95_ms: float | None) -> float | None:
+    """The highest sensor rate (Hz) at which a detector of this p95 latency keeps up: 95 % of its frames finish
+    within one sensor period, so the one worker takes (nearly) every frame, one frame stale."""
+    return None if not p95_ms else 1000.0 / p95_ms
+
+
 def _f(x: float | None, nd: int = 1) -> str:
     return "n/a" if x is None else f"{x:.{nd}f}"
 
@@ -37,32 +47,97 @@ def logged_text(log: Path) -> str:
     return f"{len(cmds)} commands in commands.log, {sum(s for s, _ in cmds) / 60:.1f} min in all"
 
 
-def _row(label: str, raw: StreamSummary, ego: StreamSummary, latency: str) -> str:
+def houses_text(check: HouseCheck | None, heldout_seed: int | None) -> str:
+    """Which houses the streams drive through and whether the models were trained on any of them."""
+    if check is None:
+        return "Houses: not streamed yet."
+    made = (f"held-out houses made for these streams (`mpchair synth --seed {heldout_seed}`)"
+            if heldout_seed is not None else "the houses given with --houses")
+    said = f"Houses ({len(check.streamed)}): {made}: {', '.join(check.streamed)}"
+    if check.dataset is None:
+        return said + ("; the training dataset's manifest.json (--dataset) was not found, so whether the models saw "
+                       "them is not checked.")
+    if check.overlap:
+        return (said + f". **Not held out:** {', '.join(check.overlap)} also gave the models' train / val frames "
+                f"({check.dataset.name}), so these streams are not on unseen houses.")
+    return (said + f"; none of them (by id or by file checksums) is among the {len(check.trained)} houses of the "
+            "training dataset's train and val frames, so the models never saw them.")
+
+
+def _row(label: str, setting: Setting, raw: StreamSummary, ego: StreamSummary, offline: StreamSummary | None,
+         latency: str) -> str:
     """A headline table row: offline AP, sAP raw and ego (3D / BEV), ``latency``, staleness, frames processed."""
     st, sf = ego.staleness_ms, ego.staleness_frames
-    return (f"| {label} | {_f(ego.ap(offline=True), 2)} / {_f(ego.ap('bev', offline=True), 2)} "
+    off = offline or ego
+    return (f"| {label} | {setting.text} | {_f(off.ap(offline=True), 2)} / {_f(off.ap('bev', offline=True), 2)} "
             f"| {_f(raw.ap(), 2)} / {_f(raw.ap('bev'), 2)} "
             f"| {_f(ego.ap(), 2)} / {_f(ego.ap('bev'), 2)} "
             f"| {latency} | {_f(st.mean)} / {_f(st.p95)} "
             f"| {_f(sf.mean, 2)} / {_f(sf.p95, 2)} | {100 * ego.frames_processed:.1f} % |")
 
 
-def _headline_rows(runs: Runs) -> list[str]:
-    """Both models on the headline stream, then the oracle at each model's latency (what that latency alone costs a
-    perfect detector: the upper bound of the model's sAP)."""
+def _offline_runs(runs: Runs, settings: list[Setting]) -> dict[tuple[str, str], StreamSummary]:
+    """{(model, grid): the headline-stream summary with an offline AP} (threads do not change a model's outputs, so
+    a grid's offline pass serves every thread budget)."""
+    found = {}
+    for s in settings:
+        for m in MODELS:
+            ego = runs.get((m, *HEADLINE, s.name, "ego"))
+            if ego is not None and ego.offline_ap is not None and (m, s.grid) not in found:
+                found[(m, s.grid)] = ego
+    return found
+
+
+def _headline_rows(runs: Runs, settings: list[Setting]) -> list[str]:
+    """Both models on the headline stream under every setting, then the oracle at each measured latency (what that
+    latency alone costs a perfect detector: the upper bound of the model's sAP)."""
     v0, f0 = HEADLINE
+    offline = _offline_runs(runs, settings)
     lines = []
-    for m in MODELS:
-        raw, ego = runs.get((m, v0, f0, "raw")), runs.get((m, v0, f0, "ego"))
-        if raw is None or ego is None:
-            lines.append(f"| {m} | not measured | | | | | | |")
-            continue
-        lines.append(_row(m, raw, ego, f"{_f(ego.latency_ms.median)} / {_f(ego.latency_ms.p95)}"))
-    for m in MODELS:
-        raw, ego = runs.get((f"oracle@{m}", v0, f0, "raw")), runs.get((f"oracle@{m}", v0, f0, "ego"))
-        if raw is not None and ego is not None:
-            lines.append(_row(f"oracle at {m}'s latency", raw, ego, f"{_f(ego.latency_ms.median)} (constant)"))
+    for s in settings:
+        for m in MODELS:
+            raw, ego = runs.get((m, v0, f0, s.name, "raw")), runs.get((m, v0, f0, s.name, "ego"))
+            if raw is None or ego is None:
+                lines.append(f"| {m} | {s.text} | not measured | | | | | | |")
+                continue
+            lines.append(_row(m, s, raw, ego, offline.get((m, s.grid)),
+                              f"{_f(ego.latency_ms.median)} / {_f(ego.latency_ms.p95)}"))
+    for s in settings:
+        for m in MODELS:
+            raw, ego = (runs.get((f"oracle@{m}", v0, f0, s.name, mode)) for mode in MODES)
+            if raw is not None and ego is not None:
+                lines.append(_row(f"oracle at {m}'s latency", s, raw, ego, None,
+                                  f"{_f(ego.latency_ms.median)} (constant)"))
     return lines
+
+
+def _keep_up_lines(runs: Runs, settings: list[Setting]) -> list[str]:
+    """Per model and setting: its latency on the headline stream, the highest sensor rate it keeps up with, and the
+    share of its threads and of this machine's CPU it leaves idle at 1 Hz, the paper's 1 Hz claim beside."""
+    rows = []
+    for s in settings:
+        for m in MODELS:
+            ego = runs.get((m, *HEADLINE, s.name, "ego"))
+            if ego is None or ego.latency_ms.median is None:
+                continue
+            med, p95 = ego.latency_ms.median, ego.latency_ms.p95
+            cpus = ego.machine.logical_cpus if ego.machine else None
+            if med > 1000:  # slower than one frame a second: it cannot run at 1 Hz at all
+                busy, left = "all (slower than 1 Hz)", "none"
+            else:
+                busy = f"{100 * med / 1000:.0f} %"
+                left = "n/a" if not cpus else f"{100 * (1 - s.threads * med / 1000 / cpus):.0f} % of {cpus}"
+            rows.append(f"| {m} | {s.text} | {_f(med)} / {_f(p95)} | {_f(keeps_up_hz(p95))} | {busy} | {left} |")
+    if not rows:
+        return []
+    paper_left = 100 * (1 - PAPER_ROBOT_SPARSE_MS / 1000)
+    return ["", "Highest sensor rate each model keeps up with (1000 / p95 latency: 95 % of its frames finish within a "
+            "sensor period, so the one worker takes nearly every frame) and the CPU it leaves at 1 Hz:", "",
+            "| model | grid, threads | latency median / p95 (ms) | keeps up to (Hz) | its threads busy at 1 Hz | "
+            "CPU left at 1 Hz (logical CPUs) |", "|---|---|---|---|---|---|", *rows, "",
+            f"Paper: Sparse PointPillars takes {PAPER_ROBOT_SPARSE_MS} ms per frame on the robot's "
+            f"{PAPER_ROBOT_CORES}-core CPU (Table II), so at 1 Hz it keeps the CPU {paper_left:.0f} % idle "
+            "(\"1 Hz with more than 75 % of the CPU left\")."]
 
 
 def _machine_lines(runs: Runs) -> list[str]:
@@ -70,12 +145,16 @@ def _machine_lines(runs: Runs) -> list[str]:
     machine = next((r.machine for r in runs.values() if r.machine), None)
     if not machine:
         return []
-    repeats = next(r.repeats for r in runs.values() if r.repeats is not None)
-    return ["", f"Latency measured end to end per processed frame on {machine.cpu}, "
-            f"{machine.torch_threads} torch threads, torch {machine.torch}, allocator "
-            f"{machine.allocator}; median of {repeats} "
-            "runs after warm-up. GPU column: not measured — this machine has no GPU (`detector stream-eval "
-            "--device cuda` on one)."]
+
+    def repeats(headline: bool) -> str:
+        """The latency repeats of the runs on the headline stream (or on the others), "n/a" for none."""
+        found = {r.repeats for k, r in runs.items() if r.repeats is not None and (k[1:3] == HEADLINE) == headline}
+        return " / ".join(map(str, sorted(found))) or "n/a"
+
+    return ["", f"Latency measured end to end per processed frame on {machine.cpu}, torch {machine.torch}, allocator "
+            f"{machine.allocator}, at each row's thread budget; median of {repeats(True)} timed runs per frame on the "
+            f"headline stream, {repeats(False)} on the sweep's other streams, after warm-up. GPU column: not measured "
+            "— this machine has no GPU (`detector stream-eval --device cuda` on one)."]
 
 
 def _axis_point(axis: str, x: float) -> tuple[float, float]:
@@ -83,13 +162,13 @@ def _axis_point(axis: str, x: float) -> tuple[float, float]:
     return (x, HEADLINE[1]) if axis == "speed" else (HEADLINE[0], x)
 
 
-def _crossover_lines(runs: Runs, xs: list[float]) -> list[str]:
+def _crossover_lines(runs: Runs, xs: list[float], setting: Setting) -> list[str]:
     """Per mode, where sparse overtakes dense on the speed sweep (none when a point was not scored)."""
     lines = []
     for mode in MODES:
         try:
-            d = [runs[("dense", x, HEADLINE[1], mode)].ap() for x in xs]
-            s = [runs[("sparse", x, HEADLINE[1], mode)].ap() for x in xs]
+            d = [runs[("dense", x, HEADLINE[1], setting.name, mode)].ap() for x in xs]
+            s = [runs[("sparse", x, HEADLINE[1], setting.name, mode)].ap() for x in xs]
         except KeyError:
             continue
         c = crossover(xs, d, s)
@@ -105,39 +184,48 @@ def _crossover_lines(runs: Runs, xs: list[float]) -> list[str]:
     return lines
 
 
-def _sweep_lines(runs: Runs, axis: str, xs: list[float], figure: str | None) -> list[str]:
-    """sAP 3D R40 of both models and modes against ``axis`` (``speed`` at 10 Hz, ``rate`` at 0.5 m/s)."""
+def _sweep_lines(runs: Runs, axis: str, xs: list[float], setting: Setting, figure: str | None) -> list[str]:
+    """sAP 3D R40 of both models and modes against ``axis`` (``speed`` at 10 Hz, ``rate`` at 0.5 m/s) under
+    ``setting``, with the fraction of frames each model processed."""
     unit = "m/s" if axis == "speed" else "Hz"
     what = "robot speed (at 10 Hz)" if axis == "speed" else "sensor rate (at 0.5 m/s)"
-    lines = ["", f"sAP 3D R40 against {what}:", "",
-             f"| {axis} ({unit}) | " + " | ".join(f"{m} {mode}" for m in MODELS for mode in MODES) + " |",
-             "|---|" + "---|" * (len(MODELS) * len(MODES))]
+    lines = ["", f"sAP 3D R40 against {what}, {setting.text}:", "",
+             f"| {axis} ({unit}) | " + " | ".join(f"{m} {mode}" for m in MODELS for mode in MODES)
+             + " | frames processed dense / sparse |", "|---|" + "---|" * (len(MODELS) * len(MODES) + 1)]
     for x in xs:
-        keys = [(m, *_axis_point(axis, x), mode) for m in MODELS for mode in MODES]
-        lines.append(f"| {x:g} | " + " | ".join(_f(runs[k].ap(), 2) if k in runs else "n/a" for k in keys) + " |")
+        keys = [(m, *_axis_point(axis, x), setting.name, mode) for m in MODELS for mode in MODES]
+        done = [runs.get((m, *_axis_point(axis, x), setting.name, "ego")) for m in MODELS]
+        processed = " / ".join("n/a" if r is None else f"{100 * r.frames_processed:.0f} %" for r in done)
+        lines.append(f"| {x:g} | " + " | ".join(_f(runs[k].ap(), 2) if k in runs else "n/a" for k in keys)
+                     + f" | {processed} |")
     if axis == "speed":
-        lines += _crossover_lines(runs, xs)
+        lines += _crossover_lines(runs, xs, setting)
     if figure is not None:
         lines += ["", f"![sAP against {axis}]({figure})"]
     return lines
 
 
-def results_section(runs: Runs, speeds: list[float], rates: list[float], figures: dict[str, str], note: str) -> str:
-    """The markdown between the markers: ``runs[(model, speed, rate, mode)]`` = stream-eval summaries; ``figures``:
-    the curves' paths relative to the page, by axis; ``note``: the opening line."""
+def results_section(runs: Runs, settings: list[Setting], speeds: list[float], rates: list[float],
+                    figures: dict[str, str], note: str) -> str:
+    """The markdown between the markers: ``runs[(model, speed, rate, setting name, mode)]`` = stream-eval summaries;
+    ``settings``: headline first; ``figures``: the curves' paths relative to the page, by axis; ``note``: the opening
+    lines."""
     v0, f0 = HEADLINE
-    lines = [note, "", f"Headline: {v0:g} m/s, {f0:g} Hz (Chair, AP R40 in percent over every labelled chair, "
-             "IoU 0.5; sAP = streaming AP):", "",
-             "| model | offline AP 3D / BEV | sAP raw 3D / BEV | sAP ego 3D / BEV | latency median / p95 (ms) | "
-             "staleness mean / p95 (ms) | staleness mean / p95 (frames) | frames processed |",
-             "|---|---|---|---|---|---|---|---|", *_headline_rows(runs), *_machine_lines(runs)]
+    lines = [note, "", f"Headline stream: {v0:g} m/s, {f0:g} Hz, every setting (Chair, AP R40 in percent over every "
+             "labelled chair, IoU 0.5; sAP = streaming AP; the offline AP is each grid's, whatever the threads):", "",
+             "| model | grid, threads | offline AP 3D / BEV | sAP raw 3D / BEV | sAP ego 3D / BEV | latency median / "
+             "p95 (ms) | staleness mean / p95 (ms) | staleness mean / p95 (frames) | frames processed |",
+             "|---|---|---|---|---|---|---|---|---|", *_headline_rows(runs, settings),
+             *_keep_up_lines(runs, settings), *_machine_lines(runs)]
     for axis, xs in (("speed", speeds), ("rate", rates)):
-        lines += _sweep_lines(runs, axis, xs, figures.get(axis))
+        lines += _sweep_lines(runs, axis, xs, settings[0], figures.get(axis))
     return "\n".join(lines) + "\n"
 
 
-def plot_curves(runs: Runs, speeds: list[float], rates: list[float], out_dir: Path) -> dict[str, Path]:
-    """``{"speed": png, "rate": png}``: sAP 3D R40 of both models, raw and ego, against speed and rate."""
+def plot_curves(runs: Runs, setting: Setting, speeds: list[float], rates: list[float],
+                out_dir: Path) -> dict[str, Path]:
+    """``{"speed": png, "rate": png}``: sAP 3D R40 of both models, raw and ego, against speed and rate under
+    ``setting``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -148,7 +236,7 @@ def plot_curves(runs: Runs, speeds: list[float], rates: list[float], out_dir: Pa
         fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=110)
         for m, color in zip(MODELS, ("tab:red", "tab:blue")):
             for mode, style in zip(MODES, ("--", "-")):
-                keys = [(x, (m, *_axis_point(axis, x), mode)) for x in xs]
+                keys = [(x, (m, *_axis_point(axis, x), setting.name, mode)) for x in xs]
                 pts = [(x, runs[k].ap()) for x, k in keys if k in runs]
                 if pts:
                     ax.plot(*zip(*pts), style, marker="o", color=color, label=f"{m} {mode}")
@@ -157,7 +245,8 @@ def plot_curves(runs: Runs, speeds: list[float], rates: list[float], out_dir: Pa
         ax.set_xticks(xs)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-        ax.set_title(f"streaming AP vs {axis} ({'10 Hz' if axis == 'speed' else '0.5 m/s'})", fontsize=10)
+        ax.set_title(f"streaming AP vs {axis} ({'10 Hz' if axis == 'speed' else '0.5 m/s'}; {setting.text})",
+                     fontsize=10)
         fig.tight_layout()
         paths[axis] = out_dir / f"stream-sap-vs-{axis}.png"
         with atomic_open(paths[axis], "wb") as f:

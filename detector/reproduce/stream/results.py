@@ -9,10 +9,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, eval_dir, stream_dir, stream_name
+from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting, eval_dir, stream_dir, stream_name
 
-#: (model or ``oracle@<model>``, speed m/s, rate Hz, mode ``raw`` / ``ego``) of one scored run.
-RunKey = tuple[str, float, float, str]
+#: (model or ``oracle@<model>``, speed m/s, rate Hz, setting name, mode ``raw`` / ``ego``) of one scored run.
+RunKey = tuple[str, float, float, str, str]
 
 
 @dataclass(frozen=True)
@@ -23,10 +23,12 @@ class Machine:
     torch_threads: int
     torch: str
     allocator: str
+    logical_cpus: int | None = None
 
     @classmethod
     def from_json(cls, d: dict) -> Machine:
-        return cls(cpu=d["cpu"], torch_threads=d["torch_threads"], torch=d["torch"], allocator=d["allocator"])
+        return cls(cpu=d["cpu"], torch_threads=d["torch_threads"], torch=d["torch"], allocator=d["allocator"],
+                   logical_cpus=d.get("logical_cpus"))
 
 
 @dataclass(frozen=True)
@@ -91,24 +93,33 @@ def read_summary(path: Path, machine: dict | None = None) -> StreamSummary | Non
     return None if d is None else StreamSummary.from_json(d, machine)
 
 
-def read_runs(out: Path, points: list[tuple[float, float]]) -> dict[RunKey, StreamSummary]:
-    """Every scored run of work folder ``out``: each model on each point's stream in each mode (with the machine its
-    latencies were measured on), then the oracle at each model's latency on the headline stream (``oracle@<model>``)."""
+def read_runs(out: Path, points: list[tuple[float, float]], settings: list[Setting]) -> dict[RunKey, StreamSummary]:
+    """Every scored run of work folder ``out``: each model on each point's stream under each setting in each mode
+    (with the machine its latencies were measured on), then the oracle at each model's latency under each setting on
+    the headline stream (``oracle@<model>``)."""
     runs: dict[RunKey, StreamSummary] = {}
     for v, f in points:
+        for s in settings:
+            for m in MODELS:
+                ev = eval_dir(out, v, f, s, m)
+                measured = _read_json(ev / "measure.json")
+                for mode in MODES:
+                    summary = read_summary(ev / f"{mode}.json", (measured or {}).get("machine"))
+                    if summary is not None:
+                        runs[(m, v, f, s.name, mode)] = summary
+    for s in settings:
         for m in MODELS:
-            ev = eval_dir(out, v, f, m)
-            measured = _read_json(ev / "measure.json")
             for mode in MODES:
-                summary = read_summary(ev / f"{mode}.json", (measured or {}).get("machine"))
+                summary = read_summary(eval_dir(out, *HEADLINE, s, f"oracle-at-{m}") / f"{mode}.json")
                 if summary is not None:
-                    runs[(m, v, f, mode)] = summary
-    for m in MODELS:
-        for mode in MODES:
-            summary = read_summary(eval_dir(out, *HEADLINE, f"oracle-at-{m}") / f"{mode}.json")
-            if summary is not None:
-                runs[(f"oracle@{m}", *HEADLINE, mode)] = summary
+                    runs[(f"oracle@{m}", *HEADLINE, s.name, mode)] = summary
     return runs
+
+
+def read_measure(out: Path, setting: Setting, model: str) -> StreamSummary | None:
+    """The measuring run's own summary of ``model`` under ``setting`` on the headline stream (its latencies, the
+    offline AP where it ran the offline pass), None when absent."""
+    return read_summary(eval_dir(out, *HEADLINE, setting, model) / "measure.json")
 
 
 def stream_frames(out: Path, points: list[tuple[float, float]]) -> dict[str, int]:
@@ -119,3 +130,51 @@ def stream_frames(out: Path, points: list[tuple[float, float]]) -> dict[str, int
         if meta is not None:
             found[stream_name(v, f)] = meta["totals"]["frames"]
     return found
+
+
+# --- which houses the streams drive through, and whether the models were trained on them ------------------------------
+@dataclass(frozen=True)
+class HouseCheck:
+    """The streamed houses (ids, from the headline stream's stream.json) against a training dataset: its houses with a
+    train or val frame (``trained``), which streamed houses share an id or every file's checksum with one of them
+    (``overlap``), and the dataset folder (None: not found, nothing checked)."""
+
+    streamed: tuple[str, ...]
+    trained: tuple[str, ...]
+    overlap: tuple[str, ...]
+    dataset: Path | None
+
+
+def trained_houses(dataset: Path) -> dict[str, dict[str, str]] | None:
+    """{house id: {file: sha256}} of the houses of ``mpchair generate``'s dataset folder that have a frame in its
+    train or val split (from manifest.json's per-house frame ranges and ImageSets); None without a manifest."""
+    from mpchair.kitti import imageset_path, read_imageset
+
+    manifest = _read_json(dataset / "manifest.json")
+    if manifest is None:
+        return None
+    used = {int(i) for split in ("train", "val") if imageset_path(dataset, split).is_file()
+            for i in read_imageset(imageset_path(dataset, split))}
+    found = {}
+    for hid, h in (manifest.get("houses") or {}).items():
+        first, last = h["frames"]
+        if any(first <= i <= last for i in used):
+            found[hid] = dict(h.get("files_sha256") or {})
+    return found
+
+
+def check_houses(stream: Path, dataset: Path) -> HouseCheck | None:
+    """:class:`HouseCheck` of stream folder ``stream`` (None without its stream.json) against training dataset
+    ``dataset``."""
+    meta = _read_json(stream / "stream.json")
+    if meta is None:
+        return None
+    houses = meta.get("houses") or {}
+    streamed = tuple(houses)
+    trained = trained_houses(dataset)
+    if trained is None:
+        return HouseCheck(streamed, (), (), None)
+    same_files = {frozenset(files.values()) for files in trained.values()}  # a house is its files' contents
+    overlap = tuple(h for h in streamed if h in trained
+                    or frozenset((houses[h].get("files_sha256") or {}).values()) in same_files)
+    return HouseCheck(streamed, tuple(trained), overlap, dataset)

@@ -1,5 +1,6 @@
-"""The streaming reproduction's command lines: ``mpchair stream`` per sweep point, ``detector stream-eval`` measuring
-each model's latency and saving its outputs, scoring them raw and ego, and the oracle at each model's latency.
+"""The streaming reproduction's command lines: ``mpchair synth`` of the held-out houses, ``mpchair stream`` per sweep
+point, ``detector stream-eval`` measuring each model's latency under each setting and saving its outputs, scoring them
+raw and ego, and the oracle at each measured latency.
 
 Each step's output file marks it done (skipped unless ``force``); paths are those of the work folder
 (:func:`~detector.reproduce.stream.sweep.stream_dir`, :func:`~detector.reproduce.stream.sweep.eval_dir`).
@@ -11,27 +12,30 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.reproduce.runner import BIN, Runner
+from detector.reproduce.steps import house_ids
 from detector.reproduce.stream.results import read_summary
-from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Scale, eval_dir, stream_dir
+from detector.reproduce.stream.sweep import GRIDS, HEADLINE, MODELS, MODES, Scale, Setting, eval_dir, stream_dir
 
-STEPS = ("streams", "measure", "score", "report")
+STEPS = ("houses", "streams", "measure", "score", "report")
 
 
 @dataclass(frozen=True)
 class StreamPlan:
-    """One invocation's choices: work folder, scale, steps asked for, houses root and ids, each model's config and
-    checkpoint, the sweep points, torch threads, the allocator environment while measuring, workers, seed, force,
-    dry run."""
+    """One invocation's choices: work folder, scale, steps asked for, the houses root and ids (empty: every house of
+    the root when the streams are made), the seed of the held-out houses to synthesize into the root (None: the root
+    is given and not made here), the configs folder, each model's checkpoint, the sweep points, the settings
+    (headline first), the allocator environment while measuring, workers, seed, force, dry run."""
 
     out: Path
     scale: Scale
     steps: tuple[str, ...]
     houses_root: Path
     houses: tuple[str, ...]
-    configs: dict[str, Path]
+    heldout_seed: int | None
+    configs: Path
     checkpoints: dict[str, Path]
     points: tuple[tuple[float, float], ...]
-    threads: int = 2
+    settings: tuple[Setting, ...]
     env: dict[str, str] | None = None
     workers: int = 2
     seed: int = 0
@@ -47,6 +51,43 @@ class StreamPlan:
             return False
         return True
 
+    def config(self, setting: Setting, model: str) -> Path:
+        """The experiment config of ``model`` at ``setting``'s grid."""
+        return self.configs / GRIDS[setting.grid].format(m=model)
+
+    def stream_houses(self) -> list[str]:
+        """The houses to stream: the given ids, else every house of the root (a placeholder before it exists)."""
+        return list(self.houses) or house_ids(self.houses_root) or [f"<house ids from {self.houses_root}>"]
+
+
+@dataclass(frozen=True)
+class MeasuredRun:
+    """One latency measurement: a point's stream, a setting, whether it also runs the offline pass (every frame, for
+    the offline AP: once per grid, on the headline stream) and its latency repeats."""
+
+    point: tuple[float, float]
+    setting: Setting
+    offline: bool
+    repeats: int
+
+
+def measured_runs(plan: StreamPlan) -> list[MeasuredRun]:
+    """Every measurement of the plan: every setting on the headline stream (the offline pass under the first thread
+    budget of each grid), the headline setting on the sweep's other streams."""
+    runs, grids_done = [], set()
+    for s in plan.settings:
+        runs.append(MeasuredRun(HEADLINE, s, s.grid not in grids_done, plan.scale.repeats))
+        grids_done.add(s.grid)
+    runs += [MeasuredRun(p, plan.settings[0], False, plan.scale.sweep_repeats) for p in plan.points if p != HEADLINE]
+    return runs
+
+
+def run_houses(plan: StreamPlan, r: Runner) -> None:
+    """``mpchair synth``: the held-out houses the streams drive through (none of them in the training data)."""
+    if plan.heldout_seed is not None and plan.todo("houses", plan.houses_root / "v1" / "scans"):
+        r.run([str(BIN / "mpchair"), "synth", "--out", str(plan.houses_root), "--houses",
+               str(plan.scale.heldout_houses), "--seed", str(plan.heldout_seed)])
+
 
 def run_streams(plan: StreamPlan, r: Runner) -> None:
     """``mpchair stream``: one stream per sweep point, of the plan's houses."""
@@ -57,52 +98,52 @@ def run_streams(plan: StreamPlan, r: Runner) -> None:
                    str(plan.scale.episodes), "--rate", f"{f:g}", "--speed", f"{v:g}", "--duration",
                    f"{plan.scale.duration:g}", "--seed", str(plan.seed), "--out", str(s), "--workers",
                    str(plan.workers), "--quiet"]
-            for h in plan.houses:
+            for h in plan.stream_houses():
                 cmd += ["--house", h]
             r.run(cmd)
 
 
-def _measure_command(plan: StreamPlan, point: tuple[float, float], model: str) -> list[str]:
-    """``detector stream-eval`` measuring ``model``'s latency per processed frame and saving its outputs."""
-    ev = eval_dir(plan.out, *point, model)
-    cmd = [str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *point)), "--config",
-           str(plan.configs[model]), "--checkpoint", str(plan.checkpoints[model]), "--threads", str(plan.threads),
-           "--repeats", str(plan.scale.repeats), "--warmup", str(plan.scale.warmup), "--latency-log",
-           str(ev / "latency.json"), "--json", str(ev / "measure.json"), "--quiet"]
-    # the offline AP (every frame through the model) only where the table needs it; elsewhere the outputs of the
-    # processed frames are enough to replay the schedule
-    return cmd + ["--save-results", str(ev / "outputs")] + ([] if point == HEADLINE else ["--no-offline"])
+def _measure_command(plan: StreamPlan, run: MeasuredRun, model: str) -> list[str]:
+    """``detector stream-eval`` measuring ``model``'s latency per processed frame under ``run``'s setting and saving
+    its outputs (of every frame with the offline pass, else of the processed frames)."""
+    ev = eval_dir(plan.out, *run.point, run.setting, model)
+    cmd = [str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *run.point)), "--config",
+           str(plan.config(run.setting, model)), "--checkpoint", str(plan.checkpoints[model]), "--threads",
+           str(run.setting.threads), "--repeats", str(run.repeats), "--warmup", str(plan.scale.warmup),
+           "--latency-log", str(ev / "latency.json"), "--json", str(ev / "measure.json"), "--quiet"]
+    return cmd + ["--save-results", str(ev / "outputs")] + ([] if run.offline else ["--no-offline"])
 
 
 def run_measure_and_score(plan: StreamPlan, r: Runner) -> None:
-    """Per point and model: measure (latency log and saved outputs), then score raw and ego from those outputs,
+    """Per measurement and model: measure (latency log and saved outputs), then score raw and ego from those outputs,
     replaying the measured latencies exactly."""
-    for point in plan.points:
+    for run in measured_runs(plan):
         for m in MODELS:
-            ev = eval_dir(plan.out, *point, m)
+            ev = eval_dir(plan.out, *run.point, run.setting, m)
             if plan.todo("measure", ev / "latency.json"):
-                r.run(_measure_command(plan, point, m), env=plan.env or None)
+                r.run(_measure_command(plan, run, m), env=plan.env or None)
             for mode in MODES:
                 if plan.todo("score", ev / f"{mode}.json"):
-                    r.run([str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *point)),
+                    r.run([str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *run.point)),
                            "--results", str(ev / "outputs"), "--latency", str(ev / "latency.json"), "--mode", mode,
                            "--json", str(ev / f"{mode}.json"), "--quiet"])
 
 
 def run_oracle(plan: StreamPlan, r: Runner) -> None:
-    """The oracle (each frame's own labels) at each model's median latency on the headline stream: what that latency
-    alone costs."""
+    """The oracle (each frame's own labels) at each model's median latency under each setting on the headline
+    stream: what that latency alone costs."""
     s = stream_dir(plan.out, *HEADLINE)
-    for m in MODELS:
-        measured = eval_dir(plan.out, *HEADLINE, m) / "measure.json"
-        for mode in MODES:
-            target = eval_dir(plan.out, *HEADLINE, f"oracle-at-{m}") / f"{mode}.json"
-            if plan.todo("score", target) and (plan.dry_run or measured.exists()):
-                summary = read_summary(measured)
-                ms = summary.latency_ms.median if summary is not None else f"<{m} median latency>"
-                r.run([str(BIN / "detector"), "stream-eval", "--data", str(s), "--oracle", "--latency-ms", str(ms),
-                       "--mode", mode, "--json", str(target), "--quiet"])
+    for setting in plan.settings:
+        for m in MODELS:
+            measured = eval_dir(plan.out, *HEADLINE, setting, m) / "measure.json"
+            for mode in MODES:
+                target = eval_dir(plan.out, *HEADLINE, setting, f"oracle-at-{m}") / f"{mode}.json"
+                if plan.todo("score", target) and (plan.dry_run or measured.exists()):
+                    summary = read_summary(measured)
+                    ms = summary.latency_ms.median if summary is not None else f"<{m} median latency>"
+                    r.run([str(BIN / "detector"), "stream-eval", "--data", str(s), "--oracle", "--latency-ms",
+                           str(ms), "--mode", mode, "--json", str(target), "--quiet"])
 
 
 #: The steps before the report, in the order they run.
-COMMAND_STEPS = (run_streams, run_measure_and_score, run_oracle)
+COMMAND_STEPS = (run_houses, run_streams, run_measure_and_score, run_oracle)
