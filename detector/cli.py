@@ -10,6 +10,7 @@ COMMANDS = {
     "eval": "detector.commands.eval:eval_cmd",
     "stream-eval": "detector.commands.stream_eval:stream_eval",
     "bench": "detector.commands.bench:bench",
+    "export": "detector.commands.export:export",
     "ops": "detector.commands.ops:ops",
     "viz-sparsity": "detector.commands.viz:viz_sparsity",
 }
@@ -26,6 +27,7 @@ def cli() -> None:
       detector stream-eval --data stream/ --config configs/models/mpchair_dense.yaml --checkpoint runs/dense/last.pt
       detector bench --config configs/models/mpchair_dense.yaml \\
         --config configs/models/mpchair_sparse.yaml --data dataset/
+      detector export --config configs/models/mpchair_sparse_exact.yaml --format openvino --out exported/
     Distributed: torchrun --nproc-per-node=2 -m detector train ...
     """
 

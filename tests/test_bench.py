@@ -37,7 +37,7 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
         "--warmup", "1", "--threads", "1", "--json", str(out)])
     assert res.exit_code == 0, res.output
     result = json.loads(out.read_text())
-    assert set(result) == {"models", "density", "machine", "protocol"}
+    assert set(result) == {"models", "skipped", "headline", "density", "machine", "protocol"}
     assert [m["name"] for m in result["models"]] == ["dense", "sparse"]
     for m in result["models"]:
         assert set(m["components"]) == set(COMPONENTS) == {

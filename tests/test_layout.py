@@ -49,6 +49,7 @@ FLOORS: dict[str, int] = {
     "detector.infer": 8,
     "detector.opcount": 8,
     "detector.viz": 8,
+    "detector.deploy": 8,  # exported graphs and their runtimes (read by bench, commands)
     "detector.bench": 9,
     "detector.train": 9,
     "detector.stream": 9,

@@ -34,6 +34,6 @@ elif ls /opt/wheels/torch-*+cpu-*.whl >/dev/null 2>&1 || command -v nvidia-smi >
 else
   $PIP install -q "$TORCH" --index-url https://download.pytorch.org/whl/cpu || $PIP install -q "$TORCH"
 fi
-$PIP install -q -c constraints.txt -e '.[dev,open3d,rerun,ros]'
+$PIP install -q -c constraints.txt -e '.[dev,open3d,rerun,ros,deploy]'
 echo "$want" > "$STAMP"
 echo "bootstrap: .venv ready"

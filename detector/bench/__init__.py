@@ -2,8 +2,11 @@
 
 - :mod:`detector.bench.timing`: the components, their titles, and the stamps around one frame's stages;
 - :mod:`detector.bench.peer`: Open3D-ML's own PointPillars as a peer row (imports ``timing``);
-- :mod:`detector.bench.run`: the protocol (warm-up, interleaved trials, back to back) and the JSON-ready result
-  (imports ``timing`` and ``peer``);
+- :mod:`detector.bench.run`: the protocol (warm-up, interleaved trials, back to back), the rows of every model x
+  runtime x precision (deployed ones from :mod:`detector.deploy`) and the JSON-ready result (imports ``timing`` and
+  ``peer``);
+- :mod:`detector.bench.budget`: ``--rate``, each row alone at a fixed sensor rate: CPU share, deadline misses,
+  latency, peak memory (imports ``run``);
 - :mod:`detector.bench.report`: the result as the paper's tables (imports ``timing``; reads only the result dict);
 - :mod:`detector.bench.reference_head` (the total time with the reference's head layout) and
   :mod:`detector.bench.density` (the backbone ratio against density D): benches of their own, for the tools of the

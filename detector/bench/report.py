@@ -17,12 +17,17 @@ def _fmt(x: float) -> str:
 
 
 def ratio_rows(result: dict, section: str = "components") -> list[tuple[str, dict[str, float]]]:
-    """Per-component speed-ups: ``first / other`` for every one of our models after the first (dense / sparse: > 1
-    means sparse faster), then ``peer / ours`` for every one of our models (> 1 means ours is faster than the peer).
-    ``section="back_to_back"``: the same for the :data:`SHARED` components timed back to back (ours only)."""
+    """Per-component speed-ups: within each runtime x precision, ``first / other`` for every one of our models after
+    the first of that group (dense / sparse: > 1 means sparse faster; one group without ``--runtime`` /
+    ``--precision``), then ``peer / ours`` for every one of our models (> 1 means ours is faster than the peer).
+    ``section="back_to_back"``: the same for the :data:`SHARED` components timed back to back (ours only). Across
+    runtimes and precisions the result's ``headline`` compares the fastest rows (:func:`headline_line`)."""
     ours = [m for m in result["models"] if not m.get("peer")]
     peers = [m for m in result["models"] if m.get("peer")]
-    pairs = [(ours[0], m) for m in ours[1:]]
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for m in ours:
+        groups.setdefault((m.get("runtime", "torch"), m.get("precision", "fp32")), []).append(m)
+    pairs = [(g[0], m) for g in groups.values() for m in g[1:]]
     if section == "components":
         pairs += [(p, m) for p in peers for m in ours]
     rows = []
@@ -56,8 +61,26 @@ def format_table(result: dict, markdown: bool = False) -> str:
         title = (f"{' and '.join(TITLES[k] for k in SHARED)} timed back to back (every model's, on its own maps, order "
                  "rotated per frame; the components' own cost, to compare between models):")
         lines += ["", title, ""] + _table(result, "back_to_back", SHARED, markdown)
+    headline = headline_line(result)
+    if headline:
+        lines += ["", headline]
     prefix = "- " if markdown else ""
     return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in _notes(result))
+
+
+def headline_line(result: dict) -> str | None:
+    """The like-for-like headline of a result with several runtimes or precisions: fastest sparse row vs fastest
+    dense row (and vs the fastest fp32 dense row); None for a result without it (eager fp32 only, or one kind)."""
+    h = result.get("headline")
+    runs = {(m.get("runtime", "torch"), m.get("precision", "fp32")) for m in result["models"] if not m.get("peer")}
+    if not h or runs == {("torch", "fp32")}:
+        return None
+    line = (f"headline: fastest sparse {h['fastest_sparse']} ({_fmt(h['sparse_total_ms'])} ms) vs fastest dense "
+            f"{h['fastest_dense']} ({_fmt(h['dense_total_ms'])} ms): {h['speedup']:.2f}x")
+    if h["fastest_fp32_dense"] != h["fastest_dense"]:
+        line += (f"; vs the fastest fp32 dense {h['fastest_fp32_dense']} ({_fmt(h['fp32_dense_total_ms'])} ms): "
+                 f"{h['speedup_vs_fp32_dense']:.2f}x")
+    return line + " (total ms per frame; > 1: sparse faster)"
 
 
 def _notes(result: dict) -> list[str]:
@@ -73,6 +96,14 @@ def _notes(result: dict) -> list[str]:
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
         f"{dens['median']:.5f}, min {dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames",
     ]
+    flags = mach.get("precision_flags")
+    if flags is not None:
+        have = ", ".join(f"{p}: {' / '.join(f) if f else 'none'}" for p, f in flags.items())
+        notes.append(f"native precisions (CPU flags): {have}")
+    if any(m.get("runtime", "torch") != "torch" for m in result["models"]):
+        notes.append("deployed rows (onnxruntime / openvino): Feature Net = the graph's inputs (the NCHW canvas, or "
+                     "the sparse rulebook tables), Backbone = the graph (backbone + neck + head in one call), Head = "
+                     "the head maps from its output (docs/deployment.md)")
     for m in result["models"]:
         what = (f"Open3D-ML {mach.get('open3d', '')}'s own PointPillars, the architecture and grid of "
                 f"{result['models'][0]['name']} (detector/bench/peer.py); " if m.get("peer") else "")
@@ -81,6 +112,8 @@ def _notes(result: dict) -> list[str]:
             f"{TITLES[k]} {by[k]:.0f}" for k in ("feature_extract", "feature_net", "backbone", "head") if k in by) + ")"
         notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame"
                      f"{split}; {m['detections_per_frame']:.1f} detections/frame")
+    for sk in result.get("skipped", []):
+        notes.append(f"skipped {sk['name']} ({sk['runtime']} {sk['precision']}): {sk['reason']}")
     return notes
 
 
@@ -96,3 +129,40 @@ def _table(result: dict, section: str, keys: Sequence[str], markdown: bool) -> l
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
     return [fmt.format(*header)] + [fmt.format(*r) for r in rows]
+
+
+def format_budget(result: dict, markdown: bool = False) -> str:
+    """The CPU-budget table of :func:`detector.bench.budget.run_budget`'s result: one row per model x runtime x
+    precision (CPU share, frame cost, deadline misses, latency, peak memory, the highest rate within 25 % of the CPU),
+    then notes."""
+    header = ["model", "rate Hz", "threads", "CPU share", "CPU ms/frame", "missed / processed", "dropped",
+              "latency p50 / p95 ms", "peak RSS MB", "max Hz at 25 % CPU"]
+    rows = [[b["name"], f"{b['rate_hz']:g}", str(b["threads"]), f"{100 * b['cpu_share']:.1f} %",
+             _fmt(b["cpu_ms_per_frame"]), f"{b['deadline_misses']} / {b['processed']}", str(b["dropped"]),
+             f"{_fmt(b['latency_ms']['p50'])} / {_fmt(b['latency_ms']['p95'])}",
+             "-" if b["peak_rss_mb"] is None else f"{b['peak_rss_mb']:,.0f}", f"{b['max_rate_hz_at_25pct']:.2f}"]
+            for b in result["budget"]]
+    if markdown:
+        cells = ["| " + " | ".join(r) + " |" for r in [header, *rows]]
+        lines = [cells[0], "|" + "---|" * len(header), *cells[1:]]
+    else:
+        widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+        fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+        lines = [fmt.format(*header)] + [fmt.format(*r) for r in rows]
+    prot, mach, dens = result["protocol"], result["machine"], result["density"]
+    notes = [
+        f"each row in a fresh process: {prot['warmup']} warm-up frames, then a sensor at {prot['rate_hz']:g} Hz for "
+        f"{prot['duration_s']:g} s over the first {prot['frames']} frames of the {prot['split']} split (cycled); the "
+        "newest released frame is processed, older unstarted ones dropped",
+        "CPU share = process CPU time (all threads) / wall / usable cores; latency = frame release to detections; "
+        "max Hz at 25 % CPU = 0.25 x cores / CPU s per frame, capped at 1 / service p95",
+        machine_line(mach),
+        f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
+        f"{dens['median']:.5f} over {dens['frames']} frames",
+    ]
+    weights = {b["weights"] for b in result["budget"]}
+    notes += ([f"weights of every row: {weights.pop()}"] if len(weights) == 1 else
+              [f"{b['name']}: weights {b['weights']}" for b in result["budget"]])
+    notes += [f"skipped {s['name']} ({s['runtime']} {s['precision']}): {s['reason']}" for s in result["skipped"]]
+    prefix = "- " if markdown else ""
+    return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in notes)

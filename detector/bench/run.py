@@ -3,6 +3,13 @@
 The components and their stamps are :mod:`detector.bench.timing`'s; Open3D-ML's own PointPillars can be timed as a
 peer row (:mod:`detector.bench.peer`); :mod:`detector.bench.report` prints the result as the paper's tables.
 
+Runtimes and precisions (:class:`Variant`): every model x runtime (eager ``torch``, ``onnxruntime``, ``openvino``) x
+precision (``fp32``, ``bf16``, ``int8``) is one row, all interleaved per frame. A deployed row is a
+:class:`detector.deploy.deployed.DeployedPointPillars`: the same stage methods around the exported graph, so the same
+stamps time it (Backbone = the graph: backbone + neck + head). A combination this CPU does not compute natively is
+skipped with the reason (:func:`detector.deploy.cpu.skip_reason`); ``headline`` compares the fastest sparse row with
+the fastest dense row.
+
 Protocol: every model is warmed up on the first frames, then ``trials`` passes over the same ``frames`` frames are
 timed. Within a pass the models are **interleaved per frame** (the order alternates from frame to frame), so load
 spikes of a shared machine hit all models alike. A trial's value of a component is its mean over the frames (the
@@ -30,8 +37,10 @@ whole process).
 
 from __future__ import annotations
 
+import copy
+import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -44,6 +53,7 @@ from detector.bench.timing import COMPONENTS, SHARED, page_faults, time_frame, t
 from detector.checkpoint import load_model
 from detector.config import ExperimentConfig, load_experiment, pseudoimage_geometry
 from detector.data.experiment import EvalFrame, load_eval_frames
+from detector.deploy.cpu import PRECISIONS, RUNTIMES, cpu_flags, precision_flags, skip_reason
 from detector.device import machine_info, use_device
 from detector.models import PointPillars
 from detector.sparse.workspace import Workspace
@@ -67,7 +77,8 @@ class TimedRow(NamedTuple):
     """One row of the result: its display ``name``, the ``model`` / ``cfg`` it was built from (the peer: the first
     model's), a description of its ``weights``, ``peer`` (None for ours), its ``timer`` and the ``frames`` it is fed
     with their pseudo-image ``densities`` (pillars / canvas cells); ``faults`` collects ours' page faults per
-    component."""
+    component; the ``runtime`` (``torch``, ``onnxruntime``, ``openvino``; the peer's is torch) and ``precision``
+    (``fp32``, ``bf16``, ``int8``) it runs in."""
 
     name: str
     model: BenchModel
@@ -78,6 +89,30 @@ class TimedRow(NamedTuple):
     frames: list[EvalFrame]
     densities: list[float]
     faults: dict[str, int] | None = None  # page faults per component, filled by the timer (ours; None: the peer)
+    runtime: str = "torch"
+    precision: str = "fp32"
+
+
+@dataclass(frozen=True)
+class Variant:
+    """How to run the models: every model x ``runtimes`` x ``precisions`` is one row (a combination this CPU cannot
+    compute natively is skipped with the reason, :func:`detector.deploy.cpu.skip_reason`); int8 calibrates on the
+    first ``calibration_frames`` frames of ``calibration_split``."""
+
+    runtimes: tuple[str, ...] = ("torch",)
+    precisions: tuple[str, ...] = ("fp32",)
+    calibration_split: str = "train"
+    calibration_frames: int = 8
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A model x runtime x precision not timed, and why."""
+
+    name: str
+    runtime: str
+    precision: str
+    reason: str
 
 
 @dataclass(frozen=True)
@@ -131,17 +166,17 @@ def run_bench(
     seed: int = 0,
     peer: str | None = None,
     progress: bool = False,
-    precision: str = "fp32",
+    variant: Variant = Variant(),
 ) -> dict:
     """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
-    bars on stderr (loading, warm-up and timed frames) when it is a terminal. ``precision``: ``"fp32"`` or
-    ``"bf16"`` (our models' ``PointPillars.precision``: Feature Net, Backbone and Head in bf16; recorded as
-    ``protocol.precision``).
+    bars on stderr (loading, warm-up and timed frames) when it is a terminal. ``variant``: the runtimes and
+    precisions of every model (default: eager torch fp32), one row each, all interleaved per frame.
 
     ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "back_to_back": {shared
     key: {"mean_ms", "std_ms"}} (None for the peer and for a single model), "median_frame_ms",
-    "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer"}], "density": {...},
-    "machine": {...}, "protocol": {...}}``.
+    "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer", "runtime",
+    "precision"}], "skipped": [{"name", "runtime", "precision", "reason"}], "headline": {...} or None, "density":
+    {...}, "machine": {...}, "protocol": {...}}``. ``headline``: :func:`headline_record`.
 
     ``peer="open3d-ml"`` adds Open3D-ML's own PointPillars as the last row (``"peer": "open3d-ml"``; ours have
     ``"peer": None``): built with the first model's architecture and grid and its weights (:mod:`detector.bench.peer`;
@@ -149,40 +184,150 @@ def run_bench(
     """
     if not models:
         raise InputError("bench needs at least one --config")
-    if precision not in ("fp32", "bf16"):
-        raise InputError(f"unknown precision {precision!r} (choose fp32 or bf16)")
     if frames < 1 or trials < 1 or warmup < 0:
         raise InputError(f"need frames >= 1, trials >= 1, warmup >= 0 (got {frames}, {trials}, {warmup})")
+    check_variant(variant, device)
     dev = use_device(device, threads)
+    _check_peer(peer, device)
+    with tempfile.TemporaryDirectory(prefix="detector-bench-") as work:  # the exported graphs, for this run only
+        rows, nets, skipped = build_rows(models, dev, data_dir, split, frames, seed, progress, variant, Path(work))
+        if peer is not None:
+            first = next((j for j, r in enumerate(rows) if r.runtime == "torch"), None)
+            if first is None:
+                raise InputError("--peer needs a torch row (its weights are copied from the first eager model)")
+            rows.append(peer_row(rows[first], nets[first], peer))
+
+        n = len(rows[0].frames)
+        # one bar step = one frame through every model; stderr, so a table or Markdown on stdout stays clean
+        bar = tqdm(total=min(warmup, n) + trials * n * (2 if len(nets) > 1 else 1), desc="bench warm-up",
+                   unit="frame", disable=None if progress else True, leave=False)
+        warm_up(rows, min(warmup, n), bar)
+        timings = time_rows(rows, trials, bar)
+        if len(nets) > 1:  # the shared components back to back (ours only: the peer's stages are not ours to split)
+            timings = replace(timings, back_to_back=time_back_to_back(nets, rows[: len(nets)], trials, dev, bar))
+        bar.close()
+    records = [model_record(row, j, timings) for j, row in enumerate(rows)]
+    return {
+        "models": records,
+        "skipped": [asdict(s) for s in skipped],
+        "headline": headline_record(records),
+        "density": density_record(rows[0]),
+        "machine": machine_record(dev, peer, variant),
+        "protocol": protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1,
+                                    variant),
+    }
+
+
+def check_variant(variant: Variant, device: str) -> None:
+    """:class:`InputError` for an unknown runtime or precision, a deployed runtime off the CPU, or int8 without
+    calibration frames."""
+    for r in variant.runtimes:
+        if r not in RUNTIMES:
+            raise InputError(f"unknown runtime {r!r} (choose from {', '.join(RUNTIMES)})")
+    for p in variant.precisions:
+        if p not in PRECISIONS:
+            raise InputError(f"unknown precision {p!r} (choose from {', '.join(PRECISIONS)})")
+    if not variant.runtimes or not variant.precisions:
+        raise InputError("bench needs at least one --runtime and one --precision")
+    if device != "cpu" and set(variant.runtimes) - {"torch"}:
+        raise InputError(f"--runtime onnxruntime / openvino run on the CPU here; drop --device {device}")
+    if "int8" in variant.precisions and variant.calibration_frames < 1:
+        raise InputError("int8 needs --calibration-frames >= 1")
+
+
+def build_rows(models: Sequence[BenchModel], device: torch.device, data_dir: str | Path, split: str, frames: int,
+               seed: int, progress: bool, variant: Variant, work: Path) -> tuple[list[TimedRow], list, list[Skipped]]:
+    """Every model x runtime x precision this CPU computes natively, as rows (deployed graphs exported into
+    ``work``), the model object of each row (an eager :class:`PointPillars` or a
+    :class:`detector.deploy.deployed.DeployedPointPillars`) and the skipped combinations; an :class:`InputError`
+    when every one is skipped."""
     cfgs = [load_experiment(m.config) for m in models]
     names = display_names(models, cfgs)
-    _check_peer(peer, device)
-    nets = [load_model(c, m.checkpoint, dev, seed=seed) for c, m in zip(cfgs, models)]
-    for net in nets:
+    eager = [load_model(c, m.checkpoint, device, seed=seed) for c, m in zip(cfgs, models)]
+    for net in eager:
         # a long-running process's steady state: every model reuses its inference buffers from frame to frame (the
         # stages' outputs are consumed before the next frame), see detector.sparse.workspace
         net.workspace = Workspace()
-        net.precision = precision  # type: ignore[assignment]
-    rows = our_rows(models, cfgs, names, nets, dev, data_dir, split, frames, seed, progress)
-    if peer is not None:
-        rows.append(peer_row(rows[0], nets[0], peer))
+    base = our_rows(models, cfgs, names, eager, device, data_dir, split, frames, seed, progress)
+    flags = cpu_flags()
+    rows: list[TimedRow] = []
+    nets: list = []
+    skipped: list[Skipped] = []
+    calibration: dict[int, list[np.ndarray]] = {}
+    for i, (row, net) in enumerate(zip(base, eager)):
+        for runtime in variant.runtimes:
+            for precision in variant.precisions:
+                why = skip_reason(runtime, precision, flags)
+                if why is not None:
+                    skipped.append(Skipped(row.name, runtime, precision, why))
+                    continue
+                if runtime == "torch" and precision == "fp32":
+                    rows.append(row)
+                    nets.append(net)
+                    continue
+                if runtime == "torch":  # eager bf16: the same weights in a copy whose stages run under autocast
+                    twin = copy.deepcopy(net)
+                    twin.workspace = Workspace()
+                    twin.precision = precision  # type: ignore[assignment]
+                    faults: dict[str, int] = {}
+                    rows.append(row._replace(name=variant_name(row.name, runtime, precision), precision=precision,
+                                             timer=lambda pts, net=twin, faults=faults: time_frame(net, pts, device,
+                                                                                                    faults),
+                                             faults=faults))
+                    nets.append(twin)
+                    continue
+                if precision == "int8" and i not in calibration:
+                    calibration[i] = [f.points for f in load_eval_frames(
+                        row.cfg, data_dir, variant.calibration_split, variant.calibration_frames)]
+                deployed = deploy_row(net, row, runtime, precision, work / f"{i}-{runtime}-{precision}",
+                                      torch.get_num_threads(), calibration.get(i, []), seed)
+                faults = {}
+                rows.append(row._replace(name=variant_name(row.name, runtime, precision), runtime=runtime,
+                                         precision=precision, faults=faults,
+                                         timer=lambda pts, net=deployed, faults=faults: time_frame(net, pts, device,
+                                                                                                   faults)))
+                nets.append(deployed)
+    if not rows:
+        raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
+                         + "; ".join(f"{s.name} {s.runtime} {s.precision}: {s.reason}" for s in skipped))
+    return rows, nets, skipped
 
-    n = len(rows[0].frames)
-    # one bar step = one frame through every model; stderr, so a table or Markdown on stdout stays clean
-    bar = tqdm(total=min(warmup, n) + trials * n * (2 if len(nets) > 1 else 1), desc="bench warm-up", unit="frame",
-               disable=None if progress else True, leave=False)
-    warm_up(rows, min(warmup, n), bar)
-    timings = time_rows(rows, trials, bar)
-    if len(nets) > 1:  # the shared components back to back (ours only: the peer's stages are not ours to split)
-        timings = replace(timings, back_to_back=time_back_to_back(nets, rows[: len(nets)], trials, dev, bar))
-    bar.close()
-    return {
-        "models": [model_record(row, j, timings) for j, row in enumerate(rows)],
-        "density": density_record(rows[0]),
-        "machine": machine_record(dev, peer),
-        "protocol": {**protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1),
-                     "precision": precision},
-    }
+
+def deploy_row(net: PointPillars, row: TimedRow, runtime: str, precision: str, work: Path, threads: int,
+               calibration: list[np.ndarray], seed: int):
+    """``net`` exported and opened in ``runtime`` / ``precision`` (:func:`detector.deploy.deployed.build_deployed`);
+    a model the export cannot take is an :class:`InputError` naming its config."""
+    from detector.deploy.deployed import build_deployed
+
+    try:
+        return build_deployed(net, runtime, precision, work, threads=threads, calibration=calibration, seed=seed)
+    except ValueError as e:
+        raise InputError(f"cannot run {row.name} in {runtime}: {e}", row.model.config) from None
+
+
+def variant_name(name: str, runtime: str, precision: str) -> str:
+    """A row's display name: the model's for eager torch fp32 (as before runtimes existed), else
+    ``<model> (<runtime> <precision>)``."""
+    return name if (runtime, precision) == ("torch", "fp32") else f"{name} ({runtime} {precision})"
+
+
+def headline_record(models: Sequence[dict]) -> dict | None:
+    """The like-for-like headline: the fastest sparse row against the fastest dense row (mean total ms, our rows of
+    any runtime and precision), and against the fastest fp32 dense row; None without both kinds."""
+
+    def fastest(rows: list[dict]) -> dict | None:
+        return min(rows, key=lambda m: m["components"]["total"]["mean_ms"], default=None)
+
+    ours = [m for m in models if not m.get("peer")]
+    dense = fastest([m for m in ours if m["backbone"] == "dense"])
+    sparse = fastest([m for m in ours if m["backbone"] != "dense"])
+    if dense is None or sparse is None:
+        return None
+    fp32 = fastest([m for m in ours if m["backbone"] == "dense" and m["precision"] == "fp32"])
+    ms = {k: m["components"]["total"]["mean_ms"] for k, m in (("dense", dense), ("sparse", sparse), ("fp32", fp32))}
+    return {"fastest_dense": dense["name"], "fastest_sparse": sparse["name"], "fastest_fp32_dense": fp32["name"],
+            "dense_total_ms": ms["dense"], "sparse_total_ms": ms["sparse"], "fp32_dense_total_ms": ms["fp32"],
+            "speedup": ms["dense"] / ms["sparse"], "speedup_vs_fp32_dense": ms["fp32"] / ms["sparse"]}
 
 
 def _check_peer(peer: str | None, device: str) -> None:
@@ -276,6 +421,8 @@ def model_record(row: TimedRow, j: int, timings: Timings) -> dict:
     return {
         "name": row.name,
         "peer": row.peer,
+        "runtime": row.runtime,
+        "precision": row.precision,
         "config": str(row.model.config),
         "weights": row.weights,
         "backbone": row.cfg.model.backbone,
@@ -308,21 +455,31 @@ def density_record(row: TimedRow) -> dict:
 
 
 def protocol_record(first: TimedRow, data_dir: str | Path, split: str, peer: str | None, trials: int, warmup: int,
-                    back_to_back: bool) -> dict:
+                    back_to_back: bool, variant: Variant = Variant()) -> dict:
     """How the result was measured: data, split, the ``first`` row's frames, peer, trials, warm-up frames, batch,
-    interleaving, the components timed back to back (none with a single model) and what the std is over."""
+    interleaving, the components timed back to back (none with a single model), what the std is over, the runtimes
+    and precisions asked for and the int8 calibration frames."""
     return {"data": str(data_dir), "split": split, "frames": len(first.frames),
             "frame_ids": [f.frame_id for f in first.frames], "peer": peer, "trials": trials, "warmup": warmup,
             "batch_size": 1, "interleaved": True, "back_to_back": list(SHARED) if back_to_back else [],
-            "workspace": "every model of ours reuses its inference buffers (PointPillars.workspace)",
-            "std": "population std over trials of the per-trial mean over frames"}
+            "workspace": "every eager model of ours reuses its inference buffers (PointPillars.workspace)",
+            "std": "population std over trials of the per-trial mean over frames",
+            "runtimes": list(variant.runtimes), "precisions": list(variant.precisions),
+            "calibration": ({"split": variant.calibration_split, "frames": variant.calibration_frames}
+                            if "int8" in variant.precisions else None)}
 
 
-def machine_record(device: torch.device, peer: str | None) -> dict:
-    """:func:`detector.device.machine_info`, plus Open3D's version when a peer ran."""
+def machine_record(device: torch.device, peer: str | None, variant: Variant = Variant()) -> dict:
+    """:func:`detector.device.machine_info`, the CPU's native bf16 / int8 flags, and the versions of Open3D (when a
+    peer ran) and of the deployed runtimes asked for."""
     mach = machine_info(device)
+    mach["precision_flags"] = precision_flags(cpu_flags())
     if peer is not None:
         import open3d
 
         mach["open3d"] = open3d.__version__
+    for runtime in set(variant.runtimes) - {"torch"}:
+        from detector.deploy.extra import require
+
+        mach[runtime] = require(runtime, f"--runtime {runtime}").__version__
     return mach

@@ -27,17 +27,29 @@ import click
 @click.option("--peer", type=click.Choice(["open3d-ml"]), default=None,
               help="Also time Open3D-ML's own PointPillars, built like the first --config (a dense model) with its "
                    "weights, on the same frames, interleaved per frame (CPU; needs the open3d extra).")
+@click.option("--runtime", "runtimes", multiple=True, type=click.Choice(["torch", "onnxruntime", "openvino"]),
+              help="Runtime of every model (repeatable; default torch = eager PyTorch): onnxruntime / openvino "
+                   "export the network (backbone + neck + head) and run it there (needs the deploy extra).")
+@click.option("--precision", "precisions", multiple=True, type=click.Choice(["fp32", "bf16", "int8"]),
+              help="Precision of every model x runtime (repeatable; default fp32): bf16 = bfloat16 (eager torch: "
+                   "Feature Net, Backbone and Head under bf16 autocast; OpenVINO: its inference precision), int8 = "
+                   "post-training quantization over calibration frames (deployed runtimes). One this CPU cannot "
+                   "compute natively (AMX / AVX512-BF16 / VNNI flags) is skipped with a note.")
+@click.option("--calibration-split", default="train", show_default=True, help="Split of the int8 calibration frames.")
+@click.option("--calibration-frames", type=int, default=8, show_default=True, help="int8 calibration frames.")
+@click.option("--rate", type=float, default=None,
+              help="CPU budget mode: run each model x runtime x precision on its own at this sensor rate (Hz) for "
+                   "--duration s and report CPU share, deadline misses, latency p50 / p95 and peak RSS.")
+@click.option("--duration", type=float, default=30.0, show_default=True, help="Seconds per row in --rate mode.")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Also write the full result as JSON to this file.")
 @click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
 @click.option("--no-progress", is_flag=True,
               help="No progress bars (shown on stderr by default when it is a terminal, between the timed frames).")
-@click.option("--precision", type=click.Choice(["fp32", "bf16", "auto"]), default="fp32", show_default=True,
-              help="Inference precision of our models: bf16 runs Feature Net, Backbone and Head in bfloat16 (fp32 "
-                   "sums); auto = bf16 where the CPU computes it natively (AVX512-BF16 / AMX), else fp32.")
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
-          warmup: int, device: str, threads: int | None, seed: int, peer: str | None, json_out: str | None,
-          markdown: bool, no_progress: bool, precision: str) -> None:
+          warmup: int, device: str, threads: int | None, seed: int, peer: str | None, runtimes: tuple[str, ...],
+          precisions: tuple[str, ...], calibration_split: str, calibration_frames: int, rate: float | None,
+          duration: float, json_out: str | None, markdown: bool, no_progress: bool) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
@@ -50,6 +62,9 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     identical components between models there (docs/benchmarks.md).
     --peer open3d-ml adds Open3D-ML's PointPillars (same architecture, grid and weights as the first --config) as a
     last row, and ratio rows open3d-ml / each of ours (> 1: ours is faster).
+    --runtime / --precision (each repeatable): every model x runtime x precision is one row, all interleaved per
+    frame; a headline line compares the fastest sparse row with the fastest dense row (docs/deployment.md).
+    --rate HZ --duration S: the CPU budget instead of the tables (each row alone, in its own process).
     Allocator: CPU timings depend on glibc's; compare with
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
@@ -57,6 +72,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
+    from detector.bench.run import Variant
     from detector.device import free_cores, load_1m, oversubscription_warning, usable_cores
     from mpchair.core.atomic import check_writable, write_text
     from mpchair.core.errors import InputError
@@ -76,12 +92,22 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         warning = oversubscription_warning(threads, cores, load) if threads >= 1 else None
         if warning:
             click.echo(f"warning: {warning}", err=True)
-    if precision == "auto":
-        from detector.models.pointpillars import native_bf16
+    variant = Variant(runtimes=runtimes or ("torch",), precisions=precisions or ("fp32",),
+                      calibration_split=calibration_split, calibration_frames=calibration_frames)
+    if rate is not None:
+        from detector.bench.budget import run_budget
+        from detector.bench.report import format_budget
 
-        precision = "bf16" if device == "cpu" and native_bf16() else "fp32"
-    result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup, device=device,
-                       threads=threads, seed=seed, peer=peer, progress=not no_progress, precision=precision)
+        if device != "cpu" or peer is not None:
+            raise InputError("--rate measures the CPU budget of our models: drop --device / --peer")
+        result = run_budget(models, data_dir, rate=rate, duration=duration, split=split, frames=frames,
+                            warmup=warmup, threads=threads, seed=seed, variant=variant)
+        text = format_budget(result, markdown=markdown)
+    else:
+        result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup,
+                           device=device, threads=threads, seed=seed, peer=peer, progress=not no_progress,
+                           variant=variant)
+        text = format_table(result, markdown=markdown)
     if json_out:
         write_text(json_out, json.dumps(result, indent=2) + "\n")
-    click.echo(format_table(result, markdown=markdown))
+    click.echo(text)

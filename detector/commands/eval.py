@@ -57,8 +57,14 @@ def _ids_for(labels: Path, split: str | None) -> list[str]:
               "--protocol open3d-ml; default: beside the checkpoint).")
 @click.option("--device", default="cpu", show_default=True, help="Checkpoint mode: cpu or cuda.")
 @click.option("--threads", type=int, help="Checkpoint mode: torch CPU threads.")
+@click.option("--runtime", type=click.Choice(["torch", "onnxruntime", "openvino"]), default="torch", show_default=True,
+              help="Checkpoint mode: run the network exported, in this runtime (detector export; the deploy extra).")
+@click.option("--precision", type=click.Choice(["fp32", "bf16", "int8"]), default="fp32", show_default=True,
+              help="Checkpoint mode, with --runtime: bf16 (OpenVINO) or int8 (post-training quantization over "
+              "--calibration-frames of the train split).")
+@click.option("--calibration-frames", type=int, default=8, show_default=True, help="int8 calibration frames.")
 def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, config, data, checkpoint, out, device,
-             threads) -> None:
+             threads, runtime, precision, calibration_frames) -> None:
     """Evaluate with the KITTI protocol (AP of bbox / BEV / 3D / AOS, R40 and R11, Easy / Moderate / Hard and
     Overall, where every box of the class counts) or with the reference's Open3D-ML mAP (--protocol open3d-ml).
 
@@ -69,6 +75,8 @@ def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, co
     A trained checkpoint (inference, result files, then the same evaluation; prints where it wrote them, and
     what an all-zero AP means):
       detector eval --config CONFIG.yaml --data DATA --checkpoint runs/dense/last.pt [--split val]
+    The same network deployed (exported, run in ONNX Runtime or OpenVINO; docs/deployment.md):
+      detector eval ... --runtime openvino --precision int8
     The reference's metric (Open3D-ML's mAP) on the same files: add --protocol open3d-ml.
 
     BEV and 3D overlaps use an exact float64 rotated IoU (identical boxes score 1; see docs/evaluation.md).
@@ -84,8 +92,11 @@ def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, co
         if classes is not None or min_overlap:
             raise InputError("--classes / --min-overlap apply to --labels/--results; a checkpoint is evaluated with "
                              "its config's eval classes and thresholds")
-        result, written = _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol)
+        result, written = _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol,
+                                           (runtime, precision, calibration_frames))
     elif folder_mode:
+        if (runtime, precision) != ("torch", "fp32"):
+            raise InputError("--runtime / --precision apply to a checkpoint (--config/--data/--checkpoint)")
         if labels is None or results is None:
             raise InputError("--labels and --results go together")
         class_list = [c.strip() for c in (classes or "Chair").split(",") if c.strip()]
@@ -122,9 +133,9 @@ def _zero_ap_note(checkpoint: Path) -> str:
             "train.epochs) before reading AP; if it was trained that long, check the data and the config.")
 
 
-def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol):
-    """Inference + evaluation (:func:`detector.infer.evaluate_checkpoint`); returns the result and the paths written
-    (the result folder and the metrics file)."""
+def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, protocol, deployed):
+    """Inference + evaluation (:func:`detector.infer.evaluate_checkpoint`, or :func:`_deployed_mode` for another
+    runtime or precision); returns the result and the paths written (the result folder and the metrics file)."""
     if config is None or data is None or checkpoint is None:
         raise InputError("checkpoint mode needs --config, --data and --checkpoint")
     try:
@@ -137,6 +148,41 @@ def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, prot
     split = split or "val"
     out = out if out is not None else default_results_dir(checkpoint, split)
     check_writable(out, folder=True)  # before the inference, not after it
-    result = evaluate_checkpoint(config, data, checkpoint, split=split, out_dir=out, device=device, threads=threads,
-                                 protocol=protocol)
+    if deployed[:2] != ("torch", "fp32"):
+        result = _deployed_mode(config, data, checkpoint, split, out, device, threads, protocol, *deployed)
+    else:
+        result = evaluate_checkpoint(config, data, checkpoint, split=split, out_dir=out, device=device,
+                                     threads=threads, protocol=protocol)
     return result, (out / RESULTS_SUBDIR, out / METRICS_FILES[protocol])
+
+
+def _deployed_mode(config, data, checkpoint, split, out, device, threads, protocol, runtime, precision,
+                   calibration_frames):
+    """The checkpoint deployed (:func:`detector.deploy.deployed.deploy_checkpoint`: exported, int8 calibrated on the
+    train split) and evaluated like the eager one (:func:`detector.infer.evaluate_model`)."""
+    import tempfile
+
+    from detector.config import load_experiment
+    from detector.data.experiment import open_split
+    from detector.deploy.deployed import deploy_checkpoint
+    from detector.device import use_device
+    from detector.eval.protocols import check_protocol
+    from detector.infer import evaluate_model
+
+    if device != "cpu":
+        raise InputError(f"--runtime {runtime} / --precision {precision} run on the CPU; drop --device {device}")
+    check_protocol(protocol)
+    use_device("cpu", threads)
+    cfg = load_experiment(config)
+    open_split(cfg, data, split).check()
+    with tempfile.TemporaryDirectory(prefix="detector-eval-") as work:
+        model = deploy_checkpoint(cfg, checkpoint, runtime, precision, work, threads=torch_threads(), data=data,
+                                  calibration_frames=calibration_frames)
+        return evaluate_model(model, cfg, data, split, out, device="cpu", protocol=protocol)
+
+
+def torch_threads() -> int:
+    """The torch intra-op threads set now (the deployed runtimes use as many)."""
+    import torch
+
+    return torch.get_num_threads()

@@ -18,6 +18,9 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     viz       detector viz-sparsity      the paper's Figs. 3-4 at 768x512
     curve     tools/bench_density.py     dense / sparse backbone runtime and op-count ratios against density D
                                          (clustered synthetic sites, random weights, D 0.002 .. 0.0246) at 768x512
+    deploy    detector eval / bench      the trained models exported to ONNX Runtime / OpenVINO at every precision
+              --runtime --precision      the CPU computes natively: val AP, runtime at 768x512, the CPU budget at
+                                         1 Hz (AP drop vs speed; docs/deployment.md)
     ablation-bench  detector bench       the ablation configs beside dense and sparse at the KITTI geometry (the
                                          vendored KITTI frames) and at 768x512 (detector.reproduce.ablations)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours

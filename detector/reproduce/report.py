@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
+from detector.reproduce.deploy import deploy_section
 from detector.reproduce.report_ablations import ablations_section
 from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
 from detector.reproduce.results import (
@@ -565,6 +566,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         *training_time_section(out),
         *ablations_section(res),
         *_sparsity_section(res, figure),
+        *deploy_section(res),
         *_not_in_this_run(),
         "## Commands", "", "```",
         *log.rstrip().splitlines(), "```", "",

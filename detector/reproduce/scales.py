@@ -26,13 +26,16 @@ class Scale:
     curve_trials: int = 3
     curve_densities: tuple[float, ...] | None = None
     curve_real_frames: int = 5
+    budget_seconds: float = 30.0  # each CPU-budget row of the deploy step (detector bench --rate)
 
 
 SCALES = {
     "small": Scale(houses=2, frames_per_house=150, epochs=2, bench_frames=5, bench_trials=2, ops_frames=10,
-                   curve_frames=1, curve_trials=1, curve_densities=(0.002, 0.0075, 0.0246), curve_real_frames=2),
+                   curve_frames=1, curve_trials=1, curve_densities=(0.002, 0.0075, 0.0246), curve_real_frames=2,
+                   budget_seconds=5.0),
     # about 2 h on 2 idle cores: the full pipeline on 8 houses with fewer frames and epochs than the targets
-    "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100),
+    "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100,
+                    budget_seconds=20.0),
     # make reproduce's default: the data (8 houses x 625 frames) with a schedule that fits one 3-hour session
     # of a 2-core AVX512-BF16 machine together with make reproduce-stream (this project's machines keep no files
     # between sessions, so the stream reproduction must run on the same machine as the training): dense 4 / sparse 5

@@ -11,13 +11,14 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from detector.reproduce import deploy
 from detector.reproduce.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
 from detector.reproduce.scales import Scale, model_epochs
 from mpchair.core.atomic import write_text
 
-STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "ablation-bench",
-         "report")
+STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "deploy",
+         "ablation-bench", "report")
 #: Steps that run only when asked for (``--steps``): the ablations' trainings (``make reproduce-ablations``).
 OPT_IN_STEPS = ("ablations",)
 #: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).
@@ -44,6 +45,7 @@ def step_outputs(out: Path) -> dict[str, dict[str, Path]]:
         "bench": {alloc: res / f"bench_{alloc}.json" for alloc in ("default", "reuse")},
         "ops": {"ops": res / "ops.json"},
         "viz": {"panel": res / "viz" / "panel.png"},
+        "deploy": deploy.deploy_outputs(res),
         **extra_step_outputs(out),
     }
 
@@ -332,6 +334,12 @@ def run_curve(plan: Plan, r: Runner) -> None:
               stdout=files["curve"].with_suffix(".md"))
 
 
+def run_deploy(plan: Plan, r: Runner) -> None:
+    """The trained models deployed in ONNX Runtime / OpenVINO: AP, runtime and CPU budget
+    (:func:`detector.reproduce.deploy.run_deploy`)."""
+    deploy.run_deploy(plan, r, _config)
+
+
 #: The steps before the report, in the order they run (the ablation steps: detector.reproduce.ablations).
 COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_refhead, run_ops, run_viz,
-                 run_curve)
+                 run_curve, run_deploy)

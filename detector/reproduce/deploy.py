@@ -1,0 +1,175 @@
+"""The reproduction's ``deploy`` step and its report section: the trained models exported and run in ONNX Runtime and
+OpenVINO at every precision this CPU computes natively, "AP drop vs speed".
+
+After ``train`` / ``eval`` / ``bench``, three kinds of command (all in ``results/``):
+
+- ``detector eval --runtime R --precision P`` of each trained model on the val split (the eval step's configs and
+  weights; int8 calibrated on :data:`CALIBRATION_FRAMES` train frames) → ``deploy_eval/<model>_<R>_<P>/metrics.json``;
+- ``detector bench`` of dense / sparse / sparse with the exact head at 768 x 512, every runtime x precision, one
+  process, interleaved per frame, the reuse allocator (a robot's long-running process) → ``deploy_bench.json``;
+- ``detector bench --rate`` at :data:`BUDGET_RATE_HZ` Hz, each row alone in its own process → ``deploy_budget.json`` /
+  ``.md``.
+
+:func:`deploy_section` reads them back into the report's table (3D / BEV AP Overall R40 and their drop against eager
+fp32, total ms per frame and the speed-up against eager dense fp32, CPU share at the sensor rate and the highest rate
+within 25 % of the CPU). A combination the CPU cannot compute natively is left out (:mod:`detector.deploy.cpu`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from detector.deploy.cpu import cpu_flags, skip_reason
+from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_text
+from detector.reproduce.runner import BIN, REUSE_ENV, Runner
+
+#: (runtime, precision) of the deployed evaluations and bench rows, eager fp32 first.
+VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("onnxruntime", "fp32"), ("onnxruntime", "int8"),
+                                        ("openvino", "fp32"), ("openvino", "bf16"), ("openvino", "int8"))
+CALIBRATION_FRAMES = 32
+BUDGET_RATE_HZ = 1.0  # the paper's conclusion: "1 Hz with more than 75 % of the CPU left"
+
+
+def deployed_variants() -> list[tuple[str, str]]:
+    """:data:`VARIANTS` less those this CPU does not compute natively."""
+    flags = cpu_flags()
+    return [(r, p) for r, p in VARIANTS if skip_reason(r, p, flags) is None]
+
+
+def eval_dir(res: Path, model: str, runtime: str, precision: str) -> Path:
+    """Where ``detector eval`` of a deployed model writes (``results/deploy_eval/<model>_<runtime>_<precision>``)."""
+    return res / "deploy_eval" / f"{model}_{runtime}_{precision}"
+
+
+def deploy_outputs(res: Path) -> dict[str, Path]:
+    """The files that mark the deploy step done (the bench tables; every evaluation's metrics)."""
+    out = {"bench": res / "deploy_bench.json", "budget": res / "deploy_budget.json"}
+    for m in MODELS:
+        for r, p in deployed_variants():
+            if r != "torch":
+                out[f"{m} {r} {p}"] = eval_dir(res, m, r, p) / "metrics.json"
+    return out
+
+
+def _variant_args(variants: list[tuple[str, str]]) -> list[str]:
+    args: list[str] = []
+    for r in dict.fromkeys(r for r, _ in variants):
+        args += ["--runtime", r]
+    for p in dict.fromkeys(p for _, p in variants):
+        args += ["--precision", p]
+    return args
+
+
+def run_deploy(plan, r: Runner, config) -> None:
+    """The step (``plan``: :class:`detector.reproduce.steps.Plan`; ``config``: its config-path function)."""
+    outputs = deploy_outputs(plan.res)
+    variants = deployed_variants()
+    threads = ["--threads", str(plan.threads)]
+    for m in MODELS:
+        for runtime, precision in variants:
+            key = f"{m} {runtime} {precision}"
+            if runtime == "torch" or not plan.todo("deploy", outputs[key]):
+                continue
+            r.run([str(BIN / "detector"), "eval", "--config", config(f"mpchair_{m}_cpu"), "--data", str(plan.data),
+                   "--checkpoint", str(plan.runs / m / "last.pt"), "--split", "val", "--out",
+                   str(eval_dir(plan.res, m, runtime, precision)), *threads, "--runtime", runtime, "--precision",
+                   precision, "--calibration-frames", str(CALIBRATION_FRAMES)])
+    models = ["--config", config("mpchair_dense"), "--config", config("mpchair_sparse"), "--config",
+              config("mpchair_sparse_exact")]
+    ckpts = [str(plan.runs / m / "last.pt") for m in MODELS]
+    weights = [a for c in (*ckpts, ckpts[1]) for a in ("--checkpoint", c)] if all(
+        Path(c).exists() for c in ckpts) else []
+    common = [*models, "--data", str(plan.data), "--split", "test", *weights, *threads, *_variant_args(variants),
+              "--calibration-frames", str(CALIBRATION_FRAMES)]
+    if plan.todo("deploy", outputs["bench"]):
+        r.run([str(BIN / "detector"), "bench", *common, "--frames", str(plan.scale.bench_frames), "--trials",
+               str(plan.scale.bench_trials), "--json", str(outputs["bench"]), "--markdown", "--no-progress"],
+              env=REUSE_ENV, stdout=plan.res / "deploy_bench.md")
+    if plan.todo("deploy", outputs["budget"]):
+        # each row also pays a fresh process and its export (10-30 s) beside the scale's budget_seconds
+        r.run([str(BIN / "detector"), "bench", *common, "--frames", str(plan.scale.bench_frames), "--rate",
+               str(BUDGET_RATE_HZ), "--duration", str(plan.scale.budget_seconds), "--json", str(outputs["budget"]),
+               "--markdown"],
+              env=REUSE_ENV, stdout=plan.res / "deploy_budget.md")
+
+
+# --- reading back ---------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DeployRow:
+    """One row of the AP-drop-vs-speed table: a model (``dense``, ``sparse``, ``sparse+sparse_head``) in a runtime and
+    precision, its val AP (None: not evaluated, e.g. the exact head, whose maps equal the dense head's), its bench
+    total ms and its budget record (None where not run)."""
+
+    model: str
+    runtime: str
+    precision: str
+    metrics: KittiMetrics | None
+    total_ms: float | None
+    cpu_share: float | None
+    max_rate_hz: float | None
+
+
+def read_deploy(res: Path) -> list[DeployRow]:
+    """The deploy step's outputs under ``res`` as table rows (empty when the step has not run)."""
+    bench = _read_json(res / "deploy_bench.json") or {}
+    budget = _read_json(res / "deploy_budget.json") or {}
+    totals = {(m["name"].split(" (")[0], m["runtime"], m["precision"]): m["components"]["total"]["mean_ms"]
+              for m in bench.get("models", []) if not m.get("peer")}
+    shares = {(b["name"].split(" (")[0], b["runtime"], b["precision"]): b for b in budget.get("budget", [])}
+    keys = list(dict.fromkeys([*totals, *shares]))
+    rows = []
+    for name, runtime, precision in keys:
+        # AP of the trained models as the eval step configured them (the exact head's maps equal the dense head's)
+        d = None
+        if name in MODELS:
+            d = _read_json(res / f"eval_{name}" / "metrics.json" if runtime == "torch" else
+                           eval_dir(res, name, runtime, precision) / "metrics.json")
+        b = shares.get((name, runtime, precision))
+        rows.append(DeployRow(name, runtime, precision, KittiMetrics.from_json(d) if d else None,
+                              totals.get((name, runtime, precision)), b["cpu_share"] if b else None,
+                              b["max_rate_hz_at_25pct"] if b else None))
+    return rows
+
+
+def _ap(metrics: KittiMetrics | None, kind: str) -> float | None:
+    if metrics is None or kind not in metrics.ap:
+        return None
+    return metrics.ap[kind].overall.get("R40")
+
+
+def _cell(v: float | None, fmt: str) -> str:
+    return "–" if v is None else format(v, fmt)
+
+
+def deploy_section(res: Path) -> list[str]:
+    """The report's "Deployed" section: the AP-drop-vs-speed table, then the bench and budget tables as measured."""
+    rows = read_deploy(res)
+    lines = ["## Deployed: ONNX Runtime and OpenVINO, AP drop vs speed", ""]
+    if not rows:
+        return [*lines, "not run (step `deploy`)", ""]
+    eager = {r.model: r for r in rows if (r.runtime, r.precision) == ("torch", "fp32")}
+    dense_ms = eager["dense"].total_ms if "dense" in eager else None
+    lines += ["| model | runtime | precision | 3D AP (Overall R40, val) | Δ vs eager fp32 | BEV AP | Δ | total ms "
+              "(768 x 512) | vs eager dense fp32 | CPU at 1 Hz | max Hz at 25 % CPU |", "|" + "---|" * 11]
+    for r in rows:
+        base = eager.get(r.model)
+        cells = [r.model, r.runtime, r.precision]
+        for kind in ("3d", "bev"):
+            ap, ap0 = _ap(r.metrics, kind), _ap(base.metrics if base else None, kind)
+            cells += [_cell(ap, ".2f"), _cell(None if ap is None or ap0 is None else ap - ap0, "+.2f")]
+        speed = None if r.total_ms is None or dense_ms is None else dense_ms / r.total_ms
+        cells += [_cell(r.total_ms, ".1f"), _cell(speed, ".2f") + ("x" if speed else ""),
+                  _cell(None if r.cpu_share is None else 100 * r.cpu_share, ".1f") + (" %" if r.cpu_share else ""),
+                  _cell(r.max_rate_hz, ".2f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "AP: `detector eval --runtime R --precision P` of the trained CPU-config models on the val split "
+              "(the exact head's maps equal the dense head's, so it has no AP row of its own); ms: `detector bench` "
+              "at 768 x 512, every row interleaved per frame in one process (reuse allocator); CPU: `detector bench "
+              f"--rate {BUDGET_RATE_HZ:g}`, each row alone in its own process.", ""]
+    for name, title in (("deploy_bench.md", "Deployed runtime at 768 x 512 (ms per frame)"),
+                        ("deploy_budget.md", f"CPU budget at {BUDGET_RATE_HZ:g} Hz")):
+        text = read_text(res / name)
+        if text:
+            lines += [f"### {title}", "", text.rstrip(), ""]
+    return lines

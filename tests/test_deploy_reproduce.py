@@ -1,0 +1,89 @@
+"""The reproduction's ``deploy`` step: the commands it runs (dry run) and the report's AP-drop-vs-speed table read back
+from what those commands really write (a tiny run)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from helpers_detector import make_tiny_dataset, write_test_config
+
+from detector.cli import main as detector_main
+from detector.deploy.cpu import cpu_flags, skip_reason
+from detector.reproduce.cli import main
+from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, read_deploy
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("openvino")
+
+
+def test_deploy_step_commands(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "w"
+    assert main(["--dry-run", "--scale", "small", "--steps", "deploy", "--out", str(out)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ")]
+    evals = [ln for ln in lines if " eval " in ln]
+    benches = [ln for ln in lines if " bench " in ln]
+    variants = deployed_variants()
+    deployed = [(r, p) for r, p in variants if r != "torch"]
+    assert variants == [v for v in VARIANTS if skip_reason(*v, cpu_flags()) is None]
+    assert len(evals) == 2 * len(deployed)  # dense and sparse, every deployed runtime x precision
+    for (r, p), ln in zip(deployed * 2, evals):
+        assert f"--runtime {r} --precision {p}" in ln and "--split val" in ln and f"_{r}_{p}" in ln
+    assert "mpchair_dense_cpu.yaml" in evals[0] and "mpchair_sparse_cpu.yaml" in evals[-1]
+    assert len(benches) == 2 and "--rate" not in benches[0] and "--rate 1.0 --duration 5.0" in benches[1]
+    for ln in benches:
+        assert ln.startswith("$ MALLOC_MMAP_MAX_=0") and "mpchair_sparse_exact.yaml" in ln
+        assert "--runtime onnxruntime" in ln and "--runtime openvino" in ln and "--precision fp32" in ln
+
+
+def _detector(capsys, *args, stdout: Path | None = None) -> None:
+    with pytest.raises(SystemExit) as e:
+        detector_main([str(a) for a in args])
+    captured = capsys.readouterr()
+    assert e.value.code == 0, captured.err
+    if stdout is not None:
+        stdout.write_text(captured.out)
+
+
+def test_the_report_table_reads_the_step_outputs(tmp_path: Path, capsys) -> None:
+    res = tmp_path / "results"
+    res.mkdir()
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2, seed=3)
+    cfg = write_test_config(tmp_path / "dense.yaml", model=dict(score_thr=0.0))
+    from detector.checkpoint import Checkpoint, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    ckpt = tmp_path / "w.pt"
+    save_checkpoint(ckpt, Checkpoint(model=build_model(load_experiment(cfg).model).state_dict()))
+    common = ["--config", cfg, "--data", data, "--checkpoint", ckpt, "--split", "val", "--threads", "1"]
+    _detector(capsys, "eval", *common, "--out", res / "eval_dense")
+    _detector(capsys, "eval", *common, "--out", eval_dir(res, "dense", "onnxruntime", "fp32"), "--runtime",
+              "onnxruntime")
+    bench = ["--config", cfg, "--data", data, "--split", "val", "--checkpoint", ckpt, "--threads", "1", "--frames",
+             "1", "--runtime", "torch", "--runtime", "onnxruntime", "--markdown"]
+    _detector(capsys, "bench", *bench, "--trials", "1", "--warmup", "0", "--json", res / "deploy_bench.json",
+              stdout=res / "deploy_bench.md")
+    _detector(capsys, "bench", *bench, "--rate", "2", "--duration", "1", "--warmup", "0", "--json",
+              res / "deploy_budget.json", stdout=res / "deploy_budget.md")
+
+    rows = {(r.model, r.runtime, r.precision): r for r in read_deploy(res)}
+    assert set(rows) == {("dense", "torch", "fp32"), ("dense", "onnxruntime", "fp32")}
+    bench_json = json.loads((res / "deploy_bench.json").read_text())
+    budget_json = json.loads((res / "deploy_budget.json").read_text())
+    ort = rows[("dense", "onnxruntime", "fp32")]
+    assert ort.total_ms == bench_json["models"][1]["components"]["total"]["mean_ms"]
+    assert ort.cpu_share == budget_json["budget"][1]["cpu_share"]
+    eager_ap = json.loads((res / "eval_dense" / "metrics.json").read_text())["Chair"]["3d"]["overall"]["R40"]
+    assert ort.metrics.ap["3d"].overall["R40"] == pytest.approx(eager_ap)
+    # fp32 deployed finds the same boxes (random weights, score threshold 0: every frame has some)
+    ort_dir = eval_dir(res, "dense", "onnxruntime", "fp32") / "data"
+    for f in sorted((res / "eval_dense" / "data").glob("*.txt")):
+        assert f.read_text().count("\n") == (ort_dir / f.name).read_text().count("\n") > 0
+    text = "\n".join(deploy_section(res))
+    table = [ln for ln in text.splitlines() if ln.startswith(("| dense | torch |", "| dense | onnxruntime |"))]
+    assert len(table) == 2 and "| onnxruntime | fp32 |" in table[1] and "+0.00" in table[1]
+    assert f"{eager_ap:.2f}" in table[0] and "1.00x" in table[0]
+    assert "### CPU budget at 1 Hz" in text and "CPU share" in text
+    assert "not run" in "\n".join(deploy_section(tmp_path / "empty"))
