@@ -266,27 +266,21 @@ def build_rows(models: Sequence[BenchModel], device: torch.device, data_dir: str
                     nets.append(net)
                     continue
                 if runtime == "torch":  # eager bf16: the same weights in a copy whose stages run under autocast
-                    twin = copy.deepcopy(net)
-                    twin.workspace = Workspace()
-                    twin.precision = precision  # type: ignore[assignment]
-                    faults: dict[str, int] = {}
-                    rows.append(row._replace(name=variant_name(row.name, runtime, precision), precision=precision,
-                                             timer=lambda pts, net=twin, faults=faults: time_frame(net, pts, device,
-                                                                                                    faults),
-                                             faults=faults))
-                    nets.append(twin)
-                    continue
-                if precision == "int8" and i not in calibration:
-                    calibration[i] = [f.points for f in load_eval_frames(
-                        row.cfg, data_dir, variant.calibration_split, variant.calibration_frames)]
-                deployed = deploy_row(net, row, runtime, precision, work / f"{i}-{runtime}-{precision}",
-                                      torch.get_num_threads(), calibration.get(i, []), seed)
-                faults = {}
+                    variant_net = copy.deepcopy(net)
+                    variant_net.workspace = Workspace()
+                    variant_net.precision = precision  # type: ignore[assignment]
+                else:
+                    if precision == "int8" and i not in calibration:
+                        calibration[i] = [f.points for f in load_eval_frames(
+                            row.cfg, data_dir, variant.calibration_split, variant.calibration_frames)]
+                    variant_net = deploy_row(net, row, runtime, precision, work / f"{i}-{runtime}-{precision}",
+                                             torch.get_num_threads(), calibration.get(i, []), seed)
+                faults: dict[str, int] = {}
                 rows.append(row._replace(name=variant_name(row.name, runtime, precision), runtime=runtime,
                                          precision=precision, faults=faults,
-                                         timer=lambda pts, net=deployed, faults=faults: time_frame(net, pts, device,
-                                                                                                   faults)))
-                nets.append(deployed)
+                                         timer=lambda pts, net=variant_net, faults=faults: time_frame(
+                                             net, pts, device, faults)))
+                nets.append(variant_net)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
                          + "; ".join(f"{s.name} {s.runtime} {s.precision}: {s.reason}" for s in skipped))
