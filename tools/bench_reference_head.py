@@ -12,12 +12,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import warnings
 from pathlib import Path
 
 from detector.bench.reference_head import format_reference_head, run_reference_head_bench
 from detector.bench.run import BenchModel
 from mpchair.core.atomic import check_writable, write_text
+from mpchair.core.clitools import run_holding_warnings
 from mpchair.core.errors import InputError
 
 
@@ -36,13 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of random weights")
     p.add_argument("--json", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
-    with warnings.catch_warnings(record=True) as held:
-        warnings.simplefilter("always")
-        code = _run(args)
-    if code == 0:  # a warning raised on the way (a checkpoint of another grid), one line each, after the result
-        for text in dict.fromkeys(" ".join(str(w.message).split()) for w in held):
-            print(f"warning: {text}", file=sys.stderr)
-    return code
+    # a warning raised on the way (a checkpoint of another grid): one line each, after the result
+    return run_holding_warnings(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -130,3 +130,16 @@ def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | N
     except click.exceptions.Exit as e:
         return e.exit_code, None
     return (rv if isinstance(rv, int) else 0), None
+
+
+def run_holding_warnings(work: Callable[[], int]) -> int:
+    """Run a ``tools/`` script's ``work`` (its exit status) with every Python warning held; after status 0 print each
+    as one ``warning: ...`` line on stderr (repeats once), so a failed run's ``error:`` line is never buried (what
+    :func:`run_cli` does for the console scripts)."""
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("always")
+        code = work()
+    if code == 0:
+        for text in dict.fromkeys(" ".join(str(w.message).split()) for w in held):
+            print(f"warning: {text}", file=sys.stderr)
+    return code
