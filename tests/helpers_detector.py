@@ -179,3 +179,15 @@ def onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10
             t = (i - e1) / (e2 - e1)
             out.append((cos(peak, peak / (div * final), t), cos(beta1[1], beta1[0], t)))
     return out
+
+
+def detector_cli(args: list, capsys) -> tuple[int, str, str]:
+    """Run ``detector ARGS`` in this process: ``(exit status, stdout, stderr)`` (arguments turned into strings)."""
+    import pytest
+
+    from detector.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return e.value.code, out, err

@@ -7,13 +7,13 @@ from __future__ import annotations
 import json
 
 import pytest
+from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
 
 from detector.bench.budget import fixed_rate
 from detector.bench.report import format_table, headline_line, ratio_rows
 from detector.bench.run import headline_record
 from detector.bench.timing import COMPONENTS
-from detector.cli import main
 from detector.deploy.cpu import cpu_flags, precision_flags, skip_reason
 
 pytest.importorskip("onnxruntime")
@@ -28,12 +28,6 @@ def setup(tmp_path_factory):
             for b, h in (("dense", "dense"), ("sparse", "sparse_exact"))}
     return data, cfgs
 
-
-def _cli(args: list, capsys) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as e:
-        main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return e.value.code, out, err
 
 
 def test_every_model_runtime_precision_is_a_row_interleaved(setup, tmp_path, capsys):

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
 
 from detector.checkpoint import load_model
-from detector.cli import main
 from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
 from detector.deploy.deployed import build_deployed
@@ -168,12 +168,6 @@ def test_an_empty_frame_gives_the_bias_maps(slim, tmp_path):
     empty = np.zeros((0, 3), dtype=np.float32)
     assert _max_diff(model, deployed, [empty]) <= TOL
 
-
-def _cli(args: list, capsys) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as e:
-        main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return e.value.code, out, err
 
 
 def test_export_cli_writes_the_folder_and_its_manifest(slim, tmp_path, capsys):

@@ -14,12 +14,12 @@ import sys
 import numpy as np
 import pytest
 import torch
+from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
 
 import detector.bench.peer as peer_mod
 from detector.bench import COMPONENTS, ratio_rows
 from detector.checkpoint import load_model
-from detector.cli import main
 from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
 from mpchair.core.errors import InputError
@@ -36,12 +36,6 @@ def setup(tmp_path_factory):
     sparse = write_test_config(root / "sparse.yaml", model=dict(backbone="sparse", max_points_per_pillar=64))
     return data, dense, sparse
 
-
-def _cli(args, capsys) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as e:
-        main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return e.value.code, out, err
 
 
 def test_peer_is_our_dense_network_in_open3d_ml_code(setup) -> None:

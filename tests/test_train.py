@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, onecycle_curve, write_test_config
 
 from detector.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from detector.cli import main
 from detector.config import load_experiment
 from detector.eval import all_ap_zero, evaluate_folders
 from detector.infer import evaluate_checkpoint
@@ -40,12 +40,6 @@ SMOKE_MIN_BEV_AP = 40.0
 def data(tmp_path_factory) -> Path:
     return make_tiny_dataset(tmp_path_factory.mktemp("tiny"), n_frames=8, seed=0)
 
-
-def _cli(args: list[str], capsys) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as e:
-        main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return e.value.code, out, err
 
 
 def _steps(run: Path) -> list[dict]:
