@@ -30,10 +30,11 @@ ablations on this run's data (``--ablations``, ``--ablation-epochs``), then time
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
-``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule that fits one 3-hour
+``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule chosen to fit one 3-hour
 session of 2 cores together with ``make reproduce-stream``: 8 houses, 5,000 frames = 3,000 train / 1,000 val /
 1,000 test, dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in bfloat16 autocast where the CPU has native
-bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (about 4x slower to train on 2 AVX2-only cores). ``--scale recipe`` is
+bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (a dense step ~0.25 s in bf16 on 2 AVX512-BF16 cores, ~1.75 s in
+fp32 on 2 AVX2-only ones: docs/benchmarks.md). ``--scale recipe`` is
 the longer schedule, dense 16 / sparse 20 epochs (about 4.5 hours on 2 native-bf16 cores, about 16 hours on 2
 AVX2-only ones, measured 2026-12-02): a GPU's job or a machine that outlives a session. ``--scale small`` is a
 quick end-to-end check (2 houses, 300 frames,

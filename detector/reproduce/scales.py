@@ -36,11 +36,12 @@ SCALES = {
     # about 2 h on 2 idle cores: the full pipeline on 8 houses with fewer frames and epochs than the issue's targets
     "medium": Scale(houses=8, frames_per_house=250, epochs=10, bench_frames=20, bench_trials=3, ops_frames=100,
                     budget_seconds=20.0),
-    # make reproduce's default: the issue's data (8 houses x 625 frames) with a schedule that fits one 3-hour session
-    # of a 2-core AVX512-BF16 machine together with make reproduce-stream (this project's machines keep no files
-    # between sessions, so the stream reproduction must run on the same machine as the training): dense 4 / sparse 5
-    # bf16 epochs (the paper's 1.25 ratio exactly; 8 / 10 took 126 min of training before the sparse speed-ups of
-    # issue 28, a 4 / 5 retrain reached KITTI 3D Overall R40 58.9 / 57.6 against 68.2 / 64.1 at 8 / 10)
+    # make reproduce's default: the issue's data (8 houses x 625 frames) with a schedule chosen (estimated, not yet
+    # timed) to fit one 3-hour session of a 2-core AVX512-BF16 machine together with make reproduce-stream (this
+    # project's machines keep no files between sessions, so the stream reproduction must run on the same machine as
+    # the training): dense 4 / sparse 5 bf16 epochs (the paper's 1.25 ratio exactly; 8 / 10 took 126 min of training
+    # before the sparse speed-ups of issue 28, a 4 / 5 retrain reached KITTI 3D Overall R40 58.9 / 57.6 against
+    # 68.2 / 64.1 at 8 / 10)
     # (bench 30 frames: at 10, BBox Extract's 5-10 ms per frame swung 0.65-1.43x between the models on a noisy VM)
     "full": Scale(houses=8, frames_per_house=625, epochs=4, bench_frames=30, bench_trials=3, ops_frames=200,
                   precision="auto"),
