@@ -95,7 +95,7 @@ def test_same_seed_same_bytes_and_labels_stay_exact(tmp_path: Path) -> None:
     assert _tree_digest(tmp_path / "c") != _tree_digest(tmp_path / "a")
     # Every object's box is its true box: the same house without artifacts (same layout, same clutter) has it too.
     no_artifacts = Realism(room_size=DEFAULT.room_size, open_plan=DEFAULT.open_plan, clutter=DEFAULT.clutter,
-                           doors=DEFAULT.doors)  # fmt: skip
+                           doors=DEFAULT.doors, chair_mix=DEFAULT.chair_mix)  # fmt: skip
     hid, hs, lv = plan_houses(1, 9)[0]
     real, plain = synthesize_house(hs, hid, levels=lv), synthesize_house(hs, hid, levels=lv, realism=no_artifacts)
     assert len(real.objects) == len(plain.objects) and len(real.faces) > 3 * len(plain.faces)

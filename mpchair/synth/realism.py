@@ -61,6 +61,7 @@ class Realism:
 
     name: str = "custom"
     room_size: float = 0.0
+    room_size_spread: float = 0.0
     open_plan: float = 0.0
     cell: float = 0.25
     vertex_noise: float = 0.0
@@ -80,6 +81,7 @@ class Realism:
     fragments: float = 0.0
     clutter: float = 0.0
     doors: float = 0.0
+    chair_mix: bool = False
 
     def __post_init__(self) -> None:
         rates = ("surface_holes", "mirror_holes", "floor_under_tables", "thin_part_holes", "open_undersides",
@@ -93,6 +95,8 @@ class Realism:
                 raise ValueError(f"realism {k} is a probability, got {getattr(self, k)}")
         if self.cell <= 0 or self.wave_length <= 0 or self.room_size < 0:
             raise ValueError("realism cell and wave_length must be > 0, room_size >= 0")
+        if not 0 <= self.room_size_spread < 1:
+            raise ValueError(f"realism room_size_spread must be in [0, 1), got {self.room_size_spread}")
         if not 0 <= self.open_plan <= 1:
             raise ValueError(f"realism open_plan is a probability, got {self.open_plan}")
 
@@ -116,7 +120,7 @@ CLEAN = Realism(name="clean")
 DEFAULT = Realism(
     name="default", room_size=4.9, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
     mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
-    chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
+    chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7, chair_mix=True,
 )  # fmt: skip
 
 REALISM_PRESETS: dict[str, Realism] = {"clean": CLEAN, "default": DEFAULT}
