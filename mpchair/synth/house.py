@@ -195,13 +195,18 @@ class _Room:
 
 @dataclass(frozen=True)
 class ChairMix:
-    """Which chair styles the room recipes pick: ``weights`` (style → weight) for a chair of no set style, ``table``
-    the styles drawn (uniformly) for each chair at a dining table, ``lounges`` the range of chaise longues per living
-    room (``integers(lo, hi)``), ``bedroom`` the styles drawn for a bedroom's chair, ``wall`` those of the realism
-    clutter's extra chairs against walls, and ``extra`` more free-standing chairs, as ``(room labels, style,
-    chance per room)``, put into each room after its recipe; ``chaise_share``: after every room is furnished, chaise
-    longues are added until they are this share of the house's chairs, one per room, living rooms and bedrooms
-    first."""
+    """Which chairs the room recipes put into a house.
+
+    * ``weights``: style → weight, for a chair of no set style; ``table``: the styles drawn (uniformly) for each chair
+      at a dining table; ``bedroom``: those of a bedroom's chair; ``wall``: those of the realism clutter's extra
+      chairs against walls.
+    * ``lounges``: chaise longues per living room, ``integers(lo, hi)``.
+    * ``extra``: more chairs, ``(room labels, style, chance per room)``, put into each room after its recipe.
+    * ``chaise_share``: after every room is furnished, chaise longues are added until they are this share of the
+      house's chairs (0: none), one per room and round, living rooms first, then bedrooms and offices.
+    * ``max_chairs``: no chair is added to a house that has this many; ``builders``: style → builder overrides
+      (other sizes than :data:`furniture.CHAIR_STYLES` builds).
+    """
 
     weights: dict[str, float]
     table: tuple[str, ...]
@@ -223,10 +228,21 @@ PROCEDURAL_CHAIRS = ChairMix(
     bedroom=("armchair", "dining", "folding"), wall=("dining", "dining", "office"),
 )  # fmt: skip
 
-#: The realism model's chair mix (``Realism.chair_mix``), calibrated to the original dataset. WRITE RATIONALE.
+#: The realism model's chair mix (``Realism.chair_mix``), calibrated to the mean *kept* chair box of the original
+#: dataset, 0.960 x 0.667 x 0.884 m (``original-generator.md`` §8: the one statistic of its chairs there is):
+#: - l - w is 0.29 m on average (l / w = 1.44), but dining, office and folding chairs and armchairs are about as deep
+#:   as wide (l - w <= 0.1 m): about a quarter of the kept boxes must be chairs much longer than wide, chaise longues.
+#:   Their number is a quota per house (``chaise_share`` of its chairs), spread over living rooms, bedrooms and
+#:   offices, instead of 2-3 in every living room: a set of 8 houses then no longer gets its mean length from how many
+#:   living rooms it has and how often the viewpoints land in them (the procedural mix: 0.93-1.02 m over seeds 0-5).
+#: - indoor chaise longues, 1.4-1.75 m (1.55-1.95 m reaches into sun loungers), and armchairs 0.74-0.98 m wide
+#:   (accent and club chairs; at 0.86-1.14 m, with armchairs a quarter of the kept boxes, w was 5 % over).
+#: - rocking chairs (0.85-1.05 m along their rockers, 0.55-0.7 m wide: a common chair about the size of the mean box)
+#:   in living rooms, bedrooms and offices, and among the chairs of no set style (fewer armchairs, no chaise there).
+#: - up to 40 chairs a house: MP3D homes are big, and 30 left no room for the clutter's chairs in most houses.
 MP3D_CHAIRS = ChairMix(
     weights={"dining": 0.2, "armchair": 0.3, "office": 0.12, "folding": 0.08, "rocking": 0.18},
-    table=("dining", "dining", "armchair", "armchair", "office"), lounges=(0, 1),
+    table=("dining", "dining", "armchair", "armchair", "office"), lounges=(0, 1),  # (0, 1): none, the quota has them
     bedroom=("armchair", "rocking", "dining", "folding"), wall=("dining", "office", "rocking", "armchair"),
     builders={"armchair": partial(fu.armchair, width=(0.74, 0.98), depth=(0.78, 0.96)),
               "lounge": partial(fu.lounge_chair, length=(1.4, 1.75))},

@@ -33,6 +33,8 @@ class Realism:
     * ``room_size``: when > 0, every house's rooms are scaled to this mean width (m; the procedural rooms are
       3.4-5.2 m, mean ~4.2). Real MP3D homes are bigger: longer sightlines, sparser far points, a higher pseudo-image
       density; one mean size for every house keeps that density steady from house to house.
+    * ``room_size_spread``: each house's mean width is ``room_size`` times a factor drawn in 1 ± this (homes differ
+      in size: the density's tail, its maximum, comes from the bigger ones).
     * ``open_plan``: per door between two rooms, a wide opening (1.6 m up to the wall less 1.2 m) instead.
     * ``cell``: walls, floors and ceilings are re-meshed as grids of this cell size when any surface knob is on (real
       meshes are dense; noise, waves and holes need vertices to act on).
@@ -57,6 +59,9 @@ class Realism:
     * ``clutter``: how many clutter items a room gets (plants, shelving, counters, cushions, objects on tables and
       floors, stool-like chairs; 1 = the default amount, 0 = none).
     * ``doors``: per door opening, an open door leaf in it.
+    * ``chair_mix``: the chairs are drawn from the mix calibrated to the original dataset's mean chair box
+      (:data:`mpchair.synth.house.MP3D_CHAIRS`: rocking chairs, a chaise longue quota per house, indoor sizes)
+      instead of the procedural recipe's.
     """
 
     name: str = "custom"
