@@ -61,7 +61,7 @@ def test_the_table_lands_between_the_markers(calibrated, tmp_path):
     table = format_table(rows, plan)
     lines = [ln for ln in table.splitlines() if ln.startswith("|")]
     assert len(lines) == 2 + 2 + len(rows)  # header, rule, original, target, rows
-    assert all(ln.count("|") == lines[0].count("|") for ln in lines)
+    assert all(ln.count("|") == lines[0].count("|") == 17 for ln in lines)  # with the targets column
     assert "tools/realism_calibration.py --seeds 1 --houses 1 --frames 30" in table
     doc = tmp_path / "doc.md"
     doc.write_text(f"before\n{BEGIN}\nold table\n{END}\nafter\n")
@@ -73,7 +73,7 @@ def test_the_table_lands_between_the_markers(calibrated, tmp_path):
     with pytest.raises(InputError, match="markers"):
         write_doc_table(doc, table)
     # Each row says which of issue 27's targets it misses (the clean house: the two visibility filters never fire).
-    assert "in_box_fraction rejected 0 < 2% of" in lines[4]
+    assert "misses D median, D max, `points_in_box`, `in_box_fraction`" in lines[4]
 
 
 def test_another_height_has_its_own_markers_and_no_targets(calibrated, tmp_path):
@@ -81,7 +81,7 @@ def test_another_height_has_its_own_markers_and_no_targets(calibrated, tmp_path)
     table = format_table(rows, dataclasses.replace(plan, height=1.0))
     lines = [ln for ln in table.splitlines() if ln.startswith("|")]
     assert len(lines) == 2 + 1 + len(rows) and "target" not in table and "--height 1 " in table
-    assert all(ln.count("|") == lines[0].count("|") == 17 for ln in lines)
+    assert all(ln.count("|") == lines[0].count("|") == 16 for ln in lines)
     begin, end = markers("calibration-table-1m")
     doc = tmp_path / "doc.md"
     doc.write_text(f"{BEGIN}\nmain\n{END}\n{begin}\nold\n{end}\n")

@@ -71,6 +71,8 @@ def test_presets_and_knob_checks() -> None:
         Realism(chair_holes=1.5)
     with pytest.raises(ValueError, match=">= 0"):
         Realism(vertex_noise=-0.01)
+    with pytest.raises(ValueError, match="room_size_spread"):
+        Realism(room_size=4.9, room_size_spread=1.0)
 
 
 def test_clean_is_todays_houses_byte_for_byte(tmp_path: Path) -> None:
@@ -94,8 +96,8 @@ def test_same_seed_same_bytes_and_labels_stay_exact(tmp_path: Path) -> None:
     write_synthetic_houses(tmp_path / "c", 1, 10)
     assert _tree_digest(tmp_path / "c") != _tree_digest(tmp_path / "a")
     # Every object's box is its true box: the same house without artifacts (same layout, same clutter) has it too.
-    no_artifacts = Realism(room_size=DEFAULT.room_size, open_plan=DEFAULT.open_plan, clutter=DEFAULT.clutter,
-                           doors=DEFAULT.doors, chair_mix=DEFAULT.chair_mix)  # fmt: skip
+    no_artifacts = Realism(**{k: getattr(DEFAULT, k) for k in ("room_size", "room_size_spread", "open_plan", "clutter",
+                                                               "doors", "chair_mix")})  # the layout knobs only
     hid, hs, lv = plan_houses(1, 9)[0]
     real, plain = synthesize_house(hs, hid, levels=lv), synthesize_house(hs, hid, levels=lv, realism=no_artifacts)
     assert len(real.objects) == len(plain.objects) and len(real.faces) > 3 * len(plain.faces)

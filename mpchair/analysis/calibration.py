@@ -105,24 +105,31 @@ TARGETS = {"d_median": (0.9 * ORIGINAL["d_median"], 1.1 * ORIGINAL["d_median"]),
            "rejected": {"points_in_box": 0.02, "in_box_fraction": 0.02}}
 
 
-def target_misses(row: dict) -> list[str]:
-    """Which of :data:`TARGETS` a :meth:`Measurement.row` misses, one line each (``[]``: it meets them all)."""
+def _misses(row: dict) -> list[tuple[str, str]]:
+    """``(short name, message)`` of every target of :data:`TARGETS` that ``row`` misses."""
     out = []
     lo, hi = TARGETS["d_median"]
     if not lo <= row["d_median"] <= hi:
-        out.append(f"D median {row['d_median']:.5f} outside {lo:.5f}-{hi:.5f}")
+        out.append(("D median", f"D median {row['d_median']:.5f} outside {lo:.5f}-{hi:.5f}"))
     if row["d_max"] < TARGETS["d_max"]:
-        out.append(f"D max {row['d_max']:.5f} < {TARGETS['d_max']}")
+        out.append(("D max", f"D max {row['d_max']:.5f} < {TARGETS['d_max']}"))
     for reason, share in TARGETS["rejected"].items():
         if row["rejected"][reason] < share * row["kept"]:
-            out.append(f"{reason} rejected {row['rejected'][reason]} < {share:.0%} of {row['kept']} kept")
+            out.append((f"`{reason}`", f"{reason} rejected {row['rejected'][reason]} < {share:.0%} of {row['kept']} "
+                        "kept"))
     if row["mean_lwh"] is None:
-        out.append("no chair box kept")
+        out.append(("no box", "no chair box kept"))
     else:
         for name, v, o in zip("lwh", row["mean_lwh"], ORIGINAL["lwh"]):
             if abs(v / o - 1) > TARGETS["lwh"]:
-                out.append(f"mean chair {name} {v:.3f} m is {100 * (v / o - 1):+.1f} % off {o:.3f} m")
+                off = f"{100 * (v / o - 1):+.1f} %"
+                out.append((f"{name} {off}", f"mean chair {name} {v:.3f} m is {off} off {o:.3f} m"))
     return out
+
+
+def target_misses(row: dict) -> list[str]:
+    """Which of :data:`TARGETS` a :meth:`Measurement.row` misses, one line each (``[]``: it meets them all)."""
+    return [message for _, message in _misses(row)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,6 +180,11 @@ def _pct(n: int, kept: int) -> str:
     return f"{n} ({100.0 * n / kept:.1f} %)" if kept else str(n)
 
 
+def _targets_cell(row: dict) -> str:
+    missed = [short for short, _ in _misses(row)]
+    return f"misses {', '.join(missed)}" if missed else "met"
+
+
 def format_table(rows: Sequence[dict], plan: CalibrationPlan) -> str:
     """The calibration table in Markdown: the original dataset, the targets, then ``rows`` (pooled rows in bold) and,
     at the original's sensor height (the targets are for it), which targets each row misses."""
@@ -195,7 +207,7 @@ def format_table(rows: Sequence[dict], plan: CalibrationPlan) -> str:
         lines.append(f"| {name} | {r['d_median']:.5f} | {r['d_p10']:.5f} | {r['d_p90']:.5f} | {r['d_max']:.5f} | "
                      f"{r['boxes_per_frame']:.2f} | {r['kept']} | "
                      + " | ".join(_pct(r["rejected"][k], r["kept"]) for k in REASONS) + f" | {lwh} | {ppb} |"
-                     + (f" {'; '.join(target_misses(r)) or 'met'} |" if targets else ""))
+                     + (f" {_targets_cell(r)} |" if targets else ""))
     cmd = (f"`tools/realism_calibration.py --seeds {','.join(map(str, plan.seeds))} --houses {plan.houses} "
            f"--frames {plan.frames} --height {plan.height:g} --robot-radius {plan.robot_radius:g}`")
     return (f"Written by {cmd} (`mpchair synth --houses {plan.houses} --seed S --realism P`, then `mpchair generate "

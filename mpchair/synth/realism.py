@@ -123,9 +123,9 @@ CLEAN = Realism(name="clean")
 #: Calibrated so that ``mpchair generate --height 1.25 --robot-radius 0.1`` with ``mp3d-depth90`` meets the original
 #: dataset's density and filter statistics (docs/matterport.md, "Realism").
 DEFAULT = Realism(
-    name="default", room_size=4.9, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
-    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
-    chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7, chair_mix=True,
+    name="default", room_size=4.9, room_size_spread=0.1, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01,
+    surface_holes=0.6, mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5,
+    chair_holes=0.2, chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7, chair_mix=True,
 )  # fmt: skip
 
 REALISM_PRESETS: dict[str, Realism] = {"clean": CLEAN, "default": DEFAULT}
