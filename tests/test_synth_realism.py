@@ -71,6 +71,8 @@ def test_presets_and_knob_checks() -> None:
         Realism(chair_holes=1.5)
     with pytest.raises(ValueError, match=">= 0"):
         Realism(vertex_noise=-0.01)
+    with pytest.raises(ValueError, match="room_size_spread"):
+        Realism(room_size=4.9, room_size_spread=1.0)
 
 
 def test_clean_is_todays_houses_byte_for_byte(tmp_path: Path) -> None:
@@ -94,8 +96,8 @@ def test_same_seed_same_bytes_and_labels_stay_exact(tmp_path: Path) -> None:
     write_synthetic_houses(tmp_path / "c", 1, 10)
     assert _tree_digest(tmp_path / "c") != _tree_digest(tmp_path / "a")
     # Every object's box is its true box: the same house without artifacts (same layout, same clutter) has it too.
-    no_artifacts = Realism(room_size=DEFAULT.room_size, open_plan=DEFAULT.open_plan, clutter=DEFAULT.clutter,
-                           doors=DEFAULT.doors)  # fmt: skip
+    no_artifacts = Realism(**{k: getattr(DEFAULT, k) for k in ("room_size", "room_size_spread", "open_plan", "clutter",
+                                                               "doors", "chair_mix")})  # the layout knobs only
     hid, hs, lv = plan_houses(1, 9)[0]
     real, plain = synthesize_house(hs, hid, levels=lv), synthesize_house(hs, hid, levels=lv, realism=no_artifacts)
     assert len(real.objects) == len(plain.objects) and len(real.faces) > 3 * len(plain.faces)
@@ -202,3 +204,26 @@ def test_readers_read_every_file_of_realistic_houses_release_and_habitat_zipped(
                 np.testing.assert_allclose(o.aligned_box[:6], g.aligned_box[:6], atol=1e-5)
         assert a.unlabelled_faces == syn.unlabelled_faces > 0
         assert a.navmesh is None and b.navmesh is not None and len(b.navmesh.poly_vertices) > 0
+
+
+def test_default_chair_mix_gives_the_originals_mean_box_on_every_seed() -> None:
+    # What issue 27 targets is the mean of the *kept* boxes (tools/realism_calibration.py; slow test in
+    # test_realism_calibration.py); this checks the chair mix behind it on the houses alone, 8 per seed as there.
+    # Kept boxes are a few percent longer than the houses' chairs (long chairs are seen more often, from further),
+    # so the houses' mean is held to 6 %, and every seed's to 4 % of the pool: the chaise quota keeps the mix steady.
+    from mpchair.analysis.calibration import ORIGINAL
+
+    means, styles, shares = [], set(), []
+    for seed in range(6):
+        boxes = []
+        for hid, hs, lv in plan_houses(8, seed):
+            chairs = [o for o in synthesize_house(hs, hid, levels=lv).objects if o.mpcat40_index == 3]
+            boxes += [o.aligned_box[3:6] for o in chairs]
+            styles |= {o.style for o in chairs}
+            shares.append(sum(o.style == "lounge" for o in chairs) / len(chairs))
+        means.append(np.mean(boxes, axis=0))
+    pooled = np.mean(means, axis=0)
+    np.testing.assert_allclose(pooled, ORIGINAL["lwh"], rtol=0.06)
+    np.testing.assert_allclose(means, np.broadcast_to(pooled, (6, 3)), rtol=0.04)
+    assert styles == {"dining", "armchair", "office", "folding", "lounge", "rocking", "stool"}
+    assert 0.15 < np.median(shares) < 0.3 and max(shares) < 0.4  # chaise longues: about a quarter of every house's

@@ -1,12 +1,14 @@
 """The realism calibration of docs/matterport.md: synthetic houses of each realism preset, scanned at the original
 code's settings, measured against the original Matterport-Chair dataset (``mpchair.analysis.calibration``).
 
-    .venv/bin/python tools/realism_calibration.py                 # 2 presets x 4 seeds x 2 houses x 150 frames
-    .venv/bin/python tools/realism_calibration.py --height 1.0 --seeds 1,2 --no-doc   # the paper's sensor height
+    .venv/bin/python tools/realism_calibration.py --seeds 0,1,2,3,4,5 --houses 8 --frames 40   # the doc's table
+    .venv/bin/python tools/realism_calibration.py --height 1.0 --work out/cal-1m ...   # the paper's sensor height
 
-Writes WORK/calibration.json, the table between the calibration markers of docs/matterport.md (--doc), and the
-pictures docs/img/realism-house.png and docs/img/realism-hole-frame.png (--pictures). A finished dataset in WORK is
-reused (generate resumes), so a second run only re-measures.
+Writes WORK/calibration.json, the table between the ``calibration-table`` markers of docs/matterport.md (--doc; at
+another --height than the original's 1.25 m, the ``calibration-table-<height>m`` markers: --marker), and, at 1.25 m,
+the pictures docs/img/realism-house.png and docs/img/realism-hole-frame.png (--pictures). Houses and finished datasets
+in WORK are reused (generate resumes), so a second run only re-measures: after changing the synthesizer, use a new
+--work.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import json
 from pathlib import Path
 
 from mpchair.analysis.calibration import (
+    MARKER,
+    ORIGINAL_HEIGHT,
     CalibrationPlan,
     calibrate,
     dataset_of,
@@ -40,9 +44,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot-radius", type=float, default=0.1, help="robot radius (m)")
     ap.add_argument("--presets", default="clean,default", help="realism presets, comma-separated")
     ap.add_argument("--doc", type=Path, default=ROOT / "docs" / "matterport.md", help="doc whose table to rewrite")
+    ap.add_argument("--marker", help="name of the doc's markers to write between (default: calibration-table at "
+                    "1.25 m, else calibration-table-<height>m)")
     ap.add_argument("--no-doc", action="store_true", help="print the table, leave the doc alone")
     ap.add_argument("--pictures", type=Path, default=ROOT / "docs" / "img", help="where the two PNGs go")
-    ap.add_argument("--no-pictures", action="store_true")
+    ap.add_argument("--no-pictures", action="store_true", help="no pictures (never drawn at another height)")
     args = ap.parse_args(argv)
     plan = CalibrationPlan(work=args.work, presets=tuple(args.presets.split(",")),
                            seeds=tuple(int(s) for s in args.seeds.split(",")), houses=args.houses, frames=args.frames,
@@ -54,9 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_doc:
         print(table)
     else:
-        write_doc_table(args.doc, table)
-        print(f"wrote the table into {args.doc}")
-    if not args.no_pictures and "default" in plan.presets:
+        marker = args.marker or (MARKER if plan.height == ORIGINAL_HEIGHT else f"{MARKER}-{plan.height:g}m")
+        write_doc_table(args.doc, table, marker)
+        print(f"wrote the table into {args.doc} ({marker})")
+    if not args.no_pictures and "default" in plan.presets and plan.height == ORIGINAL_HEIGHT:
         data = dataset_of(plan, "default", plan.seeds[0])
         houses = data.parent / "houses"
         hid = sorted(find_houses(houses))[0]

@@ -46,10 +46,12 @@ def dining_chair(rng: np.random.Generator) -> list[Part]:
     return parts
 
 
-def armchair(rng: np.random.Generator) -> list[Part]:
-    """Upholstered armchair: short legs, base, seat cushion, back block and two arms (about 1.0 x 0.9 x 0.87 m)."""
+def armchair(rng: np.random.Generator, width: tuple[float, float] = (0.86, 1.14),
+             depth: tuple[float, float] = (0.84, 1.04)) -> list[Part]:
+    """Upholstered armchair: short legs, base, seat cushion, back block and two arms (about 1.0 x 0.9 x 0.87 m with
+    the default ``width`` and ``depth`` ranges, m)."""
     # Club chairs and wing chairs are wide and deep; these sizes are what makes real MP3D chair boxes long on average.
-    w, d = _u(rng, 0.86, 1.14), _u(rng, 0.84, 1.04)
+    w, d = _u(rng, *width), _u(rng, *depth)
     sh, top, arm_h = _u(rng, 0.40, 0.46), _u(rng, 0.78, 0.96), _u(rng, 0.58, 0.68)
     arm_w, back_t = _u(rng, 0.12, 0.2), _u(rng, 0.15, 0.22)
     parts = _legs(d, w, 0.1, 0.05, inset=0.03)
@@ -105,9 +107,10 @@ def folding_chair(rng: np.random.Generator) -> list[Part]:
     return parts
 
 
-def lounge_chair(rng: np.random.Generator) -> list[Part]:
-    """Lounge chair (chaise): long low seat on legs with a reclined back at the rear (about 1.75 x 0.68 x 0.84 m)."""
-    length, w = _u(rng, 1.55, 1.95), _u(rng, 0.6, 0.75)
+def lounge_chair(rng: np.random.Generator, length: tuple[float, float] = (1.55, 1.95)) -> list[Part]:
+    """Lounge chair (chaise): long low seat on legs with a reclined back at the rear (about 1.75 x 0.68 x 0.84 m with
+    the default ``length`` range, m)."""
+    length, w = _u(rng, *length), _u(rng, 0.6, 0.75)
     sh, top = _u(rng, 0.3, 0.38), _u(rng, 0.75, 0.95)
     parts = _legs(length, w, 0.12, 0.04, inset=0.05)
     parts.append((1, *cbox(0, 0, (0.12 + sh) / 2, length, w, sh - 0.12)))
@@ -115,13 +118,50 @@ def lounge_chair(rng: np.random.Generator) -> list[Part]:
     return parts
 
 
-#: Chair styles: name → (builder, weight, raw categories as (category_mapping index, name)).
-CHAIR_STYLES: dict[str, tuple[Callable[[np.random.Generator], list[Part]], float, tuple[tuple[int, str], ...]]] = {
+def rocking_chair(rng: np.random.Generator) -> list[Part]:
+    """Rocking chair: two curved rockers running front to back under four short legs, a seat, a tall back leaning
+    back on two posts, and two arms (about 0.95 x 0.62 x 1.0 m: longer than wide, because of the rockers)."""
+    d, w = _u(rng, 0.85, 1.05), _u(rng, 0.55, 0.7)
+    sh, top, sd = _u(rng, 0.4, 0.46), _u(rng, 0.92, 1.05), _u(rng, 0.44, 0.52)
+    rise, lean = _u(rng, 0.05, 0.09), _u(rng, 0.08, 0.15)  # rocker ends above its lowest point; the back's lean
+
+    def rocker_z(x: float) -> float:  # the rocker's underside (a parabola through the floor contact at x = 0)
+        return rise * (2 * x / d) ** 2
+
+    parts: list[Part] = []
+    xs = np.linspace(-d / 2, d / 2, 5)
+    for sy in (-1, 1):
+        y = sy * (w / 2 - 0.02)
+        for x0, x1 in zip(xs[:-1], xs[1:]):  # the rocker as four chords, 0.03 m thick, resting on the floor
+            parts.append((0, *bar((x0, y, rocker_z(x0) + 0.015), (x1, y, rocker_z(x1) + 0.015), 0.03, 0.03)))
+        for sx in (-1, 1):
+            x = sx * (sd / 2 - 0.03)
+            z0 = rocker_z(x) + 0.03
+            parts.append((0, *cbox(x, y, (z0 + sh - 0.04) / 2, 0.035, 0.035, sh - 0.04 - z0)))
+        parts.append((1, *bar((-sd / 2 + 0.02, y, sh - 0.04), (-sd / 2 + 0.02 - lean, y, top), 0.035, 0.035)))
+        parts.append((1, *bar((sd / 2 - 0.03, y, sh + 0.22), (-sd / 2 + 0.02 - lean * 0.3, y, sh + 0.24), 0.05,
+                              0.03)))  # fmt: skip
+        parts.append((1, *cbox(sd / 2 - 0.03, y, sh + 0.1, 0.03, 0.03, 0.2)))  # the arm's front support
+    parts.append((1, *cbox(0, 0, sh - 0.02, sd, w - 0.06, 0.04)))
+    z_back = sh + 0.18
+    x_back = -sd / 2 + 0.02 - lean * (z_back - sh + 0.04) / (top - sh + 0.04)
+    parts.append((1, *bar((x_back, 0, z_back), (-sd / 2 + 0.02 - lean, 0, top - 0.02), w - 0.08, 0.02)))
+    return parts
+
+
+#: A chair style: (builder, weight, raw categories as (category_mapping index, name)).
+ChairStyle = tuple[Callable[[np.random.Generator], list[Part]], float, tuple[tuple[int, str], ...]]
+#: Chair styles: name → :data:`ChairStyle`.
+CHAIR_STYLES: dict[str, ChairStyle] = {
     "dining": (dining_chair, 0.14, ((7, "chair"), (25, "dining chair"))),
     "armchair": (armchair, 0.42, ((34, "armchair"), (29, "sofa chair"), (227, "easy chair"))),
     "office": (office_chair, 0.08, ((85, "office chair"), (134, "desk chair"), (142, "swivel chair"))),
     "folding": (folding_chair, 0.08, ((581, "folding chair"), (7, "chair"))),
     "lounge": (lounge_chair, 0.28, ((228, "lounge chair"), (488, "chaise"), (427, "recliner"))),
+}
+#: Chair styles only the realism model's chair mix uses (``Realism.chair_mix``; clean houses never draw them).
+REALISM_CHAIR_STYLES: dict[str, ChairStyle] = {
+    "rocking": (rocking_chair, 0.0, ((7, "chair"),)),
 }
 
 

@@ -24,7 +24,9 @@ from __future__ import annotations
 import io
 import math
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -191,10 +193,69 @@ class _Room:
         return shapely_box(*self.rect)
 
 
-class _Scene:
-    """Accumulates parts (house frame), segments and objects."""
+@dataclass(frozen=True)
+class ChairMix:
+    """Which chairs the room recipes put into a house.
 
-    def __init__(self) -> None:
+    * ``weights``: style → weight, for a chair of no set style; ``table``: the styles drawn (uniformly) for each chair
+      at a dining table; ``bedroom``: those of a bedroom's chair; ``wall``: those of the realism clutter's extra
+      chairs against walls.
+    * ``lounges``: chaise longues per living room, ``integers(lo, hi)``.
+    * ``extra``: more chairs, ``(room labels, style, chance per room)``, put into each room after its recipe.
+    * ``chaise_share``: after every room is furnished, chaise longues are added until they are this share of the
+      house's chairs (0: none), one per room and round, living rooms first, then bedrooms and offices.
+    * ``max_chairs``: no chair is added to a house that has this many; ``builders``: style → builder overrides
+      (other sizes than :data:`furniture.CHAIR_STYLES` builds).
+    """
+
+    weights: dict[str, float]
+    table: tuple[str, ...]
+    lounges: tuple[int, int]
+    bedroom: tuple[str, ...]
+    wall: tuple[str, ...]
+    extra: tuple[tuple[str, str, float], ...] = ()
+    chaise_share: float = 0.0
+    max_chairs: int = MAX_CHAIRS
+    builders: dict[str, Callable[[np.random.Generator], list[fu.Part]]] = field(default_factory=dict)
+
+
+#: The procedural recipe's chair mix (clean houses: the draws and so the bytes of the houses before the realism
+#: model). Its mean chair box over many houses is MP3D's, but it gets there with few, very long chairs: 2-3 chaise
+#: longues (1.55-1.95 m) in every living room against dining and office chairs of 0.5-0.7 m.
+PROCEDURAL_CHAIRS = ChairMix(
+    weights={name: w for name, (_, w, _) in fu.CHAIR_STYLES.items()},
+    table=("dining", "dining", "armchair", "armchair", "office"), lounges=(2, 4),
+    bedroom=("armchair", "dining", "folding"), wall=("dining", "dining", "office"),
+)  # fmt: skip
+
+#: The realism model's chair mix (``Realism.chair_mix``), calibrated to the mean *kept* chair box of the original
+#: dataset, 0.960 x 0.667 x 0.884 m (``original-generator.md`` §8: the one statistic of its chairs there is):
+#: - l - w is 0.29 m on average (l / w = 1.44), but dining, office and folding chairs and armchairs are about as deep
+#:   as wide (l - w <= 0.1 m): about a quarter of the kept boxes must be chairs much longer than wide, chaise longues.
+#:   Their number is a quota per house (``chaise_share`` of its chairs), spread over living rooms, bedrooms and
+#:   offices, instead of 2-3 in every living room: a set of 8 houses then no longer gets its mean length from how many
+#:   living rooms it has and how often the viewpoints land in them (the procedural mix: 0.93-1.02 m over seeds 0-5).
+#: - indoor chaise longues, 1.4-1.75 m (1.55-1.95 m reaches into sun loungers), and armchairs 0.74-0.98 m wide
+#:   (accent and club chairs; at 0.86-1.14 m, with armchairs a quarter of the kept boxes, w was 5 % over).
+#: - rocking chairs (0.85-1.05 m along their rockers, 0.55-0.7 m wide: a common chair about the size of the mean box)
+#:   in living rooms, bedrooms and offices, and among the chairs of no set style (fewer armchairs, no chaise there).
+#: - up to 40 chairs a house: MP3D homes are big, and 30 left no room for the clutter's chairs in most houses.
+MP3D_CHAIRS = ChairMix(
+    weights={"dining": 0.2, "armchair": 0.3, "office": 0.12, "folding": 0.08, "rocking": 0.18},
+    table=("dining", "dining", "armchair", "armchair", "office"), lounges=(0, 1),  # (0, 1): none, the quota has them
+    bedroom=("armchair", "rocking", "dining", "folding"), wall=("dining", "office", "rocking", "armchair"),
+    builders={"armchair": partial(fu.armchair, width=(0.74, 0.98), depth=(0.78, 0.96)),
+              "lounge": partial(fu.lounge_chair, length=(1.4, 1.75))},
+    extra=(("lf", "rocking", 0.6), ("b", "rocking", 0.5), ("o", "rocking", 0.3), ("o", "armchair", 0.4)),
+    chaise_share=0.26, max_chairs=40,
+)  # fmt: skip
+
+
+class _Scene:
+    """Accumulates parts (house frame), segments and objects; ``chairs`` is the house's chair mix."""
+
+    def __init__(self, chairs: ChairMix = PROCEDURAL_CHAIRS) -> None:
+        self.chairs = chairs
         self.parts: list[tuple[np.ndarray, np.ndarray, int]] = []
         self.seg_obj: list[int] = []  # object position per segment (-1 junk)
         self.seg_region: list[int] = []
@@ -297,21 +358,22 @@ def _place_free(scene, room, rng, raw, style, parts, tries=25, yaw=None, near=No
     return None
 
 
-def _random_chair(rng: np.random.Generator, style: str | None = None) -> tuple[str, str, list[fu.Part]]:
-    names = list(fu.CHAIR_STYLES)
+def _random_chair(rng: np.random.Generator, mix: ChairMix, style: str | None = None) -> tuple[str, str, list[fu.Part]]:
+    """A chair of ``style`` (or one drawn by ``mix.weights``): its style, raw category and parts."""
     if style is None:
-        w = np.array([fu.CHAIR_STYLES[n][1] for n in names])
+        names = list(mix.weights)
+        w = np.array([mix.weights[n] for n in names])
         style = names[int(rng.choice(len(names), p=w / w.sum()))]
-    builder, _, raws = fu.CHAIR_STYLES[style]
+    builder, _, raws = (fu.CHAIR_STYLES | fu.REALISM_CHAIR_STYLES)[style]
     raw = raws[int(rng.integers(len(raws)))][1]
-    return style, raw, builder(rng)
+    return style, raw, mix.builders.get(style, builder)(rng)
 
 
 def _chair_room_left(scene: _Scene) -> bool:
-    return scene.count(3) < MAX_CHAIRS
+    return scene.count(3) < scene.chairs.max_chairs
 
 
-def _table_with_chairs(scene, room, rng, kind="dining", n_chairs=(4, 7), chair_style="dining") -> None:
+def _table_with_chairs(scene, room, rng, kind="dining", n_chairs=(4, 7)) -> None:
     parts = fu.table(rng, kind)
     lo, hi = _local_bounds(parts)
     x0, y0, x1, y1 = room.rect
@@ -339,8 +401,8 @@ def _table_with_chairs(scene, room, rng, kind="dining", n_chairs=(4, 7), chair_s
         side, frac = slots[k]
         # Upholstered armchairs at tables are common in real homes, and the mix sets the mean chair box (MP3D's is
         # 0.96 x 0.67 x 0.88 m, long because of armchairs and lounge chairs).
-        pick = str(rng.choice([chair_style, chair_style, "armchair", "armchair", "office"]))
-        style, raw, cparts = _random_chair(rng, pick)
+        pick = str(rng.choice(list(scene.chairs.table)))
+        style, raw, cparts = _random_chair(rng, scene.chairs, pick)
         clo, chi = _local_bounds(cparts)
         depth = chi[0] - clo[0]
         pushed = rng.random() < 0.45
@@ -367,13 +429,13 @@ def _table_with_chairs(scene, room, rng, kind="dining", n_chairs=(4, 7), chair_s
 
 def _wall_chair(scene, room, rng, style=None) -> None:
     if _chair_room_left(scene):
-        style, raw, parts = _random_chair(rng, style)
+        style, raw, parts = _random_chair(rng, scene.chairs, style)
         _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
 
 
 def _free_chair(scene, room, rng, style=None) -> None:
     if _chair_room_left(scene):
-        style, raw, parts = _random_chair(rng, style)
+        style, raw, parts = _random_chair(rng, scene.chairs, style)
         # A room too full for a free-standing chair may still have a free stretch of wall.
         if _place_free(scene, room, rng, raw, style, parts) is None:
             _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
@@ -401,7 +463,7 @@ def _furnish(scene: _Scene, room: _Room, rng: np.random.Generator) -> None:
         _place_free(scene, room, rng, "coffee table", "table", fu.table(rng, "coffee"))
         # Lounge chairs first: at 1.55-1.95 m they rarely fit once the armchairs are down, and they (with the
         # armchairs) are what makes the mean chair box as long as MP3D's (0.96 x 0.67 x 0.88 m).
-        for _ in range(int(rng.integers(2, 4))):
+        for _ in range(int(rng.integers(*scene.chairs.lounges))):
             _free_chair(scene, room, rng, "lounge")
         for _ in range(int(rng.integers(1, 3))):
             _free_chair(scene, room, rng, "armchair")
@@ -413,7 +475,7 @@ def _furnish(scene: _Scene, room: _Room, rng: np.random.Generator) -> None:
         d_idx = _place_wall(scene, room, rng, "desk", "table", desk, gap=0.02)
         if d_idx is not None and _chair_room_left(scene):
             d = scene.objs[d_idx]
-            style, raw, parts = _random_chair(rng, "office")
+            style, raw, parts = _random_chair(rng, scene.chairs, "office")
             clo, chi = _local_bounds(parts)
             dlo, dhi = _local_bounds(desk)
             # Facing the desk, its seat partly under the desk top.
@@ -432,13 +494,47 @@ def _furnish(scene: _Scene, room: _Room, rng: np.random.Generator) -> None:
     elif lab == "b":
         _place_wall(scene, room, rng, "bed", "bed", fu.bed(rng), gap=0.01)
         _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng, tall=rng.random() < 0.5))
-        _wall_chair(scene, room, rng, str(rng.choice(["armchair", "dining", "folding"])))
+        _wall_chair(scene, room, rng, str(rng.choice(list(scene.chairs.bedroom))))
     elif lab == "a":
         _place_wall(scene, room, rng, "cabinet", "cabinet", fu.cabinet(rng))
         _place_free(scene, room, rng, "stool", "stool", fu.stool(rng, "bar"))
     elif lab == "h":
         _place_wall(scene, room, rng, "bench", "bench", fu.bench(rng))
         _wall_chair(scene, room, rng, "folding" if rng.random() < 0.5 else None)
+    for labels, style, chance in scene.chairs.extra:
+        if lab in labels and rng.random() < chance:
+            _extra_chair(scene, room, rng, style)
+
+
+def _add_chaises(scene: _Scene, rooms: list[_Room], rng: np.random.Generator) -> None:
+    """Chaise longues until they are ``scene.chairs.chaise_share`` of the house's chairs (none when 0): one per room
+    and round, living and family rooms first, then bedrooms and offices, then the others."""
+    share = scene.chairs.chaise_share
+    if share <= 0:
+        return
+    want = int(round(share * scene.count(3) / (1 - share)))
+    rank = {"l": 0, "f": 0, "b": 1, "o": 1}
+    order = sorted(rooms, key=lambda r: (rank.get(r.label, 2), float(rng.random())))
+    placed = 0
+    for _ in range(3):
+        for room in order:
+            if placed >= want or not _chair_room_left(scene):
+                return
+            n = len(scene.objs)
+            _extra_chair(scene, room, rng, "lounge")
+            placed += len(scene.objs) > n
+
+
+def _extra_chair(scene: _Scene, room: _Room, rng: np.random.Generator, style: str) -> None:
+    """One of the chair mix's ``extra`` chairs: free-standing, else against a wall, a chaise longue then lengthwise
+    along it (where real rooms keep one: a full room has no free 1.6-1.9 m of floor in front of a wall)."""
+    if not _chair_room_left(scene):
+        return
+    style, raw, parts = _random_chair(rng, scene.chairs, style)
+    if _place_free(scene, room, rng, raw, style, parts) is None:
+        if style == "lounge":
+            parts = [(g, rotate_z(v, math.pi / 2), f) for g, v, f in parts]
+        _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
 
 
 # ------------------------------------------------------------------------------------------------ clutter
@@ -519,10 +615,9 @@ def _add_clutter(scene: _Scene, rooms: list[_Room], portals, realism: Realism, r
             style, raw, parts = "stool", "chair", fu.stool_chair(rng)
             if _chair_room_left(scene) and _place_free(scene, room, rng, raw, style, parts) is None:
                 _place_wall(scene, room, rng, raw, style, parts, gap=float(rng.uniform(0.02, 0.15)))
-        # More chairs against walls (dining and office kinds): bigger rooms fit more lounge chairs, and these keep the
-        # mean chair box at MP3D's (0.96 x 0.67 x 0.88 m).
+        # More chairs against walls (the mix's ``wall`` kinds): real rooms hold more chairs than the recipe's.
         for _ in range(count(0.7)):
-            _wall_chair(scene, room, rng, str(rng.choice(["dining", "dining", "office"])))
+            _wall_chair(scene, room, rng, str(rng.choice(list(scene.chairs.wall))))
         for _ in range(count(2.0)):
             raw = str(rng.choice(["box", "basket", "vase", "lamp"]))
             _place_wall(scene, room, rng, raw, "object", fu.small_object(rng), gap=float(rng.uniform(0.0, 0.3)))
@@ -623,7 +718,10 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
     cw = rng.uniform(3.4, 5.2, nc)
     rd = rng.uniform(3.4, 4.8, nr)
     if realism.room_size > 0:  # larger rooms, of about the same mean size in every house (steadier scan density)
-        k = realism.room_size / float(np.mean(np.concatenate([cw, rd])))
+        size = realism.room_size
+        if realism.room_size_spread > 0:  # homes differ in size: the density's tail (its max) is that of bigger homes
+            size *= 1 + realism.room_size_spread * float(rrng.uniform(-1, 1))
+        k = size / float(np.mean(np.concatenate([cw, rd])))
         cw, rd = cw * k, rd * k
     stair_cell = (int(rng.integers(nc)), int(rng.integers(nr)))
     if n_levels == 2 and max(cw[stair_cell[0]], rd[stair_cell[1]]) < 4.2:
@@ -634,7 +732,7 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
     level_h = ceil_h + 0.3
     level_z = [0.0, level_h][:n_levels]
 
-    scene = _Scene()
+    scene = _Scene(MP3D_CHAIRS if realism.chair_mix else PROCEDURAL_CHAIRS)
     rooms: list[_Room] = []
     labels0 = list(rng.permutation(["d", "l", "k", "o", "f", "d"]))
     labels1 = list(rng.permutation(["b", "b", "a", "o", "b", "l"]))
@@ -781,6 +879,7 @@ def synthesize_house(seed: int, house_id: str | None = None, *, levels: int | No
         if room.label != "s":
             _furnish(scene, room, rng)
     furnishable = [r for r in rooms if r.label != "s"]
+    _add_chaises(scene, furnishable, rng)
     for _ in range(60):
         if scene.count(3) >= MIN_CHAIRS:
             break

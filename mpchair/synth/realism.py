@@ -33,6 +33,8 @@ class Realism:
     * ``room_size``: when > 0, every house's rooms are scaled to this mean width (m; the procedural rooms are
       3.4-5.2 m, mean ~4.2). Real MP3D homes are bigger: longer sightlines, sparser far points, a higher pseudo-image
       density; one mean size for every house keeps that density steady from house to house.
+    * ``room_size_spread``: each house's mean width is ``room_size`` times a factor drawn in 1 ± this (homes differ
+      in size: the density's tail, its maximum, comes from the bigger ones).
     * ``open_plan``: per door between two rooms, a wide opening (1.6 m up to the wall less 1.2 m) instead.
     * ``cell``: walls, floors and ceilings are re-meshed as grids of this cell size when any surface knob is on (real
       meshes are dense; noise, waves and holes need vertices to act on).
@@ -57,10 +59,14 @@ class Realism:
     * ``clutter``: how many clutter items a room gets (plants, shelving, counters, cushions, objects on tables and
       floors, stool-like chairs; 1 = the default amount, 0 = none).
     * ``doors``: per door opening, an open door leaf in it.
+    * ``chair_mix``: the chairs are drawn from the mix calibrated to the original dataset's mean chair box
+      (:data:`mpchair.synth.house.MP3D_CHAIRS`: rocking chairs, a chaise longue quota per house, indoor sizes)
+      instead of the procedural recipe's.
     """
 
     name: str = "custom"
     room_size: float = 0.0
+    room_size_spread: float = 0.0
     open_plan: float = 0.0
     cell: float = 0.25
     vertex_noise: float = 0.0
@@ -80,6 +86,7 @@ class Realism:
     fragments: float = 0.0
     clutter: float = 0.0
     doors: float = 0.0
+    chair_mix: bool = False
 
     def __post_init__(self) -> None:
         rates = ("surface_holes", "mirror_holes", "floor_under_tables", "thin_part_holes", "open_undersides",
@@ -93,6 +100,8 @@ class Realism:
                 raise ValueError(f"realism {k} is a probability, got {getattr(self, k)}")
         if self.cell <= 0 or self.wave_length <= 0 or self.room_size < 0:
             raise ValueError("realism cell and wave_length must be > 0, room_size >= 0")
+        if not 0 <= self.room_size_spread < 1:
+            raise ValueError(f"realism room_size_spread must be in [0, 1), got {self.room_size_spread}")
         if not 0 <= self.open_plan <= 1:
             raise ValueError(f"realism open_plan is a probability, got {self.open_plan}")
 
@@ -114,9 +123,9 @@ CLEAN = Realism(name="clean")
 #: Calibrated so that ``mpchair generate --height 1.25 --robot-radius 0.1`` with ``mp3d-depth90`` meets the original
 #: dataset's density and filter statistics (docs/matterport.md, "Realism").
 DEFAULT = Realism(
-    name="default", room_size=4.9, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01, surface_holes=0.6,
-    mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5, chair_holes=0.2,
-    chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7,
+    name="default", room_size=4.9, room_size_spread=0.1, open_plan=0.5, vertex_noise=0.012, wave_amplitude=0.01,
+    surface_holes=0.6, mirror_holes=0.5, floor_under_tables=0.7, thin_part_holes=0.3, open_undersides=0.5,
+    chair_holes=0.2, chair_ghosts=0.7, unlabelled_parts=0.15, fragments=1.5, clutter=1.0, doors=0.7, chair_mix=True,
 )  # fmt: skip
 
 REALISM_PRESETS: dict[str, Realism] = {"clean": CLEAN, "default": DEFAULT}
