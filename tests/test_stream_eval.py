@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from helpers_detector import write_test_config
 
+from detector.commands.stream_eval import format_summary
 from detector.eval import evaluate
 from detector.infer import boxes_to_results
 from detector.stream import Source, prepare, read_stream, score
@@ -122,9 +123,12 @@ def test_oracle_on_fewer_than_41_chairs_scores_the_kitti_ceiling(streams):
     for ap in (s["sAP"], s["offline_AP"]):
         for metric in ("3d", "bev"):
             assert ap["Chair"][metric] == s["ap_ceiling"]["Chair"]
+    table = format_summary(s)  # the printed table shows the ceiling beside the scores
+    assert "ceiling (perfect)      42.50      42.50     45.45      45.45" in table
     moving, _ = streams
-    assert score(prepare(moving, Source("oracle"), latency_ms=0.0), "raw")["ap_ceiling"]["Chair"] == {
-        "R40": 100.0, "R11": 100.0}
+    full = score(prepare(moving, Source("oracle"), latency_ms=0.0), "raw")
+    assert full["ap_ceiling"]["Chair"] == {"R40": 100.0, "R11": 100.0}
+    assert "ceiling" not in format_summary(full)  # at 100 it says nothing
 
 
 def test_still_robot_loses_only_the_queries_before_the_first_output(streams, tmp_path):

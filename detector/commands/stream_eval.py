@@ -132,6 +132,11 @@ def format_summary(s: dict) -> str:
                          f"{off['3d']['R11']:9.2f} {off['bev']['R11']:10.2f}")
         lines.append(f"  sAP                 {m['3d']['R40']:8.2f} {m['bev']['R40']:10.2f} "
                      f"{m['3d']['R11']:9.2f} {m['bev']['R11']:10.2f}")
+        ceiling = s.get("ap_ceiling", {}).get(cls)
+        if ceiling is not None and ceiling["R40"] < 100.0:
+            # KITTI fills one recall slot per true positive: with under 41 boxes even a perfect detector is below 100
+            lines.append(f"  ceiling (perfect)   {ceiling['R40']:8.2f} {ceiling['R40']:10.2f} "
+                         f"{ceiling['R11']:9.2f} {ceiling['R11']:10.2f}   (fewer than 41 boxes: KITTI's recall slots)")
     lat, st, sf = s["latency_ms"], s["staleness_ms"], s["staleness_frames"]
     fmt = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
     lines.append(f"latency ms: median {fmt(lat['median'])}, p95 {fmt(lat['p95'])}; staleness: mean {fmt(st['mean'])} "
