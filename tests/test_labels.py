@@ -158,12 +158,14 @@ def _assert_same_decisions(coarse, full):
     return int((~ex).sum())
 
 
-def test_coarse_visibility_gives_the_full_grid_decisions_on_synthetic_houses(tmp_path):
+@pytest.mark.parametrize("realism", ["clean", "default"])
+def test_coarse_visibility_gives_the_full_grid_decisions_on_synthetic_houses(tmp_path, realism):
     from mpchair.matterport.house import read_house
     from mpchair.matterport.source import find_houses
     from mpchair.synth import synthesize_house, write_house
+    from mpchair.synth.realism import CLEAN, DEFAULT
 
-    synth = synthesize_house(1, levels=1)
+    synth = synthesize_house(1, levels=1, realism=CLEAN if realism == "clean" else DEFAULT)
     write_house(tmp_path, synth)
     house = read_house(find_houses(tmp_path)[synth.id])
     rng = np.random.default_rng(0)
@@ -189,7 +191,9 @@ def test_coarse_visibility_gives_the_full_grid_decisions_on_synthetic_houses(tmp
         rays_coarse += coarse.dense_rays
         rays_full += full.dense_rays
     assert lower_bounds > 10  # the coarse path was really taken ...
-    assert rays_coarse < 0.75 * rays_full  # ... and saved rays (about half here: occluded chairs cost full regions)
+    # ... and saved rays: about half on a clean house (occluded chairs cost full regions); on a realistic one (clutter
+    # around the chairs, holes) most chairs need their full region and it saves about a tenth
+    assert rays_coarse < (0.75 if realism == "clean" else 0.97) * rays_full
 
 
 def test_coarse_visibility_on_constructed_cases_with_out_of_box_faces():

@@ -310,19 +310,24 @@ def _make(plan: _Plan, t0: float) -> StreamSummary:
     out = Path(plan.req.out)
     _check_settings(out, plan.settings)
     _remove_stale_temps(out, [s for s, _ in plan.sequences])
-    for seq, ep in plan.sequences:
-        write_sequence_files(out, seq, ep.times_us, ep.poses)
     tasks = [StreamTask(seq, i) for seq, ep in plan.sequences for i in range(len(ep.times_us))]
     pending = [t for t in tasks if not record_path(out, t.sequence, t.fid).is_file()]
     resumed = len(tasks) - len(pending)
-    if pending:
-        warm_up(plan.sensor)  # before forking: the workers inherit the loaded kernels
-    t_frames = time.perf_counter()
-    _make_frames(plan, pending, len(tasks))
-    made_seconds = time.perf_counter() - t_frames
-
-    records = [read_stream_record(record_path(out, t.sequence, t.fid)) for t in tasks]
-    _write_stream_json(plan, records, label_half_fov(plan.sensor.filters, plan.sensor.camera))
+    try:
+        for seq, ep in plan.sequences:
+            write_sequence_files(out, seq, ep.times_us, ep.poses)
+        if pending:
+            warm_up(plan.sensor)  # before forking: the workers inherit the loaded kernels
+        t_frames = time.perf_counter()
+        _make_frames(plan, pending, len(tasks))
+        made_seconds = time.perf_counter() - t_frames
+        records = [read_stream_record(record_path(out, t.sequence, t.fid)) for t in tasks]
+        _write_stream_json(plan, records, label_half_fov(plan.sensor.filters, plan.sensor.camera))
+    except OSError as e:
+        # a full disk, a lost permission (in any write: the sequence files, a frame, stream.json): what is written is
+        # whole (temp + rename), so the same command resumes
+        raise type(e)(e.errno, f"{e.strerror or e}; the frames written so far are kept: free the space (or fix the "
+                      "cause) and run the same command again to resume", e.filename) from None
     made = len(pending)
     return StreamSummary(
         out=str(out), sequences=len(plan.sequences), frames=len(tasks), made=made, resumed=resumed, complete=True,
@@ -358,9 +363,6 @@ def _make_frames(plan: _Plan, pending: list[StreamTask], total: int) -> None:
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "
                        "command again to resume") from None
-    except OSError as e:  # a full disk, a lost permission: what is written is whole (temp + rename), so it resumes
-        raise type(e)(e.errno, f"{e.strerror or e}; the frames written so far are kept: free the space (or fix the "
-                      "cause) and run the same command again to resume", e.filename) from None
     finally:
         bar.close()
 
