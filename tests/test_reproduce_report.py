@@ -450,8 +450,9 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
     n = {k: len(read_imageset(data / "ImageSets" / f"{k}.txt")) for k in ("train", "val", "test")}
     assert f"train {n['train']:,} / val {n['val']:,} / test {n['test']:,}" in diff
     assert trained in diff and "| precision | fp32 (GPU) | fp32 (dense) / fp32 (sparse) |" in diff
+    assert "| realism model | real reconstructions: holes" in diff
     table = diff.strip().split("\n\n")[0].splitlines()
-    assert len(table) == 2 + 15 and all(len(ln.split(" | ")) == 4 for ln in table[2:])  # 4 cells, no stray "|"
+    assert len(table) == 2 + 16 and all(len(ln.split(" | ")) == 4 for ln in table[2:])  # 4 cells, no stray "|"
     # ... and the ways the models and measurements differ from where the paper's numbers came from
     median = json.loads((res / "density.json").read_text())["median"]
     viz = json.loads((res / "viz.json").read_text())
