@@ -270,7 +270,7 @@ def test_fused_pillar_net_edge_cases() -> None:
     assert float(net(pillars[1:2], num[1:2], coords[1:2]).detach().abs().max()) == 0.0  # relu(beta) = 0 too
 
 
-def test_pillar_net_takes_the_fused_path_only_for_fp32_cpu_inference_and_trains_through_torch() -> None:
+def test_pillar_net_takes_the_fused_path_only_for_fp32_cpu_inference_and_trains_on_real_points() -> None:
     net = _trained_like_pfn(3, 1)
     pillars = torch.randn(6, 4, 3)
     num = torch.tensor([1, 2, 3, 4, 4, 2])
@@ -282,10 +282,11 @@ def test_pillar_net_takes_the_fused_path_only_for_fp32_cpu_inference_and_trains_
         with torch.autocast("cpu", dtype=torch.bfloat16):
             assert not net.fused_applies(pillars)
     assert not net.fused_applies(pillars)  # eval with autograd on
-    # training: the torch layers, differentiable through Linear, BN (batch statistics), ReLU and the max
+    # training: the real-points form (the torch layers' values, test above), differentiable through Linear, BN
+    # (batch statistics), ReLU and the max
     net.train()
     with torch.no_grad():
-        assert not net.fused_applies(pillars)
+        assert not net.fused_applies(pillars) and net.compact_applies()
     out = net(pillars, num, coords)
     assert out.grad_fn is not None
     out.square().sum().backward()
@@ -316,3 +317,57 @@ def test_bench_tool_compares_the_two_forms_on_a_model() -> None:
     assert got["voxels_bitwise_equal"] and got["features_max_abs_diff"] <= PFN_ATOL
     assert got["pillars_per_frame"] > 300 and set(got["ms_per_frame"]) == {"old", "new"}
     assert all(v > 0 for form in got["ms_per_frame"].values() for v in form.values())
+
+
+# --- the real-points training path against the torch layers on the padded block -------------------------------------
+def _training_batch(seed: int, p: int, t: int, c: int, dtype: torch.dtype = torch.float64):
+    """Padded pillars (p, t, c) with 1..t real points each (some full), their counts and coords."""
+    g = torch.Generator().manual_seed(seed)
+    num = torch.randint(1, t + 1, (p,), generator=g)
+    num[: max(1, p // 8)] = t  # full pillars: no padded slot takes part in their max
+    pillars = (torch.rand(p, t, c, generator=g, dtype=dtype) - 0.3) * 3
+    pillars[torch.arange(t)[None, :] >= num[:, None]] = 0
+    coords = torch.stack([torch.zeros(p, dtype=torch.int64), torch.randint(0, 4, (p,), generator=g),
+                          torch.randint(0, 4, (p,), generator=g)], dim=1)
+    return pillars, num, coords
+
+
+def test_compact_training_pillar_net_equals_torch_layers_in_float64() -> None:
+    for seed, (p, t, c) in enumerate([(40, 8, 3), (60, 32, 4), (25, 1, 4), (30, 5, 3)]):
+        torch.manual_seed(seed)
+        net = PillarFeatureNet(in_channels=c, out_channels=16, voxel_size=VOXEL, point_cloud_range=RANGE)
+        with torch.no_grad():  # channels with their ReLU mostly off and mostly on
+            net.norm.weight.uniform_(0.5, 1.5)
+            net.norm.bias.uniform_(-1.0, 0.5)
+            net.norm.bias[:4] = -4.0  # ReLU off almost everywhere: the max is often 0 (a tie the gradient skips)
+        net = net.double().train()
+        ref = copy.deepcopy(net)
+        pillars, num, coords = _training_batch(seed, p, t, c)
+        grad = torch.randn(p, 16, dtype=torch.float64)
+        assert net.compact_applies()
+        out = net(pillars, num, coords)  # forward takes the compact path in training
+        want = ref.forward_torch(pillars, num, coords)
+        (out * grad).sum().backward()
+        (want * grad).sum().backward()
+        assert float((want[:, :4] == 0).double().mean()) > 0.3 and float((want[:, 4:] > 0).double().mean()) > 0.3
+        np.testing.assert_allclose(out.detach().numpy(), want.detach().numpy(), atol=1e-11, rtol=1e-9)
+        for (name, a), b in zip(net.named_parameters(), ref.parameters()):
+            np.testing.assert_allclose(a.grad.numpy(), b.grad.numpy(), atol=1e-9, rtol=1e-9, err_msg=name)
+        for name in ("running_mean", "running_var", "num_batches_tracked"):
+            np.testing.assert_allclose(getattr(net.norm, name).numpy(), getattr(ref.norm, name).numpy(),
+                                       atol=1e-12, rtol=1e-12, err_msg=name)
+
+
+def test_compact_training_path_under_bf16_autocast_and_its_fallbacks() -> None:
+    torch.manual_seed(3)
+    net = PillarFeatureNet(in_channels=4, out_channels=16, voxel_size=VOXEL, point_cloud_range=RANGE).train()
+    pillars, num, coords = _training_batch(5, 50, 16, 4, torch.float32)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = net.forward_compact(pillars, num, coords)
+        want = copy.deepcopy(net).forward_torch(pillars, num, coords)
+    assert got.dtype == want.dtype == torch.bfloat16  # the reference's output dtype under autocast
+    np.testing.assert_allclose(got.float().detach().numpy(), want.float().detach().numpy(), atol=0.05, rtol=0.03)
+    assert not net.eval().compact_applies()  # eval: running statistics, the fused or torch forms
+    net.train()
+    net.norm.momentum = None  # a cumulative-average BN: the torch layers
+    assert not net.compact_applies()
