@@ -25,9 +25,10 @@ def test_deploy_step_commands(tmp_path: Path, capsys) -> None:
     evals = [ln for ln in lines if " eval " in ln]
     benches = [ln for ln in lines if " bench " in ln]
     variants = deployed_variants()
-    deployed = [(r, p) for r, p in variants if r != "torch"]
+    deployed = [(r, p) for r, p in variants if (r, p) != ("torch", "fp32")]  # eager bf16 is evaluated too
     assert variants == [v for v in VARIANTS if skip_reason(*v, cpu_flags()) is None]
-    assert len(evals) == 2 * len(deployed)  # dense and sparse, every deployed runtime x precision
+    assert len(evals) == 2 * len(deployed)  # dense and sparse, every runtime x precision but eager fp32 (eval step)
+    assert ("torch", "bf16") in deployed or skip_reason("torch", "bf16", cpu_flags()) is not None
     for (r, p), ln in zip(deployed * 2, evals):
         assert f"--runtime {r} --precision {p}" in ln and "--split val" in ln and f"_{r}_{p}" in ln
     assert "mpchair_dense_cpu.yaml" in evals[0] and "mpchair_sparse_cpu.yaml" in evals[-1]
@@ -87,3 +88,40 @@ def test_the_report_table_reads_the_step_outputs(tmp_path: Path, capsys) -> None
     assert f"{eager_ap:.2f}" in table[0] and "1.00x" in table[0]
     assert "### CPU budget at 1 Hz" in text and "CPU share" in text
     assert "not run" in "\n".join(deploy_section(tmp_path / "empty"))
+
+
+def test_eager_bf16_is_evaluated_and_its_row_reads_its_own_metrics(tmp_path: Path, capsys) -> None:
+    """`detector eval --precision bf16` (eager torch) runs the model under bf16 autocast, and the deploy table's eager
+    bf16 row takes that evaluation's AP, not the fp32 one's (a table row must be its own measurement)."""
+    if skip_reason("torch", "bf16", cpu_flags()) is not None:
+        pytest.skip("this CPU has no native bf16")
+    res = tmp_path / "results"
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2, seed=3)
+    cfg = write_test_config(tmp_path / "dense.yaml", model=dict(score_thr=0.0))
+    from detector.checkpoint import Checkpoint, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    ckpt = tmp_path / "w.pt"
+    save_checkpoint(ckpt, Checkpoint(model=build_model(load_experiment(cfg).model).state_dict()))
+    common = ["--config", cfg, "--data", data, "--checkpoint", ckpt, "--split", "val", "--threads", "1"]
+    _detector(capsys, "eval", *common, "--out", res / "eval_dense")
+    bf16_dir = eval_dir(res, "dense", "torch", "bf16")
+    _detector(capsys, "eval", *common, "--out", bf16_dir, "--precision", "bf16")
+    fp32_files = sorted((res / "eval_dense" / "data").glob("*.txt"))
+    bf16_text = [(bf16_dir / "data" / f.name).read_text() for f in fp32_files]
+    assert all(t.count("\n") > 0 for t in bf16_text)  # random weights, threshold 0: boxes in every frame
+    assert bf16_text != [f.read_text() for f in fp32_files]  # bf16 scores differ in their last digits
+    # the table row of a bf16 eval that was not run has no AP (it is not the fp32 one)
+    bench = {"models": [{"name": "dense (torch bf16)", "runtime": "torch", "precision": "bf16",
+                         "components": {"total": {"mean_ms": 1.0}}}]}
+    (res / "deploy_bench.json").write_text(json.dumps(bench))
+    (row,) = read_deploy(res)
+    assert row.metrics is not None
+    assert row.metrics.ap["3d"].overall["R40"] == pytest.approx(
+        json.loads((bf16_dir / "metrics.json").read_text())["Chair"]["3d"]["overall"]["R40"])
+    import shutil
+
+    shutil.rmtree(bf16_dir)
+    (row,) = read_deploy(res)
+    assert row.metrics is None

@@ -60,7 +60,7 @@ def _ids_for(labels: Path, split: str | None) -> list[str]:
 @click.option("--runtime", type=click.Choice(["torch", "onnxruntime", "openvino"]), default="torch", show_default=True,
               help="Checkpoint mode: run the network exported, in this runtime (detector export; the deploy extra).")
 @click.option("--precision", type=click.Choice(["fp32", "bf16", "int8"]), default="fp32", show_default=True,
-              help="Checkpoint mode, with --runtime: bf16 (OpenVINO) or int8 (post-training quantization over "
+              help="Checkpoint mode: bf16 (eager torch autocast or OpenVINO) or int8 (post-training quantization over "
               "--calibration-frames of the train split).")
 @click.option("--calibration-frames", type=int, default=8, show_default=True, help="int8 calibration frames.")
 def eval_cmd(labels, results, split, classes, min_overlap, protocol, as_json, config, data, checkpoint, out, device,
@@ -175,6 +175,16 @@ def _deployed_mode(config, data, checkpoint, split, out, device, threads, protoc
     use_device("cpu", threads)
     cfg = load_experiment(config)
     open_split(cfg, data, split).check()
+    if runtime == "torch":  # eager bf16: the model's stages under bfloat16 autocast, as `detector bench` times it
+        from detector.checkpoint import load_model
+        from detector.deploy.cpu import cpu_flags, skip_reason
+
+        why = skip_reason(runtime, precision, cpu_flags())
+        if why is not None:
+            raise InputError(f"cannot run {runtime} {precision} here: {why}")
+        model = load_model(cfg, checkpoint, "cpu")
+        model.precision = precision
+        return evaluate_model(model, cfg, data, split, out, device="cpu", protocol=protocol)
     with tempfile.TemporaryDirectory(prefix="detector-eval-") as work:
         model = deploy_checkpoint(cfg, checkpoint, runtime, precision, work, threads=torch_threads(), data=data,
                                   calibration_frames=calibration_frames)

@@ -4,7 +4,8 @@ OpenVINO at every precision this CPU computes natively, "AP drop vs speed".
 After ``train`` / ``eval`` / ``bench``, three kinds of command (all in ``results/``):
 
 - ``detector eval --runtime R --precision P`` of each trained model on the val split (the eval step's configs and
-  weights; int8 calibrated on :data:`CALIBRATION_FRAMES` train frames) → ``deploy_eval/<model>_<R>_<P>/metrics.json``;
+  weights; eager bf16 included; int8 calibrated on :data:`CALIBRATION_FRAMES` train frames) →
+  ``deploy_eval/<model>_<R>_<P>/metrics.json``;
 - ``detector bench`` of dense / sparse / sparse with the exact head at 768 x 512, every runtime x precision, one
   process, interleaved per frame, the reuse allocator (a robot's long-running process) → ``deploy_bench.json``;
 - ``detector bench --rate`` at :data:`BUDGET_RATE_HZ` Hz, each row alone in its own process → ``deploy_budget.json`` /
@@ -25,8 +26,9 @@ from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_te
 from detector.reproduce.runner import BIN, REUSE_ENV, Runner
 
 #: (runtime, precision) of the deployed evaluations and bench rows, eager fp32 first.
-VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("onnxruntime", "fp32"), ("onnxruntime", "int8"),
-                                        ("openvino", "fp32"), ("openvino", "bf16"), ("openvino", "int8"))
+VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("torch", "bf16"), ("onnxruntime", "fp32"),
+                                        ("onnxruntime", "int8"), ("openvino", "fp32"), ("openvino", "bf16"),
+                                        ("openvino", "int8"))
 CALIBRATION_FRAMES = 32
 BUDGET_RATE_HZ = 1.0  # the paper's conclusion: "1 Hz with more than 75 % of the CPU left"
 
@@ -47,7 +49,7 @@ def deploy_outputs(res: Path) -> dict[str, Path]:
     out = {"bench": res / "deploy_bench.json", "budget": res / "deploy_budget.json"}
     for m in MODELS:
         for r, p in deployed_variants():
-            if r != "torch":
+            if (r, p) != ("torch", "fp32"):  # eager fp32 is the eval step's
                 out[f"{m} {r} {p}"] = eval_dir(res, m, r, p) / "metrics.json"
     return out
 
@@ -69,7 +71,7 @@ def run_deploy(plan, r: Runner, config) -> None:
     for m in MODELS:
         for runtime, precision in variants:
             key = f"{m} {runtime} {precision}"
-            if runtime == "torch" or not plan.todo("deploy", outputs[key]):
+            if (runtime, precision) == ("torch", "fp32") or not plan.todo("deploy", outputs[key]):
                 continue
             r.run([str(BIN / "detector"), "eval", "--config", config(f"mpchair_{m}_cpu"), "--data", str(plan.data),
                    "--checkpoint", str(plan.runs / m / "last.pt"), "--split", "val", "--out",
@@ -123,7 +125,7 @@ def read_deploy(res: Path) -> list[DeployRow]:
         # AP of the trained models as the eval step configured them (the exact head's maps equal the dense head's)
         d = None
         if name in MODELS:
-            d = _read_json(res / f"eval_{name}" / "metrics.json" if runtime == "torch" else
+            d = _read_json(res / f"eval_{name}" / "metrics.json" if (runtime, precision) == ("torch", "fp32") else
                            eval_dir(res, name, runtime, precision) / "metrics.json")
         b = shares.get((name, runtime, precision))
         rows.append(DeployRow(name, runtime, precision, KittiMetrics.from_json(d) if d else None,
