@@ -180,6 +180,10 @@ def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
     return ", ".join(parts) or None
 
 
+GRID_KEYS = ("model.point_cloud_range", "model.voxel_size", "model.output_shape")
+"""The model keys that make a pseudo-image grid: weights moved between grids get cell-centred anchors."""
+
+
 def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device | str = "cpu", *,
                seed: int = 0) -> PointPillars:
     """``cfg.model`` in eval mode on ``device``: trained weights from ``checkpoint``, or seeded random weights when it
@@ -187,7 +191,9 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
 
     The checkpoint's stored config is compared with ``cfg`` (:func:`config_differences`). Conv weights do not depend
     on the grid, so a checkpoint trained at one pseudo-image size loads into a model of another size: that loads,
-    with one warning naming what differs. A checkpoint whose weights do not fit the model is an :class:`InputError`
+    with one warning naming what differs, and with cell-centred anchors (``anchor_centres: cells``,
+    :mod:`detector.models.anchors`), so that boxes land where the trained network puts them on any grid.
+    A checkpoint whose weights do not fit the model is an :class:`InputError`
     (one line: the differing keys, or the tensors when the file stores no config).
     """
     if checkpoint is None:
@@ -197,7 +203,16 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
         return model.to(device).eval()
     saved = load_checkpoint(checkpoint, map_location=device)
     differences = config_differences(saved.config, cfg) if isinstance(saved.config, dict) else []
-    model = build_model(cfg.model).to(device)
+    moved = [d for d in differences if d.split(" ", 1)[0] in GRID_KEYS]
+    model_cfg = cfg.model
+    if moved and model_cfg.anchor_centres != "cells":
+        # The network learned box offsets for the anchor placement of the grid it trained on; with the reference's
+        # linspace placement that drift differs per grid (9-39 cm between 288 x 144 and 768 x 512), so every box on
+        # the new grid would be off by it. Cell-centred anchors are where either placement's anchors are on average.
+        model_cfg = dataclasses.replace(model_cfg, anchor_centres="cells")
+        differences.append("anchors are placed at the head map's cell centres (model.anchor_centres: cells) "
+                           "because the weights move to another grid")
+    model = build_model(model_cfg).to(device)
     misfit = _misfit(model, saved.model)
     if misfit is not None:
         why = "; ".join(differences) if differences else misfit

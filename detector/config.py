@@ -36,6 +36,12 @@ comes twice: ``sparse_wide`` as the paper's text describes it (the first SubM of
 Downsample = Literal["floor", "reference_quirk"]
 """Sparse 2x2 stride-2 semantics: ``floor`` (paper, default) or the reference's MinkowskiEngine expand quirk."""
 
+AnchorCentres = Literal["range", "cells"]
+"""Where anchors sit on the head map: ``range``, ``linspace`` over ``anchor_range`` with the map's size, endpoints
+included (the reference's ``Anchor3DRangeGenerator``; it drifts from the cells' centres by up to ±5 cm on the
+288 x 144 CPU grid and up to 0.55 m on the padded 768 x 512 one); ``cells``, every cell's centre (OpenPCDet's
+``align_center``), which stays right on any grid, so weights trained at one pseudo-image size transfer to another."""
+
 Head = Literal["dense", "sparse_exact"]
 """``dense``: three 1x1 convs over the whole map. ``sparse_exact``: the same weights on active sites only, bias
 elsewhere (identical output when the map is zero at inactive sites)."""
@@ -84,6 +90,7 @@ class ModelConfig:
     anchor_range: tuple[float, float, float, float, float, float] = (0.0, -19.0, 0.0, 25.0, 19.0, 0.0)
     anchor_sizes: tuple[tuple[float, float, float], ...] = (MEAN_CHAIR_LWH,)
     anchor_rotations: tuple[float, ...] = (0.0, 1.57)
+    anchor_centres: AnchorCentres = "range"
     # --- target assignment (nearest-BEV axis-aligned IoU) ---
     neg_iou_thr: float = 0.35
     pos_iou_thr: float = 0.5

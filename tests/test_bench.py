@@ -193,7 +193,9 @@ def test_a_checkpoint_is_compared_with_the_config_it_is_loaded_under(data, tmp_p
     assert code == 0
     assert [ln for ln in err if ln.startswith("warning:")] == [
         f"warning: {ckpt}: trained under another config (model.voxel_size is [0.1, 0.1, 4.0] in the checkpoint, "
-        "[0.2, 0.2, 4.0] here; model.output_shape is [96, 64] in the checkpoint, [48, 32] here); its weights load "
+        "[0.2, 0.2, 4.0] here; model.output_shape is [96, 64] in the checkpoint, [48, 32] here; anchors are placed at "
+        "the head map's cell centres (model.anchor_centres: cells) because the weights move to another grid); its "
+        "weights load "
         "into this one, but results may differ from the trained model's"]
     code, err = bench(narrow, ckpt)
     assert code == 2 and err == [f"error: {ckpt}: checkpoint does not fit the config's model: model.layer_channels is "

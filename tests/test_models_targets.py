@@ -39,6 +39,47 @@ def test_anchor_memory_order_sizes_then_rotations() -> None:
     assert a[0, 1, 0, 1].tolist() == [1.0, 0.0, -0.5, 4.0, 2.0, 1.0, 1.0]
 
 
+def test_cell_anchors_sit_at_the_head_map_cell_centres() -> None:
+    """``cells`` placement: origin + (i + 1/2) * cell on each axis, z from the anchor range, same memory order."""
+    a = generate_anchors(feature_size=(4, 3), anchor_range=(9, 9, -1, 99, 99, -1), sizes=[(4, 2, 1)],
+                         rotations=(0.0, 1.0), cells=(0.0, -0.4, 0.1, 0.2)).view(4, 3, 1, 2, 7)
+    np.testing.assert_allclose(a[:, 0, 0, 0, 1].double().numpy(), [-0.3, -0.1, 0.1, 0.3], atol=1e-6)
+    np.testing.assert_allclose(a[0, :, 0, 1, 0].double().numpy(), [0.05, 0.15, 0.25], atol=1e-6)
+    assert a[2, 1, 0, 1, 2:].tolist() == [-0.5, 4.0, 2.0, 1.0, 1.0]
+
+
+def test_weights_moved_to_another_grid_keep_their_anchors(tmp_path) -> None:
+    """The CPU configs' weights loaded into the 768 x 512 model: every head cell over the 288 x 144 area gets an
+    anchor within 1 mm of the trained one (both grids cell-centred), and a checkpoint trained with the reference's
+    linspace anchors moves within its own drift (±5 cm), not the 9-39 cm by which the 768 x 512 linspace anchors sit
+    from the 288 x 144 ones at the same place (every box would be off by that)."""
+    import dataclasses
+    import warnings
+
+    from detector.checkpoint import Checkpoint, load_model, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    big = load_experiment("configs/models/mpchair_dense.yaml")
+    for centres, tol in (("cells", 1e-3), ("range", 0.051)):
+        small = load_experiment("configs/models/mpchair_dense_cpu.yaml")
+        small = dataclasses.replace(small, model=dataclasses.replace(small.model, anchor_centres=centres))
+        model = build_model(small.model)
+        ckpt = tmp_path / f"{centres}.pt"
+        save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.AdamW(model.parameters()),
+                                                 cfg=small, epoch=0, step_in_epoch=0, step=0, global_batch=1))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            moved = load_model(big, ckpt)
+        assert any("model.anchor_centres: cells" in str(w.message) for w in caught)
+        # head cells are 0.1 m; the small grid's cell (iy, ix) is the big one's (iy + 118, ix): y -7.2 vs -19.0
+        a_small = model.anchors.view(144, 72, 2, 7)[..., :2].double()
+        a_big = moved.anchors.view(384, 256, 2, 7)[118:118 + 144, :72, :, :2].double()
+        assert (a_big - a_small).abs().max().item() < tol
+        reference = build_model(big.model).anchors.view(384, 256, 2, 7)[118:118 + 144, :72, :, :2].double()
+        assert (reference - a_small).abs().max().item() > 0.15  # what the grid move gave before
+
+
 def test_box_coder_known_values_and_round_trip() -> None:
     anchor = torch.tensor([[1.0, 2.0, 0.5, 3.0, 4.0, 1.0, 0.25]], dtype=torch.float64)  # diagonal d = 5
     box = torch.tensor([[6.0, -3.0, 1.5, 6.0, 2.0, math.e, -0.75]], dtype=torch.float64)

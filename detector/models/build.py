@@ -23,6 +23,15 @@ def head_feature_size(cfg: ModelConfig) -> tuple[int, int]:
     return cfg.output_shape[0] // s, cfg.output_shape[1] // s
 
 
+def anchor_cells(cfg: ModelConfig) -> tuple[float, float, float, float] | None:
+    """``(x_origin, y_origin, cell_x, cell_y)`` (m, sensor frame) of the head map's cells for ``cells`` anchor
+    placement, None for ``range`` (:mod:`detector.models.anchors`)."""
+    if cfg.anchor_centres == "range":
+        return None
+    s = cfg.layer_strides[0] // cfg.upsample_strides[0]
+    return (cfg.point_cloud_range[0], cfg.point_cloud_range[1], cfg.voxel_size[0] * s, cfg.voxel_size[1] * s)
+
+
 def build_model(cfg: ModelConfig) -> PointPillars:
     """Build the dense or sparse PointPillars described by ``cfg`` (validated first; bad values → InputError).
 
@@ -72,6 +81,7 @@ def build_model(cfg: ModelConfig) -> PointPillars:
         anchor_range=cfg.anchor_range,
         sizes=cfg.anchor_sizes,
         rotations=cfg.anchor_rotations,
+        cells=anchor_cells(cfg),
     )
     return PointPillars(
         point_cloud_range=cfg.point_cloud_range,

@@ -454,7 +454,8 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          + _reference_total_text(res)),
         ("bench weights", "epoch-200 weights trained at the bench's 768 x 512 grid",
          f"this run's, trained on the {grid[0]} x {grid[1]} crop and loaded into the 768 x 512 model (conv weights "
-         "do not depend on the grid)" if grid else "n/a",
+         "do not depend on the grid; cell-centred anchors on both, so the boxes land where they do on the crop)"
+         if grid else "n/a",
          "CPU budget; the times depend on the weights only through the boxes BBox Extract suppresses"),
         ("density D (test split)", f"Matterport-Chair median {PAPER['density_median']['matterport_chair']} (KITTI "
          f"{PAPER['density_median']['kitti']})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
