@@ -208,7 +208,8 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
     if moved and model_cfg.anchor_centres != "cells":
         # The network learned box offsets for the anchor placement of the grid it trained on; with the reference's
         # linspace placement that drift differs per grid (9-39 cm between 288 x 144 and 768 x 512), so every box on
-        # the new grid would be off by it. Cell-centred anchors are where either placement's anchors are on average.
+        # the new grid would be off by it. Cell-centred anchors are exact for weights trained with them and within
+        # a linspace grid's own drift (±5 cm on 288 x 144) of its anchors otherwise.
         model_cfg = dataclasses.replace(model_cfg, anchor_centres="cells")
         differences.append("anchors are placed at the head map's cell centres (model.anchor_centres: cells) "
                            "because the weights move to another grid")

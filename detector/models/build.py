@@ -17,9 +17,14 @@ from detector.models.pointpillars import PointPillars
 from detector.models.sparse_backbone import SparseBackboneNeck
 
 
+def head_stride(cfg: ModelConfig) -> int:
+    """Pseudo-image cells per head-map cell: ``layer_strides[0] / upsample_strides[0]``."""
+    return cfg.layer_strides[0] // cfg.upsample_strides[0]
+
+
 def head_feature_size(cfg: ModelConfig) -> tuple[int, int]:
-    """(H, W) of the neck/head map: the pseudo-image at stride ``layer_strides[0] / upsample_strides[0]``."""
-    s = cfg.layer_strides[0] // cfg.upsample_strides[0]
+    """(H, W) of the neck/head map: the pseudo-image at :func:`head_stride`."""
+    s = head_stride(cfg)
     return cfg.output_shape[0] // s, cfg.output_shape[1] // s
 
 
@@ -28,7 +33,7 @@ def anchor_cells(cfg: ModelConfig) -> tuple[float, float, float, float] | None:
     placement, None for ``range`` (:mod:`detector.models.anchors`)."""
     if cfg.anchor_centres == "range":
         return None
-    s = cfg.layer_strides[0] // cfg.upsample_strides[0]
+    s = head_stride(cfg)
     return (cfg.point_cloud_range[0], cfg.point_cloud_range[1], cfg.voxel_size[0] * s, cfg.voxel_size[1] * s)
 
 
