@@ -154,18 +154,24 @@ def config_from_checkpoint(checkpoint: Checkpoint, source: str) -> ExperimentCon
     return experiment_from_dict(checkpoint.config, source=source)
 
 
-def config_differences(stored: dict, cfg: ExperimentConfig) -> list[str]:
-    """The ``model.*`` keys on which a checkpoint's stored config dict and ``cfg`` differ, in plain words
-    (``model.output_shape is [288, 144] in the checkpoint, [768, 512] here``), in the schema's key order. Only the
-    model section: data, train and eval settings do not change what the weights mean."""
+def _differing_model_keys(stored: dict, cfg: ExperimentConfig) -> dict[str, tuple[object, object]]:
+    """The ``model`` keys on which a checkpoint's stored config dict and ``cfg`` differ: key -> (the checkpoint's
+    value, ``cfg``'s), as JSON values, in the schema's key order."""
     try:
         # through the dataclasses, so a checkpoint written before a key existed compares with its default
         theirs = json.loads(json.dumps(to_dict(experiment_from_dict(stored).model)))
     except InputError:
         theirs = json.loads(json.dumps(stored.get("model", {}), default=str))
     ours = json.loads(json.dumps(to_dict(cfg.model)))
-    return [f"model.{key} is {json.dumps(theirs.get(key))} in the checkpoint, {json.dumps(value)} here"
-            for key, value in ours.items() if theirs.get(key) != value]
+    return {key: (theirs.get(key), value) for key, value in ours.items() if theirs.get(key) != value}
+
+
+def config_differences(stored: dict, cfg: ExperimentConfig) -> list[str]:
+    """The ``model.*`` keys on which a checkpoint's stored config dict and ``cfg`` differ, in plain words
+    (``model.output_shape is [288, 144] in the checkpoint, [768, 512] here``), in the schema's key order. Only the
+    model section: data, train and eval settings do not change what the weights mean."""
+    return [f"model.{key} is {json.dumps(theirs)} in the checkpoint, {json.dumps(ours)} here"
+            for key, (theirs, ours) in _differing_model_keys(stored, cfg).items()]
 
 
 def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
@@ -180,7 +186,7 @@ def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
     return ", ".join(parts) or None
 
 
-GRID_KEYS = ("model.point_cloud_range", "model.voxel_size", "model.output_shape")
+GRID_KEYS = ("point_cloud_range", "voxel_size", "output_shape")
 """The model keys that make a pseudo-image grid: weights moved between grids get cell-centred anchors."""
 
 
@@ -202,8 +208,9 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
             model = build_model(cfg.model)
         return model.to(device).eval()
     saved = load_checkpoint(checkpoint, map_location=device)
-    differences = config_differences(saved.config, cfg) if isinstance(saved.config, dict) else []
-    moved = [d for d in differences if d.split(" ", 1)[0] in GRID_KEYS]
+    stored = saved.config if isinstance(saved.config, dict) else None
+    differences = config_differences(stored, cfg) if stored is not None else []
+    moved = stored is not None and any(key in GRID_KEYS for key in _differing_model_keys(stored, cfg))
     model_cfg = cfg.model
     if moved and model_cfg.anchor_centres != "cells":
         # The network learned box offsets for the anchor placement of the grid it trained on; with the reference's
