@@ -103,6 +103,17 @@ def test_report_section_and_markers(tmp_path):
     assert all(p.stat().st_size > 1000 for p in paths.values())
 
 
+def test_a_sweep_of_one_point_is_reported_as_not_run(tmp_path):
+    """--speeds 0.5 --rates 10 (the headline stream only): no sweep table or curve, a line saying so instead."""
+    runs = _runs([0.5], [10.0])
+    text = results_section(runs, [T2, T1], [0.5], [10.0], {}, "note")
+    assert "sAP against robot speed (at 10 Hz): not measured in this run (`--speeds` gave one point)." in text
+    assert "sAP against sensor rate (at 0.5 m/s): not measured in this run (`--rates` gave one point)." in text
+    assert "| speed (m/s) |" not in text and "| rate (Hz) |" not in text
+    assert "| sparse | 768 x 512, 2 threads | 70.00 / 71.00 |" in text
+    assert plot_curves(runs, T2, [0.5], [10.0], tmp_path / "img") == {} and not (tmp_path / "img").exists()
+
+
 def test_a_setting_not_measured_is_named():
     text = results_section({}, [T2], [0.5], [10.0], {}, "note")
     assert "| dense | 768 x 512, 2 threads | not measured |" in text and "keeps up to" not in text

@@ -189,6 +189,9 @@ def _sweep_lines(runs: Runs, axis: str, xs: list[float], setting: Setting, figur
     ``setting``, with the fraction of frames each model processed."""
     unit = "m/s" if axis == "speed" else "Hz"
     what = "robot speed (at 10 Hz)" if axis == "speed" else "sensor rate (at 0.5 m/s)"
+    if len(xs) < 2:
+        # a sweep of one point is the headline stream again: say it was not run rather than draw a one-point curve
+        return ["", f"sAP against {what}: not measured in this run (`--{axis}s` gave one point)."]
     lines = ["", f"sAP 3D R40 against {what}, {setting.text}:", "",
              f"| {axis} ({unit}) | " + " | ".join(f"{m} {mode}" for m in MODELS for mode in MODES)
              + " | frames processed dense / sparse |", "|---|" + "---|" * (len(MODELS) * len(MODES) + 1)]
@@ -225,7 +228,7 @@ def results_section(runs: Runs, settings: list[Setting], speeds: list[float], ra
 def plot_curves(runs: Runs, setting: Setting, speeds: list[float], rates: list[float],
                 out_dir: Path) -> dict[str, Path]:
     """``{"speed": png, "rate": png}``: sAP 3D R40 of both models, raw and ego, against speed and rate under
-    ``setting``."""
+    ``setting`` (an axis of fewer than two points has no curve)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,6 +236,8 @@ def plot_curves(runs: Runs, setting: Setting, speeds: list[float], rates: list[f
 
     paths = {}
     for axis, xs, unit in (("speed", speeds, "m/s"), ("rate", rates, "Hz")):
+        if len(xs) < 2:  # no sweep along this axis (_sweep_lines says so)
+            continue
         fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=110)
         for m, color in zip(MODELS, ("tab:red", "tab:blue")):
             for mode, style in zip(MODES, ("--", "-")):
