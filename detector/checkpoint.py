@@ -170,8 +170,13 @@ def config_differences(stored: dict, cfg: ExperimentConfig) -> list[str]:
     """The ``model.*`` keys on which a checkpoint's stored config dict and ``cfg`` differ, in plain words
     (``model.output_shape is [288, 144] in the checkpoint, [768, 512] here``), in the schema's key order. Only the
     model section: data, train and eval settings do not change what the weights mean."""
+    return _difference_lines(_differing_model_keys(stored, cfg))
+
+
+def _difference_lines(differing: dict[str, tuple[object, object]]) -> list[str]:
+    """:func:`_differing_model_keys`'s result in plain words, one line per key."""
     return [f"model.{key} is {json.dumps(theirs)} in the checkpoint, {json.dumps(ours)} here"
-            for key, (theirs, ours) in _differing_model_keys(stored, cfg).items()]
+            for key, (theirs, ours) in differing.items()]
 
 
 def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
@@ -208,9 +213,9 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
             model = build_model(cfg.model)
         return model.to(device).eval()
     saved = load_checkpoint(checkpoint, map_location=device)
-    stored = saved.config if isinstance(saved.config, dict) else None
-    differences = config_differences(stored, cfg) if stored is not None else []
-    moved = stored is not None and any(key in GRID_KEYS for key in _differing_model_keys(stored, cfg))
+    differing = _differing_model_keys(saved.config, cfg) if isinstance(saved.config, dict) else {}
+    differences = _difference_lines(differing)
+    moved = any(key in GRID_KEYS for key in differing)
     model_cfg = cfg.model
     if moved and model_cfg.anchor_centres != "cells":
         # The network learned box offsets for the anchor placement of the grid it trained on; with the reference's
