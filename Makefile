@@ -27,11 +27,13 @@ reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)
 
 # The paper's ablations (Sparse1+Dense23, Sparse12+Dense3, both Sparse+WideConv variants) trained and evaluated on
-# make reproduce's dataset, then the report again (opt in: four more trainings of the sparse model's epochs; a session
-# may train a subset, ABLATIONS=sparse1_dense23, and the next one resumes a cut one). docs/benchmarks.md.
+# the committed run's dataset, then its report again (opt in: four more trainings of the sparse model's epochs). It
+# starts from the run record docs/results-data (make reproduce's record step), regenerates the dataset (refused unless
+# byte for byte the recorded one) and adds the ablations to the record, so a session may train a subset
+# (ABLATIONS=sparse1_dense23) and the next one the rest. docs/benchmarks.md.
 ABLATIONS ?= sparse1_dense23,sparse12_dense3,sparse_wide,sparse_wide_down
 reproduce-ablations: venv
-	$(BIN)/python tools/reproduce.py --scale $(SCALE) --steps ablations,report --ablations $(ABLATIONS)
+	$(BIN)/python tools/reproduce.py --from-record docs/results-data --steps synth,generate,ablations,report,record --ablations $(ABLATIONS)
 
 # Streaming AP (sAP) of make reproduce's trained models on a robot driving through held-out houses, at 768 x 512 and
 # 288 x 144 under 2 and 1 threads (docs/streaming.md); `make reproduce-stream SCALE=small` is a few-minute check. The

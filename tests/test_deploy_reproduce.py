@@ -12,7 +12,7 @@ from helpers_detector import make_tiny_dataset, write_test_config
 from detector.cli import main as detector_main
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.reproduce.cli import main
-from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, read_deploy
+from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("openvino")
@@ -27,11 +27,15 @@ def test_deploy_step_commands(tmp_path: Path, capsys) -> None:
     variants = deployed_variants()
     deployed = [(r, p) for r, p in variants if (r, p) != ("torch", "fp32")]  # eager bf16 is evaluated too
     assert variants == [v for v in VARIANTS if skip_reason(*v, cpu_flags()) is None]
-    assert len(evals) == 2 * len(deployed)  # dense and sparse, every runtime x precision but eager fp32 (eval step)
+    # dense and sparse, every runtime x precision but eager fp32 (the eval step's); the exact head every one
+    assert len(evals) == 2 * len(deployed) + len(variants)
     assert ("torch", "bf16") in deployed or skip_reason("torch", "bf16", cpu_flags()) is not None
-    for (r, p), ln in zip(deployed * 2, evals):
+    for (r, p), ln in zip(deployed * 2 + variants, evals):
         assert f"--runtime {r} --precision {p}" in ln and "--split val" in ln and f"_{r}_{p}" in ln
-    assert "mpchair_dense_cpu.yaml" in evals[0] and "mpchair_sparse_cpu.yaml" in evals[-1]
+    n = len(deployed)
+    assert "mpchair_dense_cpu.yaml" in evals[0] and "mpchair_sparse_cpu.yaml" in evals[2 * n - 1]
+    for ln in evals[2 * n:]:  # the exact sparse head: the sparse model's weights, its own folders
+        assert "mpchair_sparse_exact_cpu.yaml" in ln and "runs/sparse/last.pt" in ln and "/sparse_exact_" in ln
     assert len(benches) == 2 and "--rate" not in benches[0] and "--rate 1.0 --duration 5.0" in benches[1]
     for ln in benches:
         assert ln.startswith("$ MALLOC_MMAP_MAX_=0") and "mpchair_sparse_exact.yaml" in ln
@@ -125,3 +129,52 @@ def test_eager_bf16_is_evaluated_and_its_row_reads_its_own_metrics(tmp_path: Pat
     shutil.rmtree(bf16_dir)
     (row,) = read_deploy(res)
     assert row.metrics is None
+
+
+def test_the_exact_heads_rows_read_their_own_evaluations(tmp_path: Path) -> None:
+    """The sparse+sparse_head rows (the deployed headline's fastest sparse row is one) take the AP of the exact head's
+    own evaluation in that runtime / precision, and their drop is against the exact head's eager fp32 evaluation."""
+    res = tmp_path / "results"
+
+    def metrics(folder: Path, ap3d: float) -> None:
+        folder.mkdir(parents=True)
+        block = {"overall": {"R40": ap3d}}
+        (folder / "metrics.json").write_text(json.dumps({"Chair": {"3d": block, "bev": block}}))
+
+    metrics(res / "eval_sparse", 50.0)
+    metrics(eval_dir(res, "sparse_exact", "torch", "fp32"), 50.0)
+    metrics(eval_dir(res, "sparse_exact", "onnxruntime", "int8"), 49.25)
+    models = [{"name": f"sparse+sparse_head{s}", "runtime": r, "precision": p, "components": {"total": {"mean_ms": ms}}}
+              for s, r, p, ms in (("", "torch", "fp32", 20.0), (" (onnxruntime int8)", "onnxruntime", "int8", 10.0),
+                                  (" (openvino int8)", "openvino", "int8", 12.0))]
+    (res / "deploy_bench.json").write_text(json.dumps({"models": models}))
+    rows = {(r.runtime, r.precision): r for r in read_deploy(res)}
+    assert rows[("onnxruntime", "int8")].metrics.ap["3d"].overall["R40"] == 49.25
+    assert rows[("openvino", "int8")].metrics is None  # not evaluated: no AP, not the fp32 one's
+    table = [ln for ln in deploy_section(res) if ln.startswith("| sparse+sparse_head |")]
+    assert "| 49.25 | -0.75 |" in table[1] and "| – | – |" in table[2]
+
+
+def test_like_for_like_pairs_the_fastest_of_each_side_at_fp32_and_at_any_precision(tmp_path: Path) -> None:
+    res = tmp_path / "results"
+    res.mkdir()
+    rows = (("dense", "torch", "fp32", 470.0), ("dense (openvino fp32)", "openvino", "fp32", 409.0),
+            ("dense (openvino int8)", "openvino", "int8", 86.0), ("sparse", "torch", "fp32", 40.0),
+            ("sparse+sparse_head (onnxruntime fp32)", "onnxruntime", "fp32", 19.5),
+            ("sparse+sparse_head (onnxruntime int8)", "onnxruntime", "int8", 13.9))
+    models = [{"name": n, "runtime": r, "precision": p, "components": {"total": {"mean_ms": ms}}}
+              for n, r, p, ms in rows]
+    mach = {"cpu": "AMD EPYC", "torch_threads": 2, "logical_cpus": 2,
+            "precision_flags": {"bf16": ["avx512_bf16"], "int8": ["avx512_vnni"]}}
+    (res / "deploy_bench.json").write_text(json.dumps({"models": models, "machine": mach,
+                                                       "density": {"median": 0.0079}}))
+    assert like_for_like(tmp_path / "none") == []
+    table = like_for_like(res)
+    fp32, anyp = table[2], table[3]
+    assert "dense, openvino fp32: 409.0 ms" in fp32 and "sparse+sparse_head, onnxruntime fp32: 19.5 ms" in fp32
+    assert fp32.endswith(f"| {409.0 / 19.5:.2f}x |")
+    assert "dense, openvino int8: 86.0 ms" in anyp and "onnxruntime int8: 13.9 ms" in anyp
+    assert anyp.endswith(f"| {86.0 / 13.9:.2f}x |")
+    assert "AMD EPYC, 2 threads of 2 CPUs, allocator reuse" in table[5] and "D median 0.00790" in table[5]
+    assert "avx512_bf16, avx512_vnni" in table[5]
+    assert "### Like for like" in "\n".join(deploy_section(res))

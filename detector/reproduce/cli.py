@@ -24,9 +24,17 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
     ablation-bench  detector bench       the ablation configs beside dense and sparse at the KITTI geometry (the
                                          vendored KITTI frames) and at 768x512 (detector.reproduce.ablations)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
+    record    docs/results-data/         the report's inputs (JSON, tables, training logs, figures, the dataset's
+                                         manifest and fingerprint; no weights, no frames): the report can be written
+                                         again, and steps added to the run, in a later session (--from-record)
 
 Opt in (``--steps ablations,report``, ``make reproduce-ablations``): ``ablations`` trains and evaluates the paper's
 ablations on this run's data (``--ablations``, ``--ablation-epochs``), then times them again with their weights.
+
+``--from-record DIR`` first copies a run record (``docs/results-data``: what the ``record`` step wrote) into the work
+folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
+be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
+ablations to the committed run without training the dense and sparse models again (detector.reproduce.record).
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
@@ -58,12 +66,23 @@ import time
 from pathlib import Path
 
 from detector.reproduce.ablations import run_ablation_bench, run_ablations
+from detector.reproduce.deploy import fill_like_for_like
+from detector.reproduce.record import (
+    MAX_FILE_BYTES,
+    RecordError,
+    check_dataset,
+    read_record,
+    record_scale,
+    restore_record,
+    save_record,
+)
 from detector.reproduce.report import write_report
 from detector.reproduce.results import ABLATIONS
 from detector.reproduce.runner import ROOT, Runner
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
-from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan
+from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate
+from mpchair.core.atomic import write_text
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -101,6 +120,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="the ablations the ablations step trains and evaluates (comma-separated; default all four)")
     p.add_argument("--ablation-epochs", type=int, default=None,
                    help="training epochs of each ablation (default: the sparse model's of the scale)")
+    p.add_argument("--from-record", type=Path, default=None, metavar="DIR",
+                   help="restore a run record (the record step's folder, e.g. docs/results-data) into the work folder "
+                        "first, so its steps count as done; a regenerated dataset must equal the recorded one")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="where the record step writes (default: docs/results-data for --scale full / recipe, "
+                        "<work folder>/record otherwise)")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 30, medium: 20)")
     return p
@@ -128,6 +153,32 @@ def _scale(args: argparse.Namespace) -> Scale | str:
     return sc
 
 
+def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool) -> tuple[Scale, list[str]] | str:
+    """``--from-record``: the recorded run's scale (``args.scale`` set to it) and notes, with this invocation's notes
+    and, when it adds steps, one saying when and how; or the error line. The steps added belong to that run, and its
+    report is rewritten whole."""
+    try:
+        meta = read_record(args.from_record)
+    except RecordError as e:
+        return str(e)
+    if scale_given and meta.get("scale") != args.scale:
+        return f"--scale {args.scale}, but the record {args.from_record} is of a {meta.get('scale')}-scale run"
+    args.scale, sc = meta["scale"], record_scale(meta)
+    if args.precision is not None:
+        sc = dataclasses.replace(sc, precision=args.precision)
+    elif sc.precision == "bf16" and not cpu_has_native_bf16():
+        # the recorded run's bf16 would be emulated here (~15x slower per step): the added trainings run fp32
+        print("training precision: fp32 (the record's bf16 is not native on this CPU; the report says so)")
+        sc = dataclasses.replace(sc, precision="fp32")
+    added = [s for s in steps if s not in ("report", "record")]
+    later = ([f"Steps {', '.join(added)} ran later ({time.strftime('%Y-%m-%d')}) from the run record "
+              f"{args.from_record} (tools/reproduce.py --from-record), training precision "
+              f"{sc.precision or 'the configs'}"
+              + (": the dataset was regenerated and checked byte for byte against the record's" if "generate"
+                 in steps else "") + "; the other steps' outputs are the record's."] if added else [])
+    return sc, [*meta.get("notes", []), *args.note, *later]
+
+
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
     args = _parser().parse_args(argv)
@@ -152,23 +203,55 @@ def main(argv: list[str] | None = None) -> int:
             others = {}
         print("\n".join(status_lines(out, others)))
         return 0
-    sc = _scale(args)
-    if isinstance(sc, str):
-        print(f"error: {sc}", file=sys.stderr)
-        return 2
+    if args.from_record is not None:
+        recorded = _recorded_run(args, steps, scale_given)
+        if isinstance(recorded, str):
+            print(f"error: {recorded}", file=sys.stderr)
+            return 2
+        sc, notes = recorded
+        out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
+    else:
+        sc, notes = _scale(args), list(args.note)
+        if isinstance(sc, str):
+            print(f"error: {sc}", file=sys.stderr)
+            return 2
     out.mkdir(parents=True, exist_ok=True)
+    if args.from_record is not None and not args.dry_run:
+        try:
+            restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
+        except RecordError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print(f"restored {len(restored)} file(s) of the record {args.from_record} into {out}")
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
                 force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs)
     r = Runner(args.dry_run, out / "commands.log")
     t0 = time.perf_counter()
     for run_step in (*COMMAND_STEPS, run_ablations, run_ablation_bench):
         run_step(plan, r)
+        if run_step is run_generate and args.from_record is not None and "generate" in steps and not args.dry_run:
+            try:  # what follows must run on the recorded run's dataset
+                check_dataset(args.from_record, plan.data)
+            except RecordError as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 2
     total = time.perf_counter() - t0
+    # only the issue's scales replace the committed report and record; a quick check keeps both in its work folder
+    full = args.scale in ("full", "recipe")
     if "report" in steps and not args.dry_run:
-        # only the issue's scale replaces the committed report; a quick check keeps its report in its work folder
-        full = args.scale in ("full", "recipe")
         results = args.results or (ROOT / "docs" / "results.md" if full else out / "results.md")
-        write_report(results, out, plan.res, args.scale, sc, notes=args.note)
+        write_report(results, out, plan.res, args.scale, sc, notes=notes)
         print(f"wrote {results}")
+        if full and args.results is None:  # the like-for-like table README.md and docs/benchmarks.md lead with
+            for doc in (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "deployment.md"):
+                text = doc.read_text()
+                if (new := fill_like_for_like(text, plan.res)) != text:
+                    write_text(doc, new)
+                    print(f"wrote its like-for-like table into {doc}")
+    if "record" in steps and not args.dry_run:
+        dest = args.record or (ROOT / "docs" / "results-data" if full else out / "record")
+        for rel in save_record(out, dest, args.scale, sc, notes):
+            print(f"record: left out {rel} (over {MAX_FILE_BYTES >> 20} MB)")
+        print(f"wrote the run record {dest}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0

@@ -5,7 +5,9 @@ After ``train`` / ``eval`` / ``bench``, three kinds of command (all in ``results
 
 - ``detector eval --runtime R --precision P`` of each trained model on the val split (the eval step's configs and
   weights; eager bf16 included; int8 calibrated on :data:`CALIBRATION_FRAMES` train frames) →
-  ``deploy_eval/<model>_<R>_<P>/metrics.json``;
+  ``deploy_eval/<model>_<R>_<P>/metrics.json``; the sparse weights with the exact sparse head too
+  (``deploy_eval/sparse_exact_<R>_<P>``, eager fp32 included: the exported exact head is a graph of its own and
+  int8 / bf16 change its numbers, so the fastest sparse row's AP is measured, not inferred from the dense head's);
 - ``detector bench`` of dense / sparse / sparse with the exact head at 768 x 512, every runtime x precision, one
   process, interleaved per frame, the reuse allocator (a robot's long-running process) → ``deploy_bench.json``;
 - ``detector bench --rate`` at :data:`BUDGET_RATE_HZ` Hz, each row alone in its own process → ``deploy_budget.json`` /
@@ -29,6 +31,14 @@ from detector.reproduce.runner import BIN, REUSE_ENV, Runner
 VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("torch", "bf16"), ("onnxruntime", "fp32"),
                                         ("onnxruntime", "int8"), ("openvino", "fp32"), ("openvino", "bf16"),
                                         ("openvino", "int8"))
+#: The evaluated models: table name → (eval folder prefix, CPU config, trained weights of). The exact sparse head
+#: loads the sparse model's weights (``mpchair_sparse_exact_cpu.yaml``); the eval step evaluates the first two in
+#: eager fp32, the deploy step everything else.
+EVALUATED: dict[str, tuple[str, str, str]] = {
+    "dense": ("dense", "mpchair_dense_cpu", "dense"),
+    "sparse": ("sparse", "mpchair_sparse_cpu", "sparse"),
+    "sparse+sparse_head": ("sparse_exact", "mpchair_sparse_exact_cpu", "sparse"),
+}
 CALIBRATION_FRAMES = 32
 BUDGET_RATE_HZ = 1.0  # the paper's conclusion: "1 Hz with more than 75 % of the CPU left"
 
@@ -44,13 +54,25 @@ def eval_dir(res: Path, model: str, runtime: str, precision: str) -> Path:
     return res / "deploy_eval" / f"{model}_{runtime}_{precision}"
 
 
+def _eval_step_has(model: str, runtime: str, precision: str) -> bool:
+    """Whether the eval step (not the deploy step) evaluates ``model`` in ``runtime`` / ``precision``."""
+    return model in MODELS and (runtime, precision) == ("torch", "fp32")
+
+
+def metrics_path(res: Path, model: str, runtime: str, precision: str) -> Path:
+    """The ``metrics.json`` of table model ``model`` (a key of :data:`EVALUATED`) in ``runtime`` / ``precision``."""
+    if _eval_step_has(model, runtime, precision):
+        return res / f"eval_{model}" / "metrics.json"
+    return eval_dir(res, EVALUATED[model][0], runtime, precision) / "metrics.json"
+
+
 def deploy_outputs(res: Path) -> dict[str, Path]:
     """The files that mark the deploy step done (the bench tables; every evaluation's metrics)."""
     out = {"bench": res / "deploy_bench.json", "budget": res / "deploy_budget.json"}
-    for m in MODELS:
+    for m in EVALUATED:
         for r, p in deployed_variants():
-            if (r, p) != ("torch", "fp32"):  # eager fp32 is the eval step's
-                out[f"{m} {r} {p}"] = eval_dir(res, m, r, p) / "metrics.json"
+            if not _eval_step_has(m, r, p):
+                out[f"{m} {r} {p}"] = metrics_path(res, m, r, p)
     return out
 
 
@@ -68,14 +90,14 @@ def run_deploy(plan, r: Runner, config) -> None:
     outputs = deploy_outputs(plan.res)
     variants = deployed_variants()
     threads = ["--threads", str(plan.threads)]
-    for m in MODELS:
+    for m, (folder, cfg, weights) in EVALUATED.items():
         for runtime, precision in variants:
             key = f"{m} {runtime} {precision}"
-            if (runtime, precision) == ("torch", "fp32") or not plan.todo("deploy", outputs[key]):
+            if _eval_step_has(m, runtime, precision) or not plan.todo("deploy", outputs[key]):
                 continue
-            r.run([str(BIN / "detector"), "eval", "--config", config(f"mpchair_{m}_cpu"), "--data", str(plan.data),
-                   "--checkpoint", str(plan.runs / m / "last.pt"), "--split", "val", "--out",
-                   str(eval_dir(plan.res, m, runtime, precision)), *threads, "--runtime", runtime, "--precision",
+            r.run([str(BIN / "detector"), "eval", "--config", config(cfg), "--data", str(plan.data),
+                   "--checkpoint", str(plan.runs / weights / "last.pt"), "--split", "val", "--out",
+                   str(eval_dir(plan.res, folder, runtime, precision)), *threads, "--runtime", runtime, "--precision",
                    precision, "--calibration-frames", str(CALIBRATION_FRAMES)])
     models = ["--config", config("mpchair_dense"), "--config", config("mpchair_sparse"), "--config",
               config("mpchair_sparse_exact")]
@@ -100,8 +122,7 @@ def run_deploy(plan, r: Runner, config) -> None:
 @dataclass(frozen=True)
 class DeployRow:
     """One row of the AP-drop-vs-speed table: a model (``dense``, ``sparse``, ``sparse+sparse_head``) in a runtime and
-    precision, its val AP (None: not evaluated, e.g. the exact head, whose maps equal the dense head's), its bench
-    total ms and its budget record (None where not run)."""
+    precision, its val AP (None: not evaluated), its bench total ms and its budget record (None where not run)."""
 
     model: str
     runtime: str
@@ -122,11 +143,7 @@ def read_deploy(res: Path) -> list[DeployRow]:
     keys = list(dict.fromkeys([*totals, *shares]))
     rows = []
     for name, runtime, precision in keys:
-        # AP of the trained models as the eval step configured them (the exact head's maps equal the dense head's)
-        d = None
-        if name in MODELS:
-            d = _read_json(res / f"eval_{name}" / "metrics.json" if (runtime, precision) == ("torch", "fp32") else
-                           eval_dir(res, name, runtime, precision) / "metrics.json")
+        d = _read_json(metrics_path(res, name, runtime, precision)) if name in EVALUATED else None
         b = shares.get((name, runtime, precision))
         rows.append(DeployRow(name, runtime, precision, KittiMetrics.from_json(d) if d else None,
                               totals.get((name, runtime, precision)), b["cpu_share"] if b else None,
@@ -142,6 +159,62 @@ def _ap(metrics: KittiMetrics | None, kind: str) -> float | None:
 
 def _cell(v: float | None, fmt: str) -> str:
     return "–" if v is None else format(v, fmt)
+
+
+def _fastest(rows: list[DeployRow], models: tuple[str, ...], fp32_only: bool) -> DeployRow | None:
+    """The row of ``models`` with the lowest bench total (fp32 rows only when ``fp32_only``); None if none was timed."""
+    timed = [r for r in rows if r.model in models and r.total_ms is not None and (r.precision == "fp32" or not
+                                                                                  fp32_only)]
+    return min(timed, key=lambda r: r.total_ms) if timed else None
+
+
+def _row_text(r: DeployRow) -> str:
+    ap = _ap(r.metrics, "3d")
+    return f"{r.model}, {r.runtime} {r.precision}: {r.total_ms:.1f} ms, 3D AP {_cell(ap, '.2f')}"
+
+
+def like_for_like(res: Path) -> list[str]:
+    """The like-for-like table: the fastest dense deployment against the fastest sparse one (either head), at fp32 (the
+    fair comparison on a CPU without native bf16 / int8, such as the paper's AVX2 robot CPU) and at any precision
+    this CPU computes natively, with what both sides ran under; no lines before the deploy step has run."""
+    rows = read_deploy(res)
+    bench = _read_json(res / "deploy_bench.json") or {}
+    pairs = [(label, _fastest(rows, ("dense",), fp32), _fastest(rows, ("sparse", "sparse+sparse_head"), fp32))
+             for label, fp32 in (("fp32 (the fair pair on a CPU without native bf16 / int8, e.g. the paper's AVX2 "
+                                  "robot)", True), ("any precision this CPU computes natively", False))]
+    if not all(d and sp for _, d, sp in pairs):
+        return []
+    mach = bench.get("machine") or {}
+    flags = sorted({f for names in (mach.get("precision_flags") or {}).values() for f in names})
+    dens = bench.get("density") or {}
+    median = dens.get("median")
+    lines = ["| fastest of each side | dense | sparse | dense / sparse |", "|---|---|---|---|"]
+    for label, d, sp in pairs:
+        lines.append(f"| {label} | {_row_text(d)} | {_row_text(sp)} | {d.total_ms / sp.total_ms:.2f}x |")
+    lines += ["", f"Both sides: {mach.get('cpu', 'this CPU')}, {mach.get('torch_threads', '?')} threads of "
+              f"{mach.get('logical_cpus', '?')} CPUs, allocator reuse, 768 x 512 test frames"
+              + (f" of density D median {median:.5f}" if median is not None else "")
+              + ", trained weights, every row interleaved per frame in one process (`detector bench --runtime "
+              "--precision`); 3D AP Overall R40 on val. Native bf16 / int8 flags of this CPU: "
+              + (", ".join(flags) if flags else "none")
+              + ": AMX (and, less, AVX512-BF16 / VNNI) is what makes the dense bf16 / int8 rows fast; where a CPU "
+              "has none of them the fp32 row is the fair one."]
+    return lines
+
+
+#: The markers around the like-for-like table in README.md and docs/benchmarks.md (the report step fills them).
+LIKE_FOR_LIKE_MARKERS = ("<!-- like-for-like (tools/reproduce.py report): begin -->",
+                         "<!-- like-for-like (tools/reproduce.py report): end -->")
+
+
+def fill_like_for_like(text: str, res: Path) -> str:
+    """``text`` with the lines between its like-for-like markers replaced by :func:`like_for_like` (unchanged when it
+    has no markers or the deploy step has not run)."""
+    begin, end = LIKE_FOR_LIKE_MARKERS
+    table = like_for_like(res)
+    if not table or begin not in text or end not in text:
+        return text
+    return text[: text.index(begin) + len(begin)] + "\n" + "\n".join(table) + "\n" + text[text.index(end):]
 
 
 def deploy_section(res: Path) -> list[str]:
@@ -166,9 +239,12 @@ def deploy_section(res: Path) -> list[str]:
                   _cell(r.max_rate_hz, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "AP: `detector eval --runtime R --precision P` of the trained CPU-config models on the val split "
-              "(the exact head's maps equal the dense head's, so it has no AP row of its own); ms: `detector bench` "
+              "(sparse+sparse_head: the sparse weights in `mpchair_sparse_exact_cpu.yaml`); ms: `detector bench` "
               "at 768 x 512, every row interleaved per frame in one process (reuse allocator); CPU: `detector bench "
               f"--rate {BUDGET_RATE_HZ:g}`, each row alone in its own process.", ""]
+    table = like_for_like(res)
+    if table:
+        lines += ["### Like for like: the fastest dense deployment against the fastest sparse one", "", *table, ""]
     for name, title in (("deploy_bench.md", "Deployed runtime at 768 x 512 (ms per frame)"),
                         ("deploy_budget.md", f"CPU budget at {BUDGET_RATE_HZ:g} Hz")):
         text = read_text(res / name)

@@ -78,8 +78,8 @@ def _ap_table(res: Path) -> list[str]:
     ev = read_eval_outputs(res, models)
     if not any(a in ev.kitti or a in ev.open3d_ml for a in ABLATIONS):
         return ["AP on Matterport-Chair: not run (opt in: `make reproduce-ablations`, which trains the four "
-                "ablations with the sparse model's schedule; `tools/reproduce.py --steps ablations,report "
-                "--ablations NAME` trains one).", ""]
+                "ablations with the sparse model's schedule on this run's dataset, regenerated from its record "
+                "docs/results-data; `make reproduce-ablations ABLATIONS=NAME` trains one).", ""]
     values = {m: _ap(ev.kitti.get(m), ev.open3d_ml.get(m)) for m in models}
     dense = values["dense"]
     lines = ["AP on Matterport-Chair (val split, Chair, IoU 0.5): dense's AP, every other model as the delta to it "

@@ -18,7 +18,7 @@ from detector.reproduce.scales import Scale, model_epochs
 from mpchair.core.atomic import write_text
 
 STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "deploy",
-         "ablation-bench", "report")
+         "ablation-bench", "report", "record")
 #: Steps that run only when asked for (``--steps``): the ablations' trainings (``make reproduce-ablations``).
 OPT_IN_STEPS = ("ablations",)
 #: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).

@@ -1,0 +1,159 @@
+"""The run record: the small files of a reproduction's work folder from which its report is written, kept in the
+checkout (``docs/results-data/`` for the full scale) so that the report can be written again, and steps added to the
+same run, in a later session on another machine (this project's machines keep no files between sessions).
+
+What it keeps: every text / JSON / figure the steps wrote (``results/``, ``runs/<model>/``, ``commands.log``), the
+dataset's ``manifest.json`` (less its per-frame list) and ``ImageSets/``, and ``record.json``: the scale as run, the
+operator's notes and the dataset's fingerprint. What it leaves out: checkpoints (``*.pt``), exported graphs, the
+per-frame detection files (``results/**/data/``), the houses and the dataset's frames — all of them made again by the
+steps from the seed (same seed, same bytes), and :func:`check_dataset` tells whether a regenerated dataset is the
+recorded one.
+
+    tools/reproduce.py --steps synth,generate,ablations,report,record --from-record docs/results-data
+
+restores the record into the work folder (every recorded step counts as done), regenerates the dataset, refuses to
+go on if it is not byte for byte the recorded one, trains the ablations and writes the report of the whole run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+from detector.reproduce.runner import ROOT
+from detector.reproduce.scales import Scale
+from mpchair.core.atomic import write_bytes, write_text
+
+RECORD_JSON = "record.json"
+#: File kinds a record keeps (text and figures); anything else (checkpoints, ONNX / OpenVINO graphs) is left out.
+KEPT_SUFFIXES = (".json", ".jsonl", ".md", ".txt", ".log", ".yaml", ".png", ".csv")
+#: Kept files that are text: paths in them are written relative to the checkout (as the report writes them), so a
+#: record restored in another clone reads the same.
+TEXT_SUFFIXES = (".json", ".jsonl", ".md", ".txt", ".log", ".yaml", ".csv")
+#: A kept file larger than this is left out (and named in record.json), so a record stays a few MB in the checkout.
+MAX_FILE_BYTES = 4 << 20
+#: The dataset's files the report reads; the frames themselves are regenerated.
+DATASET_FILES = ("manifest.json", "ImageSets")
+
+
+class RecordError(Exception):
+    """A record that cannot be restored here (a different dataset, a malformed record.json); the message says why."""
+
+
+def _kept(rel: Path) -> bool:
+    """Whether a work-folder file (relative path) belongs in the record."""
+    parts = rel.parts
+    if parts[0] in ("houses",) or rel.suffix not in KEPT_SUFFIXES:
+        return False
+    if parts[0] == "dataset":
+        return len(parts) > 1 and parts[1] in DATASET_FILES
+    return "data" not in parts[1:-1]  # results/**/data/: one detection file per frame, remade by the eval commands
+
+
+def dataset_fingerprint(dataset: Path) -> str | None:
+    """sha256 over every file of the dataset's ``training/`` and ``ImageSets/`` (path and bytes, sorted by path): equal
+    fingerprints mean byte-identical datasets. None when ``dataset`` has no manifest (not generated)."""
+    if not (dataset / "manifest.json").exists():
+        return None
+    h = hashlib.sha256()
+    for sub in ("training", "ImageSets"):
+        for p in sorted(q for q in (dataset / sub).rglob("*") if q.is_file()):
+            h.update(str(p.relative_to(dataset)).encode() + b"\0")
+            with open(p, "rb") as f:
+                while chunk := f.read(1 << 22):
+                    h.update(chunk)
+            h.update(b"\0")
+    return h.hexdigest()
+
+
+def _recorded_bytes(out: Path, rel: str) -> bytes:
+    """The bytes the record keeps of work-folder file ``rel``: text with checkout paths made relative; the dataset's
+    manifest without its per-frame list (13 MB at the full scale; the report reads its houses and command)."""
+    data = (out / rel).read_bytes()
+    if rel == "dataset/manifest.json":
+        manifest = json.loads(data)
+        frames = manifest.pop("frames", None)
+        if frames is not None:
+            manifest["frames_left_out_of_the_record"] = len(frames)
+        data = (json.dumps(manifest, indent=1) + "\n").encode()
+    if Path(rel).suffix in TEXT_SUFFIXES:
+        data = data.replace(str(ROOT).encode() + b"/", b"")
+    return data
+
+
+def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) -> list[str]:
+    """Write work folder ``out``'s record into ``dest`` (replacing the files it had there; paths inside the checkout
+    made relative to it); the paths left out for their size."""
+    files, too_big, kept = [], [], {}
+    for p in sorted(q for q in out.rglob("*") if q.is_file()):
+        rel = str(p.relative_to(out))
+        if not _kept(Path(rel)):
+            continue
+        kept[rel] = _recorded_bytes(out, rel)
+        if len(kept[rel]) > MAX_FILE_BYTES:
+            too_big.append(rel)
+            del kept[rel]
+            continue
+        files.append(rel)
+    if dest.exists():
+        shutil.rmtree(dest)
+    for rel, data in kept.items():
+        write_bytes(dest / rel, data)
+    meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
+            "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": files, "left_out_for_size": too_big}
+    write_text(dest / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
+    return too_big
+
+
+def read_record(record: Path) -> dict:
+    """``record.json`` of a record folder (:class:`RecordError` when it is missing or not a record's)."""
+    path = record / RECORD_JSON
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RecordError(f"{path}: not a run record ({e})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("files"), list) or "scale_sizes" not in meta:
+        raise RecordError(f"{path}: not a run record (no 'files' / 'scale_sizes')")
+    return meta
+
+
+def record_scale(meta: dict) -> Scale:
+    """The scale the recorded run ran at (its command line's overrides included)."""
+    sizes = dict(meta["scale_sizes"])
+    if sizes.get("curve_densities") is not None:
+        sizes["curve_densities"] = tuple(sizes["curve_densities"])
+    return Scale(**sizes)
+
+
+def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
+    """Copy the record's files into work folder ``out`` where ``out`` lacks them (the recorded steps then count as
+    done); the dataset's manifest and ImageSets only ``with_dataset`` (a run that regenerates the dataset must not find
+    a manifest that marks it generated). The paths restored."""
+    meta = read_record(record)
+    restored = []
+    for rel in meta["files"]:
+        parts = Path(rel).parts
+        if ".." in parts or Path(rel).is_absolute():
+            raise RecordError(f"{record / RECORD_JSON}: file {rel!r} lies outside the record")
+        if parts[0] == "dataset" and not with_dataset:
+            continue
+        src, dst = record / rel, out / rel
+        if not src.is_file():
+            raise RecordError(f"{record / RECORD_JSON}: lists {rel}, which the record does not have")
+        if not dst.exists():
+            write_bytes(dst, src.read_bytes())
+            restored.append(rel)
+    return restored
+
+
+def check_dataset(record: Path, dataset: Path) -> None:
+    """Raise :class:`RecordError` unless ``dataset`` is byte for byte the dataset the record was made from."""
+    want = read_record(record).get("dataset_sha256")
+    got = dataset_fingerprint(dataset)
+    if want and got and want != got:
+        raise RecordError(f"{dataset} is not the dataset of the record {record} (sha256 {got[:12]} vs the record's "
+                          f"{want[:12]}): the code or the seed that made it differs, so steps run on it would not "
+                          "belong to the recorded run; run the whole reproduction instead")

@@ -1,0 +1,140 @@
+"""The run record (detector/reproduce/record.py): what it keeps of a work folder, restoring it, refusing a dataset that
+is not the recorded one, and ``tools/reproduce.py --from-record`` writing the report of a recorded run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from detector.reproduce.cli import main
+from detector.reproduce.deploy import LIKE_FOR_LIKE_MARKERS, fill_like_for_like
+from detector.reproduce.record import (
+    RECORD_JSON,
+    RecordError,
+    check_dataset,
+    dataset_fingerprint,
+    read_record,
+    record_scale,
+    restore_record,
+    save_record,
+)
+from detector.reproduce.report import write_report
+from detector.reproduce.runner import ROOT
+from detector.reproduce.scales import SCALES
+
+
+def _work_folder(out: Path) -> Path:
+    """A work folder with one file of every kind a reproduction leaves."""
+    files = {
+        "commands.log": f"    1.0 s  {ROOT}/.venv/bin/mpchair synth --out {ROOT}/out/w/houses\n",
+        "results/weights.json": json.dumps({"weights": [f"{ROOT}/out/w/runs/dense/last.pt"]}),
+        "results/eval_dense/metrics.json": json.dumps({"Chair": {"3d": {"overall": {"R40": 51.0}}}}),
+        "results/eval_dense/data/000001.txt": "Chair 0 0 0 ...\n",
+        "results/deploy_eval/dense_openvino_int8/model.onnx": "graph",
+        "results/viz/panel.png": "PNG",
+        "runs/dense/last.pt": "weights",
+        "runs/dense/metrics.jsonl": '{"kind": "epoch", "epoch": 1, "time_s": 60.0}\n',
+        "runs/dense/config.yaml": "model: {}\n",
+        "runs/dense/done": "trained\n",
+        "dataset/manifest.json": json.dumps({"houses": ["A"]}),
+        "dataset/ImageSets/val.txt": "000001\n",
+        "dataset/training/velodyne/000001.bin": "points",
+        "dataset/training/label_2/000001.txt": "Chair ...\n",
+        "houses/v1/scans/A/house_segmentations/A.house": "house",
+    }
+    for rel, text in files.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_text(text)
+    return out
+
+
+def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_graphs(tmp_path: Path) -> None:
+    out = _work_folder(tmp_path / "w")
+    rec = tmp_path / "rec"
+    assert save_record(out, rec, "full", SCALES["full"], ["a note."]) == []
+    kept = sorted(str(p.relative_to(rec)) for p in rec.rglob("*") if p.is_file())
+    assert kept == sorted([RECORD_JSON, "commands.log", "results/weights.json", "results/eval_dense/metrics.json",
+                           "results/viz/panel.png", "runs/dense/metrics.jsonl", "runs/dense/config.yaml",
+                           "dataset/manifest.json", "dataset/ImageSets/val.txt"])
+    # paths inside the checkout are relative to it (the record reads the same in any clone)
+    assert (rec / "commands.log").read_text() == "    1.0 s  .venv/bin/mpchair synth --out out/w/houses\n"
+    assert json.loads((rec / "results/weights.json").read_text()) == {"weights": ["out/w/runs/dense/last.pt"]}
+    meta = read_record(rec)
+    assert meta["notes"] == ["a note."] and meta["scale"] == "full"
+    assert meta["dataset_sha256"] == dataset_fingerprint(out / "dataset") and len(meta["dataset_sha256"]) == 64
+    assert record_scale(meta) == SCALES["full"]
+    # runs/<model>/done is not kept: a restored run is not "trained" (its weights are not there)
+    assert not (rec / "runs/dense/done").exists()
+
+
+def test_restore_fills_what_is_missing_and_keeps_the_dataset_out_when_it_is_regenerated(tmp_path: Path) -> None:
+    out = _work_folder(tmp_path / "w")
+    rec = tmp_path / "rec"
+    save_record(out, rec, "full", SCALES["full"], [])
+    new = tmp_path / "new"
+    (new / "results/eval_dense").mkdir(parents=True)
+    (new / "results/eval_dense/metrics.json").write_text("mine")
+    restored = restore_record(rec, new, with_dataset=False)
+    assert (new / "results/eval_dense/metrics.json").read_text() == "mine"  # never overwritten
+    assert "results/weights.json" in restored and "results/eval_dense/metrics.json" not in restored
+    assert not (new / "dataset").exists()  # the generate step must not find a manifest marking it done
+    assert "dataset/manifest.json" in restore_record(rec, new, with_dataset=True)
+
+
+def test_a_dataset_that_is_not_the_recorded_one_is_refused(tmp_path: Path) -> None:
+    out = _work_folder(tmp_path / "w")
+    rec = tmp_path / "rec"
+    save_record(out, rec, "full", SCALES["full"], [])
+    check_dataset(rec, out / "dataset")  # the same bytes: fine
+    (out / "dataset/training/velodyne/000001.bin").write_text("pointz")
+    with pytest.raises(RecordError, match="is not the dataset of the record"):
+        check_dataset(rec, out / "dataset")
+
+
+def test_a_malformed_or_escaping_record_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(RecordError, match="not a run record"):
+        read_record(tmp_path)
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / RECORD_JSON).write_text(json.dumps({"files": ["../../etc/passwd"], "scale_sizes": {}}))
+    with pytest.raises(RecordError, match="outside the record"):
+        restore_record(rec, tmp_path / "new", with_dataset=True)
+
+
+def test_from_record_writes_the_recorded_runs_report(tmp_path: Path, capsys) -> None:
+    out = _work_folder(tmp_path / "w")
+    rec = tmp_path / "rec"
+    save_record(out, rec, "small", SCALES["small"], ["Recorded note."])
+    report = tmp_path / "results.md"
+    args = ["--from-record", str(rec), "--out", str(tmp_path / "again"), "--results", str(report)]
+    assert main([*args, "--steps", "report"]) == 0
+    text = report.read_text()
+    assert "Recorded note." in text and "ran later" not in text  # only the report: nothing was added to the run
+    assert "tools/reproduce.py --scale small" in text
+    assert main([*args, "--steps", "report", "--scale", "full"]) == 2
+    assert "is of a small-scale run" in capsys.readouterr().err
+    assert main(["--from-record", str(tmp_path / "nothing"), "--steps", "report"]) == 2
+    assert "not a run record" in capsys.readouterr().err
+
+
+def test_the_committed_results_md_is_what_its_record_gives(tmp_path: Path) -> None:
+    """docs/results.md and its figures are exactly the report of the committed run record (docs/results-data): a
+    figure edited by hand, or a report change not written back (`tools/reproduce.py --from-record docs/results-data
+    --steps report`), fails here."""
+    rec = ROOT / "docs" / "results-data"
+    meta = read_record(rec)
+    out = tmp_path / "w"
+    restore_record(rec, out, with_dataset=True)
+    report = tmp_path / "docs" / "results.md"
+    write_report(report, out, out / "results", meta["scale"], record_scale(meta), notes=meta["notes"])
+    assert report.read_text() == (ROOT / "docs" / "results.md").read_text()
+    figures = sorted(p.relative_to(report.parent) for p in (report.parent / "img").rglob("*.png"))
+    assert figures, "the report of a full run has figures"
+    for rel in figures:
+        assert (report.parent / rel).read_bytes() == (ROOT / "docs" / rel).read_bytes(), rel
+    # README and docs/benchmarks.md lead with the record's like-for-like table (the report step writes both)
+    for doc in (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "deployment.md"):
+        text = doc.read_text()
+        assert LIKE_FOR_LIKE_MARKERS[0] in text and fill_like_for_like(text, out / "results") == text, doc
