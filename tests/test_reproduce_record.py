@@ -38,6 +38,7 @@ def _work_folder(out: Path) -> Path:
         "runs/dense/metrics.jsonl": '{"kind": "epoch", "epoch": 1, "time_s": 60.0}\n',
         "runs/dense/config.yaml": "model: {}\n",
         "runs/dense/done": "trained\n",
+        "runs/sparse_wide/metrics.jsonl": '{"kind": "step", "step": 1, "time_s": 0.1}\n',  # training, not done
         "dataset/manifest.json": json.dumps({"houses": ["A"]}),
         "dataset/ImageSets/val.txt": "000001\n",
         "dataset/training/velodyne/000001.bin": "points",
@@ -57,7 +58,7 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     kept = sorted(str(p.relative_to(rec)) for p in rec.rglob("*") if p.is_file())
     assert kept == sorted([RECORD_JSON, "commands.log", "results/weights.json", "results/eval_dense/metrics.json",
                            "results/viz/panel.png", "runs/dense/metrics.jsonl", "runs/dense/config.yaml",
-                           "dataset/manifest.json", "dataset/ImageSets/val.txt"])
+                           "runs/dense/done", "dataset/manifest.json", "dataset/ImageSets/val.txt"])
     # paths inside the checkout are relative to it (the record reads the same in any clone)
     assert (rec / "commands.log").read_text() == "    1.0 s  .venv/bin/mpchair synth --out out/w/houses\n"
     assert json.loads((rec / "results/weights.json").read_text()) == {"weights": ["out/w/runs/dense/last.pt"]}
@@ -65,8 +66,8 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     assert meta["notes"] == ["a note."] and meta["scale"] == "full"
     assert meta["dataset_sha256"] == dataset_fingerprint(out / "dataset") and len(meta["dataset_sha256"]) == 64
     assert record_scale(meta) == SCALES["full"]
-    # runs/<model>/done is not kept: a restored run is not "trained" (its weights are not there)
-    assert not (rec / "runs/dense/done").exists()
+    # a finished training keeps its done marker (a restored one is not trained again); one still running is left out
+    assert (rec / "runs/dense/done").read_text() == "trained\n" and not (rec / "runs/sparse_wide").exists()
 
 
 def test_restore_fills_what_is_missing_and_keeps_the_dataset_out_when_it_is_regenerated(tmp_path: Path) -> None:

@@ -2,7 +2,8 @@
 checkout (``docs/results-data/`` for the full scale) so that the report can be written again, and steps added to the
 same run, in a later session on another machine (this project's machines keep no files between sessions).
 
-What it keeps: every text / JSON / figure the steps wrote (``results/``, ``runs/<model>/``, ``commands.log``), the
+What it keeps: every text / JSON / figure the steps wrote (``results/``, ``commands.log``; of ``runs/<model>/`` a
+finished training's logs, config and ``done`` marker, so that a restored step counts as done), the
 dataset's ``manifest.json`` (less its per-frame list) and ``ImageSets/``, and ``record.json``: the scale as run, the
 operator's notes and the dataset's fingerprint. What it leaves out: checkpoints (``*.pt``), exported graphs, the
 per-frame detection files (``results/**/data/``), the houses and the dataset's frames — all of them made again by the
@@ -43,14 +44,21 @@ class RecordError(Exception):
     """A record that cannot be restored here (a different dataset, a malformed record.json); the message says why."""
 
 
-def _kept(rel: Path) -> bool:
-    """Whether a work-folder file (relative path) belongs in the record."""
+def _kept(out: Path, rel: Path) -> bool:
+    """Whether work-folder ``out``'s file ``rel`` (relative path) belongs in the record."""
     parts = rel.parts
-    if parts[0] in ("houses",) or rel.suffix not in KEPT_SUFFIXES:
+    if parts[0] == "runs":
+        # a finished training only (its ``done`` marker kept, so a restored run is not trained again); a training
+        # still running or cut belongs to no step yet
+        if len(parts) < 3 or not (out / "runs" / parts[1] / "done").exists():
+            return False
+        if parts[2:] == ("done",):
+            return True
+    if parts[0] == "houses" or rel.suffix not in KEPT_SUFFIXES:
         return False
     if parts[0] == "dataset":
         return len(parts) > 1 and parts[1] in DATASET_FILES
-    return "data" not in parts[1:-1]  # results/**/data/: one detection file per frame, remade by the eval commands
+    return "data" not in parts[1:-1]  # **/data/: one detection file per frame, remade by the eval commands
 
 
 def dataset_fingerprint(dataset: Path) -> str | None:
@@ -90,7 +98,7 @@ def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) 
     files, too_big, kept = [], [], {}
     for p in sorted(q for q in out.rglob("*") if q.is_file()):
         rel = str(p.relative_to(out))
-        if not _kept(Path(rel)):
+        if not _kept(out, Path(rel)):
             continue
         kept[rel] = _recorded_bytes(out, rel)
         if len(kept[rel]) > MAX_FILE_BYTES:
