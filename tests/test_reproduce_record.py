@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from detector.reproduce.cli import main
-from detector.reproduce.deploy import LIKE_FOR_LIKE_MARKERS, fill_like_for_like
+from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
 from detector.reproduce.record import (
     RECORD_JSON,
     RecordError,
@@ -23,6 +23,7 @@ from detector.reproduce.record import (
 from detector.reproduce.report import write_report
 from detector.reproduce.runner import ROOT
 from detector.reproduce.scales import SCALES
+from mpchair.core.doctable import markers
 
 
 def _work_folder(out: Path) -> Path:
@@ -135,7 +136,9 @@ def test_the_committed_results_md_is_what_its_record_gives(tmp_path: Path) -> No
     assert figures, "the report of a full run has figures"
     for rel in figures:
         assert (report.parent / rel).read_bytes() == (ROOT / "docs" / rel).read_bytes(), rel
-    # README and docs/benchmarks.md lead with the record's like-for-like table (the report step writes both)
-    for doc in (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "deployment.md"):
-        text = doc.read_text()
-        assert LIKE_FOR_LIKE_MARKERS[0] in text and fill_like_for_like(text, out / "results") == text, doc
+    # README and two docs lead with the record's like-for-like table (the report step writes it into each)
+    table = like_for_like(out / "results")
+    begin, end = markers(LIKE_FOR_LIKE_MARKER)
+    for doc in LIKE_FOR_LIKE_DOCS:
+        text = (ROOT / doc).read_text()
+        assert table and text.split(begin, 1)[1].split(end, 1)[0] == "\n" + "\n".join(table) + "\n", doc

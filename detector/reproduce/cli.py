@@ -66,7 +66,7 @@ import time
 from pathlib import Path
 
 from detector.reproduce.ablations import run_ablation_bench, run_ablations
-from detector.reproduce.deploy import fill_like_for_like
+from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
 from detector.reproduce.record import (
     MAX_FILE_BYTES,
     RecordError,
@@ -82,7 +82,7 @@ from detector.reproduce.runner import ROOT, Runner
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate
-from mpchair.core.atomic import write_text
+from mpchair.core.doctable import write_doc_table
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -242,12 +242,11 @@ def main(argv: list[str] | None = None) -> int:
         results = args.results or (ROOT / "docs" / "results.md" if full else out / "results.md")
         write_report(results, out, plan.res, args.scale, sc, notes=notes)
         print(f"wrote {results}")
-        if full and args.results is None:  # the like-for-like table README.md and docs/benchmarks.md lead with
-            for doc in (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "deployment.md"):
-                text = doc.read_text()
-                if (new := fill_like_for_like(text, plan.res)) != text:
-                    write_text(doc, new)
-                    print(f"wrote its like-for-like table into {doc}")
+        table = like_for_like(plan.res)
+        if full and args.results is None and table:  # the table README.md and two docs lead with
+            for doc in LIKE_FOR_LIKE_DOCS:
+                write_doc_table(ROOT / doc, "\n".join(table) + "\n", LIKE_FOR_LIKE_MARKER)
+            print(f"wrote its like-for-like table into {', '.join(LIKE_FOR_LIKE_DOCS)}")
     if "record" in steps and not args.dry_run:
         dest = args.record or (ROOT / "docs" / "results-data" if full else out / "record")
         for rel in save_record(out, dest, args.scale, sc, notes):

@@ -173,11 +173,17 @@ def _row_text(r: DeployRow) -> str:
     return f"{r.model}, {r.runtime} {r.precision}: {r.total_ms:.1f} ms, 3D AP {_cell(ap, '.2f')}"
 
 
-def like_for_like(res: Path) -> list[str]:
+def native_flags(mach: dict) -> set[str]:
+    """The native bf16 / int8 CPU flags a bench JSON's ``machine`` record names (its ``precision_flags``)."""
+    return {f for names in (mach.get("precision_flags") or {}).values() for f in names}
+
+
+def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     """The like-for-like table: the fastest dense deployment against the fastest sparse one (either head), at fp32 (the
     fair comparison on a CPU without native bf16 / int8, such as the paper's AVX2 robot CPU) and at any precision
-    this CPU computes natively, with what both sides ran under; no lines before the deploy step has run."""
-    rows = read_deploy(res)
+    this CPU computes natively, with what both sides ran under; no lines before the deploy step has run. ``rows``:
+    :func:`read_deploy`'s, when the caller has them."""
+    rows = read_deploy(res) if rows is None else rows
     bench = _read_json(res / "deploy_bench.json") or {}
     pairs = [(label, _fastest(rows, ("dense",), fp32), _fastest(rows, ("sparse", "sparse+sparse_head"), fp32))
              for label, fp32 in (("fp32 (the fair pair on a CPU without native bf16 / int8, e.g. the paper's AVX2 "
@@ -185,7 +191,7 @@ def like_for_like(res: Path) -> list[str]:
     if not all(d and sp for _, d, sp in pairs):
         return []
     mach = bench.get("machine") or {}
-    flags = sorted({f for names in (mach.get("precision_flags") or {}).values() for f in names})
+    flags = sorted(native_flags(mach))
     dens = bench.get("density") or {}
     median = dens.get("median")
     lines = ["| fastest of each side | dense | sparse | dense / sparse |", "|---|---|---|---|"]
@@ -202,19 +208,10 @@ def like_for_like(res: Path) -> list[str]:
     return lines
 
 
-#: The markers around the like-for-like table in README.md and docs/benchmarks.md (the report step fills them).
-LIKE_FOR_LIKE_MARKERS = ("<!-- like-for-like (tools/reproduce.py report): begin -->",
-                         "<!-- like-for-like (tools/reproduce.py report): end -->")
-
-
-def fill_like_for_like(text: str, res: Path) -> str:
-    """``text`` with the lines between its like-for-like markers replaced by :func:`like_for_like` (unchanged when it
-    has no markers or the deploy step has not run)."""
-    begin, end = LIKE_FOR_LIKE_MARKERS
-    table = like_for_like(res)
-    if not table or begin not in text or end not in text:
-        return text
-    return text[: text.index(begin) + len(begin)] + "\n" + "\n".join(table) + "\n" + text[text.index(end):]
+#: The docs that lead with the like-for-like table, between ``<!-- like-for-like:begin -->`` / ``end`` markers (the
+#: report step fills them: :func:`mpchair.core.doctable.write_doc_table`).
+LIKE_FOR_LIKE_DOCS = ("README.md", "docs/benchmarks.md", "docs/deployment.md")
+LIKE_FOR_LIKE_MARKER = "like-for-like"
 
 
 def deploy_section(res: Path) -> list[str]:
@@ -242,7 +239,7 @@ def deploy_section(res: Path) -> list[str]:
               "(sparse+sparse_head: the sparse weights in `mpchair_sparse_exact_cpu.yaml`); ms: `detector bench` "
               "at 768 x 512, every row interleaved per frame in one process (reuse allocator); CPU: `detector bench "
               f"--rate {BUDGET_RATE_HZ:g}`, each row alone in its own process.", ""]
-    table = like_for_like(res)
+    table = like_for_like(res, rows)
     if table:
         lines += ["### Like for like: the fastest dense deployment against the fastest sparse one", "", *table, ""]
     for name, title in (("deploy_bench.md", "Deployed runtime at 768 x 512 (ms per frame)"),

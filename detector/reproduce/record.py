@@ -95,23 +95,21 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
 def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) -> list[str]:
     """Write work folder ``out``'s record into ``dest`` (replacing the files it had there; paths inside the checkout
     made relative to it); the paths left out for their size."""
-    files, too_big, kept = [], [], {}
+    too_big, kept = [], {}
     for p in sorted(q for q in out.rglob("*") if q.is_file()):
         rel = str(p.relative_to(out))
-        if not _kept(out, Path(rel)):
-            continue
-        kept[rel] = _recorded_bytes(out, rel)
-        if len(kept[rel]) > MAX_FILE_BYTES:
-            too_big.append(rel)
-            del kept[rel]
-            continue
-        files.append(rel)
+        if _kept(out, Path(rel)):
+            data = _recorded_bytes(out, rel)
+            if len(data) > MAX_FILE_BYTES:
+                too_big.append(rel)
+            else:
+                kept[rel] = data
     if dest.exists():
         shutil.rmtree(dest)
     for rel, data in kept.items():
         write_bytes(dest / rel, data)
     meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
-            "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": files, "left_out_for_size": too_big}
+            "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept), "left_out_for_size": too_big}
     write_text(dest / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
     return too_big
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
-from detector.reproduce.deploy import deploy_section
+from detector.reproduce.deploy import deploy_section, native_flags
 from detector.reproduce.report_ablations import ablations_section
 from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
 from detector.reproduce.results import (
@@ -560,7 +560,7 @@ def _machine_text(res: Path) -> str:
     mach = (_read_json(res / "bench_default.json") or {}).get("machine") or {}
     if not mach.get("cpu"):
         return ""
-    flags = {f for names in (mach.get("precision_flags") or {}).values() for f in names}
+    flags = native_flags(mach)
     named = [n for f, n in (("avx512_bf16", "AVX512-BF16"), ("avx512_vnni", "AVX512-VNNI"), ("avx_vnni", "AVX-VNNI"))
              if f in flags]
     amx = any(f.startswith("amx") for f in flags)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mpchair.analysis.stats import box_records, dataset_frame_ids, load_points
-from mpchair.core.atomic import write_text
+from mpchair.core import doctable
 from mpchair.core.errors import InputError
 from mpchair.dataset.generate import GenerateRequest, generate
 from mpchair.dataset.manifest import FrameRecord, RejectedBox, read_manifest
@@ -39,7 +39,7 @@ MARKER = "calibration-table"
 
 def markers(name: str = MARKER) -> tuple[str, str]:
     """The begin and end markers (HTML comments) of the doc table called ``name``."""
-    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    return doctable.markers(name)
 
 
 #: Where the generated table of the original's height sits in ``docs/matterport.md``.
@@ -218,12 +218,7 @@ def format_table(rows: Sequence[dict], plan: CalibrationPlan) -> str:
 
 def write_doc_table(doc: Path, table: str, marker: str = MARKER) -> None:
     """Put ``table`` between the ``marker`` markers of ``doc`` (atomically); a doc without them is an error."""
-    begin, end = markers(marker)
-    text = doc.read_text(encoding="utf-8")
-    if begin not in text or end not in text:
-        raise InputError(f"no {begin} ... {end} markers", doc)
-    head, rest = text.split(begin, 1)
-    write_text(doc, head + begin + "\n" + table + end + rest.split(end, 1)[1])
+    doctable.write_doc_table(doc, table, marker)
 
 
 def find_hole_frame(dataset: Path, reason: str = "in_box_fraction") -> tuple[FrameRecord, RejectedBox] | None:
