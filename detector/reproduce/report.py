@@ -607,8 +607,8 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
              f"{'above' if min(ratios.values()) > paper_ratio else 'not above'} the paper's {paper_ratio:.1f}x, "
              "measured on a 4-core AVX2 i5 robot CPU with MinkowskiEngine, where our sparse backbone is one-GEMM "
              "rulebook convolution on this machine's CPU (docs/sparse.md); the total-time ratio "
-             f"({total:.1f}x) is {'above' if total > paper_total else 'not above'} the paper's {paper_total:.1f}x "
-             "because our dense head is fused"
+             f"({total:.1f}x) is {'above' if total > paper_total else 'not above'} the paper's {paper_total:.1f}x"
+             + (" because our dense head is fused" if total > paper_total else "")
              + (f": with the reference's three-conv head it is {head:.1f}x (\"Total time with the reference's head "
                 "layout\")." if head is not None else "."))
     return text
