@@ -83,6 +83,7 @@ from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate
 from mpchair.core.doctable import write_doc_table
+from mpchair.core.errors import InputError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -245,7 +246,11 @@ def main(argv: list[str] | None = None) -> int:
         table = like_for_like(plan.res)
         if full and args.results is None and table:  # the table README.md and two docs lead with
             for doc in LIKE_FOR_LIKE_DOCS:
-                write_doc_table(ROOT / doc, "\n".join(table) + "\n", LIKE_FOR_LIKE_MARKER)
+                try:
+                    write_doc_table(ROOT / doc, "\n".join(table) + "\n", LIKE_FOR_LIKE_MARKER)
+                except InputError as e:  # a doc that lost its markers: say which, leave it as it was
+                    print(f"error: {e}", file=sys.stderr)
+                    return 2
             print(f"wrote its like-for-like table into {', '.join(LIKE_FOR_LIKE_DOCS)}")
     if "record" in steps and not args.dry_run:
         dest = args.record or (ROOT / "docs" / "results-data" if full else out / "record")
