@@ -14,8 +14,14 @@ from torch import nn
 
 from detector.models.grad_layout import ConvTranspose2dStandardGrad
 from detector.models.pillar_net import BN_EPS, BN_MOMENTUM
+from detector.ops.gemm import linear, uses_onednn
 from detector.sparse.norm import batch_norm_into
 from detector.sparse.workspace import Workspace
+
+#: oneDNN allocates its GEMM outputs, so the neck computes a level in chunks of coarse rows whose product stays below
+#: this size: held in the heap (glibc serves blocks above its mmap threshold, at most 32 MiB, with fresh mmaps, i.e.
+#: page faults every frame) and still in cache when copied into the map.
+CHUNK_BYTES = 4 << 20
 
 
 def upsample_block(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:
@@ -77,7 +83,16 @@ class SecondFPN(nn.Module):
             # column (ky * u + kx) * O + o; in the map's dtype (out= is not autocast: bf16 inference casts by hand)
             wmat = deconv.weight.permute(0, 2, 3, 1).reshape(cin, u * u * o).to(x0.dtype)
             dst = out[..., col : col + o]  # (B, H, W, O) slice of the map
-            if u == 1:
+            if uses_onednn(rows, wmat):
+                # oneDNN's GEMM (detector.ops.gemm) a chunk of coarse rows at a time, each chunk's (rows, u*u*O)
+                # product copied into its u fine rows of the slice
+                fine = dst.view(b * h, u, w, u, o)
+                step = max(1, CHUNK_BYTES // (w * u * u * o * rows.element_size()))
+                for r0 in range(0, b * h, step):
+                    r1 = min(b * h, r0 + step)
+                    y = linear(rows[r0 * w : r1 * w], wmat.t())
+                    fine[r0:r1].copy_(y.view(r1 - r0, w, u, u, o).permute(0, 2, 1, 3, 4))
+            elif u == 1:
                 torch.mm(rows, wmat, out=dst.view(b * h * w, o))
             else:
                 prod = workspace.take(self, f"level{i}", (b * h * w, u * u * o), f.dtype, f.device)

@@ -24,6 +24,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from detector.ops.gemm import linear, uses_onednn
 from detector.sparse.autograd import GatherUnique, SubMGemm
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
@@ -146,12 +147,15 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     m = index.numel() * c // kc
     if workspace is None:
         if unique and _training(padded):
-            return GatherUnique.apply(padded, index).view(m, kc) @ matrix.t()
-        return padded.index_select(0, index).view(m, kc) @ matrix.t()
+            return linear(GatherUnique.apply(padded, index).view(m, kc), matrix)
+        return linear(padded.index_select(0, index).view(m, kc), matrix)
     cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
     torch.index_select(padded, 0, index, out=cols)
+    w = matrix.to(padded.dtype)
+    if uses_onednn(cols, w):
+        return linear(cols.view(m, kc), w)  # oneDNN allocates its (M, O) output (detector.ops.gemm)
     out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
-    return torch.mm(cols.view(m, kc), matrix.to(padded.dtype).t(), out=out)
+    return torch.mm(cols.view(m, kc), w.t(), out=out)
 
 
 def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: int,
@@ -163,13 +167,20 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     o = out_channels
     s = matrix.shape[1] // o
     if workspace is None:
-        prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
-        # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
-        return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
+        if _training(features, matrix):
+            prod = torch.cat([linear(features, matrix.t()).view(m * s, o), features.new_zeros(1, o)], dim=0)
+            # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
+            return GatherUnique.apply(prod, index)
+        # a zero input row gives s zero product rows, the first of which is the sentinel row m * s
+        return linear(padded_rows(features), matrix.t()).view((m + 1) * s, o).index_select(0, index)
     dtype = compute_dtype(features)
-    prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
-    torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
-    prod[m * s].zero_()
+    w = matrix.to(dtype)
+    if uses_onednn(features, w):
+        prod = linear(padded_rows(features, workspace, owner), w.t()).view((m + 1) * s, o)
+    else:
+        prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
+        torch.mm(features.to(dtype), w, out=prod[: m * s].view(m, s * o))
+        prod[m * s].zero_()
     out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
     return torch.index_select(prod, 0, index, out=out)
 
@@ -212,12 +223,12 @@ def subm_conv2d(
         # made every tap's backward fill and add a whole (O, K, C) gradient)
         taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = torch.mm(features, taps[centre].t())
+        out = linear(features, taps[centre])
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            parts = [linear(g, taps[j]) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
             # in place into the fresh centre product (mm does not need its output for the backward)
             out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
@@ -356,7 +367,7 @@ class SparseConv2d(SparseModule):
             # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
             # deterministic
             buf = f.new_zeros(m * kk, c).index_put((t.out_rows * kk + t.slots,), f)
-            out = buf.view(m, kk * c) @ w.t()
+            out = linear(buf.view(m, kk * c), w)
         else:
             out = self._per_tap(x.features, t, w)
         out = _add_bias(out, self.bias, ws is not None)
@@ -369,7 +380,7 @@ class SparseConv2d(SparseModule):
         order = torch.argsort(t.slots, stable=True)
         counts = torch.bincount(t.slots, minlength=kk).tolist()
         gathered = features.index_select(0, t.in_rows[order])
-        parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        parts = [linear(g, taps[j]) for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
         if not parts:
             return features.new_zeros(t.out_coords.shape[0], self.out_channels)
         prods = torch.cat(parts, dim=0)  # bf16 under autocast
@@ -427,8 +438,10 @@ class SparseConvTranspose2d(SparseModule):
         if s == 1 and target.coords is x.coords:
             # same site set: a plain 1x1 matmul
             dt = compute_dtype(x.features)
-            out = x.features @ w if ws is None else torch.mm(
-                x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
+            if ws is None or uses_onednn(x.features, w):
+                out = linear(x.features, w.t())
+            else:
+                out = torch.mm(x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
             algorithm = self.algorithm
@@ -441,7 +454,7 @@ class SparseConvTranspose2d(SparseModule):
                 slot_w = w.view(c, s * s, o).unbind(1)
                 rows, parents, counts = t.by_slot(s)
                 g = x.features.index_select(0, parents)
-                parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+                parts = [linear(gi, slot_w[j].t()) for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
                 y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
                 # targets without an active parent stay zero (+ bias)
                 out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
