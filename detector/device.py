@@ -82,10 +82,7 @@ def allocator_setting() -> str:
 
 
 def machine_info(device: torch.device) -> dict:
-    """What the timings depend on: CPU, threads, torch, GPU, load, allocator env, the library of eager fp32 CPU
-    GEMMs (a JSON-ready dict)."""
-    from detector.ops.gemm import library  # imported here: detector.ops loads numba kernels
-
+    """What the timings depend on: CPU, threads, torch, GPU, load, allocator env (a JSON-ready dict)."""
     return {
         "cpu": cpu_model(),
         "logical_cpus": os.cpu_count(),
@@ -97,7 +94,6 @@ def machine_info(device: torch.device) -> dict:
         "loadavg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "malloc_env": {k: os.environ.get(k) for k in MALLOC_ENV},
         "allocator": allocator_setting(),
-        "gemm": library(),
     }
 
 

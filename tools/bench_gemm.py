@@ -1,4 +1,4 @@
-"""What routing the inference GEMMs through oneDNN buys (``detector.ops.gemm``): MKL against oneDNN, side by side in
+"""What routing the inference GEMMs through oneDNN buys (``detector.sparse.gemm``): MKL against oneDNN, side by side in
 one process, on the models' own GEMM shapes and on whole models.
 
     PYTHONPATH=. .venv/bin/python tools/bench_gemm.py --config configs/models/mpchair_dense.yaml \\
@@ -9,7 +9,7 @@ one process, on the models' own GEMM shapes and on whole models.
    dense neck), each in MKL (``torch.mm``) and in oneDNN (``torch.ops.mkldnn._linear_pointwise``), alternating;
    the minimum wall time and the CPU time of ``--repeats`` calls.
 2. **models**: every ``--config`` (with its ``--checkpoint``, ``-`` = random weights) on the first ``--frames``
-   frames of ``--split``, each frame through every model once with ``detector.ops.gemm.BACKEND = "mkl"`` and once
+   frames of ``--split``, each frame through every model once with ``detector.sparse.gemm.BACKEND = "mkl"`` and once
    with ``"auto"`` (oneDNN), the order alternating per frame; the stages of ``detector bench``
    (:func:`detector.bench.timing.time_frame`) with each model's inference workspace, mean ms per frame, and the
    first model / each other ratios of Backbone and Total under each library.
@@ -31,7 +31,7 @@ from detector.checkpoint import load_model
 from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
 from detector.device import machine_info, use_device
-from detector.ops import gemm
+from detector.sparse import gemm
 from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
@@ -173,7 +173,7 @@ def _run(args: argparse.Namespace) -> int:
     except (InputError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    result = {"shapes": shapes, "models": models, "machine": machine_info(device),
+    result = {"shapes": shapes, "models": models, "machine": {**machine_info(device), "gemm": "both"},
               "protocol": {"data": str(args.data), "split": args.split, "frames": args.frames, "trials": args.trials,
                            "repeats": args.repeats, "interleaved": True, "batch_size": 1}}
     if args.json is not None:

@@ -21,10 +21,11 @@ import math
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from detector.models.grad_layout import conv2d
-from detector.ops.gemm import linear, uses_onednn
+from detector.sparse.gemm import linear, row_buffer, uses_onednn
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace
 
@@ -74,7 +75,7 @@ class AnchorHead(nn.Module):
         Without autograd (inference) the three convs run as one 1x1 conv of the :meth:`fused` weight: the 384-channel
         map is read once instead of three times (measured 2x faster on a channels-last Matterport map). With autograd
         (training) they stay three convs, so training computes exactly what it computed before the fused path existed.
-        In fp32 on the CPU that product is oneDNN's GEMM (``detector.ops.gemm``) with the map's pixels as rows.
+        In fp32 on the CPU that product is oneDNN's GEMM (``detector.sparse.gemm``) with the map's pixels as rows.
 
         The inference output is channel-planar: (B, H, W, C) views of one (B, O, H, W) tensor, so the class logits
         are one contiguous 0.8 MB block on the Matterport map, which post-processing scans; the interleaved
@@ -95,7 +96,7 @@ class AnchorHead(nn.Module):
         low = x.dtype in (torch.bfloat16, torch.float16) or torch.is_autocast_enabled(x.device.type)
         rows = x.permute(0, 2, 3, 1)  # (B, H, W, C): contiguous for a channels-last map
         if not low and rows.is_contiguous() and uses_onednn(x, weight):
-            # oneDNN (detector.ops.gemm) with the pixels as its "weight" operand: weight (O, C) @ rows (H*W, C).t() is
+            # oneDNN (detector.sparse.gemm), the pixels as its "weight" operand: weight (O, C) @ rows (H*W, C).t() is
             # the planar (O, H*W) map straight away (1 thread, Matterport map: 13.6 ms against baddbmm's 25.2)
             planes = [linear(weight, rows[i].reshape(h * w, -1)).add_(bias[:, None]) for i in range(b)]
             out = planes[0][None] if b == 1 else torch.stack(planes)
@@ -132,7 +133,7 @@ class AnchorHead(nn.Module):
         maps = []
         for conv in (self.conv_cls, self.conv_reg, self.conv_dir):
             o = conv.out_channels
-            vals = linear(rows.features, conv.weight.view(o, conv.in_channels), conv.bias)
+            vals = F.linear(rows.features, conv.weight.view(o, conv.in_channels), conv.bias)
             # channel-planar (B, O, H*W) like the inference head: filling each channel's plane with its bias is a
             # contiguous broadcast (an interleaved (B*H*W, O) fill ran 1.5 GB/s); the N sites written in place
             full = conv.bias.to(vals.dtype)[None, :, None].expand(b, o, h * w).clone()
@@ -158,7 +159,12 @@ class SparseExactHead(AnchorHead):
         if workspace is not None:
             return self._reused(x, bi, yi, xi, weight.to(x.dtype), bias.to(x.dtype), workspace)
         feats = x[bi, :, yi, xi]
-        vals = linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's convs
+        if uses_onednn(feats, weight):  # oneDNN (detector.sparse.gemm), at a bucketed row count
+            rows = row_buffer(feats.shape[0], c, feats)
+            rows[: feats.shape[0]].copy_(feats)
+            vals = linear(rows, weight, bias)[: feats.shape[0]]
+        else:
+            vals = F.linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's
         # (B, O, H, W), planar like the dense head's, in the dtype the convs would give (bias rounded as theirs is)
         out = bias.to(vals.dtype)[None, :, None, None].expand(b, -1, h, w).clone()
         out[bi, :, yi, xi] = vals
@@ -171,13 +177,18 @@ class SparseExactHead(AnchorHead):
         b, c, h, w = x.shape
         o = weight.shape[0]
         rows = x.permute(0, 2, 3, 1)  # (B, H, W, C): a view; a plain reshape for the channels-last map
-        feats = workspace.take(self, "feats", (bi.numel(), c), x.dtype, x.device)
+        n = bi.numel()
+        onednn = uses_onednn(x, weight)
+        # oneDNN (detector.sparse.gemm) runs at a bucketed row count: the gather fills the first n rows of the buffer
+        buf = row_buffer(n, c, x, lambda shape: workspace.take(self, "feats", shape, x.dtype, x.device)) if onednn \
+            else workspace.take(self, "feats", (n, c), x.dtype, x.device)
+        feats = buf[:n]
         if rows.is_contiguous():
             torch.index_select(rows.view(b * h * w, c), 0, (bi * h + yi) * w + xi, out=feats)
         else:
             feats.copy_(x[bi, :, yi, xi])
-        if uses_onednn(feats, weight):
-            vals = linear(feats, weight, bias)  # oneDNN (detector.ops.gemm); allocates its (N, O) output
+        if onednn:
+            vals = linear(buf, weight, bias)[:n]  # allocates its output
         else:
             vals = torch.addmm(bias, feats, weight.t(), out=workspace.take(self, "vals", (bi.numel(), o), x.dtype,
                                                                           x.device))

@@ -21,8 +21,6 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from detector.ops.gemm import linear
-
 
 def _taps_matrix(weight: Tensor) -> Tensor:
     """``(O, C, kh, kw)`` → ``(O, kh * kw * C)``, column ``(ky * kw + kx) * C + c`` (``conv.conv_matrix``)."""
@@ -44,8 +42,7 @@ class SubMGemm(torch.autograd.Function):
         cols = _padded(features).index_select(0, index).view(n, -1)
         ctx.save_for_backward(cols, weight, index)
         ctx.features_dtype = features.dtype
-        # oneDNN in fp32 (detector.ops.gemm); bf16 under autocast (the backward runs in the gradient's dtype)
-        return linear(cols, _taps_matrix(weight))
+        return cols @ _taps_matrix(weight).t()  # bf16 under autocast (the backward runs in the gradient's dtype)
 
     @staticmethod
     @once_differentiable
@@ -58,11 +55,11 @@ class SubMGemm(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             mirrored = weight.flip(2, 3).transpose(0, 1)  # (C, O, kh, kw): tap k of the backward is W_{K-1-k}^T
             g = _padded(grad_out).index_select(0, index).view(grad_out.shape[0], -1)
-            grad_features = linear(g, _taps_matrix(mirrored).to(dt)).to(ctx.features_dtype)
+            grad_features = (g @ _taps_matrix(mirrored).to(dt).t()).to(ctx.features_dtype)
         if ctx.needs_input_grad[1]:
             # (O, K*C) in (O, kh, kw, C) order, handed back in the weight's (O, C, kh, kw) shape: for a channels-last
             # weight (conv.gemm_weight) these are its own strides
-            gw = linear(grad_out.t(), cols.to(dt).t()).to(weight.dtype)
+            gw = (grad_out.t() @ cols.to(dt)).to(weight.dtype)
             grad_weight = gw.view(o, kh, kw, c).permute(0, 3, 1, 2)
         return grad_features, grad_weight, None
 

@@ -24,8 +24,8 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from detector.ops.gemm import linear, uses_onednn
 from detector.sparse.autograd import GatherUnique, SubMGemm
+from detector.sparse.gemm import linear, row_buffer, uses_onednn
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
@@ -145,15 +145,21 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     c = padded.shape[1]
     o, kc = matrix.shape
     m = index.numel() * c // kc
+    w = matrix if workspace is None else matrix.to(padded.dtype)
+    if uses_onednn(padded, w):
+        # inference in oneDNN (detector.sparse.gemm): the gather fills the first m rows of a bucket-sized matrix, the
+        # rows past them are ignored (each output row depends on its own input row only)
+        take = None if workspace is None else (lambda shape: workspace.take(owner, "cols", shape, padded.dtype,
+                                                                            padded.device))
+        cols = row_buffer(m, kc, padded, take)
+        torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
+        return linear(cols, w)[:m]
     if workspace is None:
         if unique and _training(padded):
-            return linear(GatherUnique.apply(padded, index).view(m, kc), matrix)
-        return linear(padded.index_select(0, index).view(m, kc), matrix)
+            return GatherUnique.apply(padded, index).view(m, kc) @ matrix.t()
+        return padded.index_select(0, index).view(m, kc) @ matrix.t()
     cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
     torch.index_select(padded, 0, index, out=cols)
-    w = matrix.to(padded.dtype)
-    if uses_onednn(cols, w):
-        return linear(cols.view(m, kc), w)  # oneDNN allocates its (M, O) output (detector.ops.gemm)
     out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
     return torch.mm(cols.view(m, kc), w.t(), out=out)
 
@@ -166,21 +172,27 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     m = features.shape[0]
     o = out_channels
     s = matrix.shape[1] // o
+    if uses_onednn(features, matrix):
+        # inference in oneDNN (detector.sparse.gemm): the features and a zero row (whose s products are zero: the
+        # sentinel row m * s) in a bucket-sized matrix; rows past them give products no index names
+        take = None if workspace is None else (lambda shape: workspace.take(owner, "padded", shape, features.dtype,
+                                                                            features.device))
+        rows = row_buffer(m + 1, features.shape[1], features, take)
+        rows[:m].copy_(features)
+        rows[m].zero_()
+        prod = linear(rows, matrix.t()).view(-1, o)
+        if workspace is None:
+            return prod.index_select(0, index)
+        out = workspace.take(owner, "out", (index.numel(), o), features.dtype, features.device)
+        return torch.index_select(prod, 0, index, out=out)
     if workspace is None:
-        if _training(features, matrix):
-            prod = torch.cat([linear(features, matrix.t()).view(m * s, o), features.new_zeros(1, o)], dim=0)
-            # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
-            return GatherUnique.apply(prod, index)
-        # a zero input row gives s zero product rows, the first of which is the sentinel row m * s
-        return linear(padded_rows(features), matrix.t()).view((m + 1) * s, o).index_select(0, index)
+        prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
+        # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
+        return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
     dtype = compute_dtype(features)
-    w = matrix.to(dtype)
-    if uses_onednn(features, w):
-        prod = linear(padded_rows(features, workspace, owner), w.t()).view((m + 1) * s, o)
-    else:
-        prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
-        torch.mm(features.to(dtype), w, out=prod[: m * s].view(m, s * o))
-        prod[m * s].zero_()
+    prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
+    torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
+    prod[m * s].zero_()
     out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
     return torch.index_select(prod, 0, index, out=out)
 
@@ -212,7 +224,9 @@ def subm_conv2d(
     k = kh * kw
     if algorithm == "auto":
         # in bf16 the one GEMM also keeps every sum in fp32 (the rulebook adds the offsets' bf16 products)
-        algorithm = "gemm" if table.fill >= GEMM_MIN_FILL or low_precision(features) else "rulebook"
+        # (and in oneDNN, whose GEMM is 2.2x MKL's on AMD CPUs: the rulebook's per-tap products run in MKL)
+        algorithm = ("gemm" if table.fill >= GEMM_MIN_FILL or low_precision(features) or uses_onednn(features, weight)
+                     else "rulebook")
     if algorithm == "gemm" and workspace is None and _training(features, weight):
         # training: the same product, with the backward that gathers (a mirrored SubM) instead of scatter-adding
         out = SubMGemm.apply(features, weight, table.padded)
@@ -223,12 +237,12 @@ def subm_conv2d(
         # made every tap's backward fill and add a whole (O, K, C) gradient)
         taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = linear(features, taps[centre])
+        out = torch.mm(features, taps[centre].t())
         in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
             gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [linear(g, taps[j]) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
             # in place into the fresh centre product (mm does not need its output for the backward)
             out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
@@ -367,7 +381,7 @@ class SparseConv2d(SparseModule):
             # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
             # deterministic
             buf = f.new_zeros(m * kk, c).index_put((t.out_rows * kk + t.slots,), f)
-            out = linear(buf.view(m, kk * c), w)
+            out = buf.view(m, kk * c) @ w.t()
         else:
             out = self._per_tap(x.features, t, w)
         out = _add_bias(out, self.bias, ws is not None)
@@ -380,7 +394,7 @@ class SparseConv2d(SparseModule):
         order = torch.argsort(t.slots, stable=True)
         counts = torch.bincount(t.slots, minlength=kk).tolist()
         gathered = features.index_select(0, t.in_rows[order])
-        parts = [linear(g, taps[j]) for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
         if not parts:
             return features.new_zeros(t.out_coords.shape[0], self.out_channels)
         prods = torch.cat(parts, dim=0)  # bf16 under autocast
@@ -438,23 +452,29 @@ class SparseConvTranspose2d(SparseModule):
         if s == 1 and target.coords is x.coords:
             # same site set: a plain 1x1 matmul
             dt = compute_dtype(x.features)
-            if ws is None or uses_onednn(x.features, w):
-                out = linear(x.features, w.t())
+            if uses_onednn(x.features, w):
+                # oneDNN (detector.sparse.gemm) on a bucket-sized copy of the rows
+                take = None if ws is None else (lambda shape: ws.take(self, "rows", shape, dt, w.device))
+                rows = row_buffer(x.num_active, c, x.features, take)
+                rows[: x.num_active].copy_(x.features)
+                out = linear(rows, w.t())[: x.num_active]
             else:
-                out = torch.mm(x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
+                out = x.features @ w if ws is None else torch.mm(
+                    x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
             algorithm = self.algorithm
             if algorithm == "auto":
                 needed = int((t.parent_rows >= 0).sum())
-                algorithm = "gemm" if needed >= UP_GEMM_MIN_FILL * x.num_active * s * s else "rulebook"
+                algorithm = ("gemm" if needed >= UP_GEMM_MIN_FILL * x.num_active * s * s
+                             or uses_onednn(x.features, w) else "rulebook")
             if algorithm == "gemm":
                 out = gemm_gather(x.features, t.gather_index(x.num_active, s), w, o, ws, self)
             else:
                 slot_w = w.view(c, s * s, o).unbind(1)
                 rows, parents, counts = t.by_slot(s)
                 g = x.features.index_select(0, parents)
-                parts = [linear(gi, slot_w[j].t()) for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+                parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
                 y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
                 # targets without an active parent stay zero (+ bias)
                 out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)

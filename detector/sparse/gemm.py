@@ -12,11 +12,14 @@ what makes the dense / sparse comparison like with like: one GEMM library on bot
 
 The oneDNN call is ``torch.ops.mkldnn._linear_pointwise``, the op PyTorch's own inductor emits for CPU linears (a
 private op, hence this one wrapper; the version is pinned). It takes the plain ``(O, K)`` weight (transposed views
-too) and allocates its output. It has no autograd formula, so :class:`OneDNNLinear` gives it one whose backward is two
-more oneDNN GEMMs (``g @ W`` and ``g.t() @ x``, on views): training's GEMMs run in the library of the dense model's
-training convolutions as well. oneDNN has no float64 GEMM, so float64 (the exactness tests) keeps ``torch.mm``, and so
-do bf16 (whose ``mm`` is oneDNN already) and autocast regions. Results differ from MKL's by float rounding only
-(another summation order; tested to 1e-5 relative).
+too) and allocates its output. oneDNN builds (JIT-compiles) a kernel per operand shape and caches it: a shape it has
+not seen costs about 0.6 ms more (2 threads, (1000, 576) x (576, 64): 0.79 ms against 0.17 cached), and the sparse
+convs' row counts change every frame. So callers with a varying row count hand it a buffer of :func:`bucket_rows`
+rows (the first ``m`` being theirs, the rest ignored) and keep the first ``m`` output rows: about 50 shapes per
+weight over 64..8,192 rows, at most 12.5 % (about 6 % on average) extra rows. Only inference uses it (the forms with
+autograd keep ``torch.mm``: their backward needs MKL's transposed products at every row count), and only in float32:
+oneDNN has no float64 GEMM (the exactness tests run float64) and bf16's ``mm`` is oneDNN already. Results differ from
+MKL's by float rounding only (another summation order; tested to 1e-5 relative).
 
 ``BACKEND`` picks the library: ``"auto"`` (oneDNN where it applies, the default), ``"mkl"`` (always ``torch.mm``;
 ``tools/bench_gemm.py`` flips it between frames to time both in one process). The environment variable
@@ -26,11 +29,9 @@ do bf16 (whose ``mm`` is oneDNN already) and autocast regions. Results differ fr
 from __future__ import annotations
 
 import os
-from typing import Any
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 #: ``"auto"`` (oneDNN for float32 CPU inference) or ``"mkl"`` (``torch.mm`` always); see the module docstring.
 BACKEND: str = os.environ.get("DETECTOR_GEMM", "auto")
@@ -48,51 +49,37 @@ def library() -> str:
 
 def uses_onednn(x: Tensor, weight: Tensor) -> bool:
     """Whether :func:`linear` of these operands runs in oneDNN: ``BACKEND`` auto, float32 CPU tensors, outside
-    autocast."""
+    autocast, autograd not recording them."""
     return (
         BACKEND == "auto"
         and _HAVE_ONEDNN
         and x.device.type == "cpu"
         and x.dtype == weight.dtype == torch.float32
         and not torch.is_autocast_enabled("cpu")
+        and not (torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad))
     )
 
 
-def _onednn(x: Tensor, weight: Tensor, bias: Tensor | None = None, attr: str = "none") -> Tensor:
-    return torch.ops.mkldnn._linear_pointwise(x, weight, bias, attr, [], "")
+def bucket_rows(m: int) -> int:
+    """The row count to run an ``m``-row GEMM at in oneDNN: ``m`` rounded up to a multiple of ``2**(b - 4)`` (``b``
+    the bit length of ``m - 1``), at least 64: 8 to 16 sizes per octave, so a stream of frames reuses a few kernels."""
+    if m <= 64:
+        return 64
+    step = 1 << ((m - 1).bit_length() - 4)
+    return -(-m // step) * step
 
 
-class OneDNNLinear(torch.autograd.Function):
-    """``x @ weight.t() (+ bias)`` in oneDNN with a backward in oneDNN: ``grad_x = g @ weight``, ``grad_weight = g.t()
-    @ x`` (both GEMMs on transposed views, no copies), ``grad_bias = g.sum(0)``."""
-
-    @staticmethod
-    def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        ctx.save_for_backward(x, weight)
-        ctx.has_bias = bias is not None
-        return _onednn(x, weight, bias)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
-        x, weight = ctx.saved_tensors
-        g = g.contiguous()
-        gx = _onednn(g, weight.t()) if ctx.needs_input_grad[0] else None
-        gw = _onednn(g.t(), x.t()) if ctx.needs_input_grad[1] else None
-        gb = g.sum(0) if ctx.has_bias and ctx.needs_input_grad[2] else None
-        return gx, gw, gb
-
-
-def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None, *, relu: bool = False) -> Tensor:
-    """``(M, K)`` rows times an ``(O, K)`` weight (any strides) → ``(M, O)``: ``x @ weight.t() (+ bias)``, then ReLU
-    if ``relu``. A new tensor, in oneDNN where :func:`uses_onednn` says so (with :class:`OneDNNLinear`'s backward
-    when autograd records it), else ``torch.mm`` / ``addmm`` (MKL)."""
+def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``(M, K)`` rows times an ``(O, K)`` weight (any strides) → ``(M, O)``: ``x @ weight.t() (+ bias)``. A new
+    tensor, in oneDNN where :func:`uses_onednn` says so, else ``torch.mm`` / ``addmm`` (MKL). Callers whose ``M``
+    varies from call to call pass :func:`bucket_rows` rows (see the module docstring)."""
     if uses_onednn(x, weight) and (bias is None or bias.dtype == torch.float32):
-        grad = torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad
-                                            or (bias is not None and bias.requires_grad))
-        if not grad:
-            return _onednn(x, weight, bias, "relu" if relu else "none")
-        y = OneDNNLinear.apply(x, weight, bias)
-        return torch.relu(y) if relu else y
-    y = x @ weight.t() if bias is None else torch.addmm(bias, x, weight.t())
-    return y.relu_() if relu else y
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
+    return x @ weight.t() if bias is None else torch.addmm(bias, x, weight.t())
+
+
+def row_buffer(m: int, cols: int, like: Tensor, take=None) -> Tensor:
+    """A ``(bucket_rows(m), cols)`` buffer of ``like``'s dtype and device (contents unspecified) for an ``m``-row
+    oneDNN GEMM: ``take(shape)`` (a workspace's, reused from frame to frame) or a new tensor."""
+    shape = (bucket_rows(m), cols)
+    return take(shape) if take is not None else like.new_empty(shape)
