@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from detector.bench.run import bench_checkpoints, density_summary
 from detector.bench.timing import COMPONENTS, time_frame
 from detector.checkpoint import load_model
-from detector.config import load_experiment
+from detector.config import load_experiment, pseudoimage_geometry
 from detector.data.experiment import load_eval_frames
 from detector.device import machine_info, use_device
 from detector.sparse import gemm
@@ -36,6 +37,7 @@ from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
 from mpchair.core.errors import InputError
+from mpchair.geometry import frame_density
 
 #: (rows, K, O) of the Matterport models' GEMMs at D about 0.008 (sites per level from real frames).
 SHAPES: tuple[tuple[str, int, int, int], ...] = (
@@ -76,14 +78,35 @@ def time_shapes(repeats: int) -> list[dict]:
     return out
 
 
+def time_new_shapes(repeats: int) -> dict:
+    """oneDNN's kernel per shape: ms per call of (m, 576) x (576, 64) with a row count it has not seen (m = 1000,
+    1001, ...) against the same calls at one cached row count (mean of ``repeats`` calls each)."""
+    lp = torch.ops.mkldnn._linear_pointwise
+    w = torch.randn(64, 576)
+    xs = [torch.randn(2000 + i, 576) for i in range(repeats)]  # row counts no other row of this bench used
+    lp(xs[0], w, None, "none", [], "")
+    t0 = time.perf_counter()
+    for x in xs[1:]:
+        lp(x, w, None, "none", [], "")
+    new = (time.perf_counter() - t0) / (len(xs) - 1) * 1e3
+    t0 = time.perf_counter()
+    for _ in xs[1:]:
+        lp(xs[0], w, None, "none", [], "")
+    cached = (time.perf_counter() - t0) / (len(xs) - 1) * 1e3
+    return {"shape": "(2000.., 576) x (576, 64)", "new_shape_ms": new, "cached_ms": cached}
+
+
 def time_models(configs: list[str], checkpoints: list[str | None], data: Path, split: str, frames: int,
-                trials: int, device: torch.device) -> list[dict]:
-    """Mean ms per stage of every model under each library, interleaved per frame (the module docstring)."""
+                trials: int, device: torch.device) -> tuple[list[dict], dict]:
+    """Mean ms per stage of every model under each library, interleaved per frame (the module docstring), and the
+    density D of the first model's frames (:func:`detector.bench.run.density_summary`)."""
     cfgs = [load_experiment(c) for c in configs]
     nets = [load_model(c, k, device) for c, k in zip(cfgs, checkpoints)]
     for net in nets:
         net.workspace = Workspace()
     clouds = [[f.points for f in load_eval_frames(c, data, split, frames)] for c in cfgs]
+    geometry = pseudoimage_geometry(cfgs[0].model)
+    density = density_summary([frame_density(p, geometry)[2] for p in clouds[0]])
     runs = [(j, b) for j in range(len(nets)) for b in BACKENDS]
     ms = np.zeros((len(runs), trials, len(clouds[0]), len(COMPONENTS)))
     for i in range(min(2, len(clouds[0]))):  # warm-up: kernels, caches, workspaces
@@ -101,7 +124,7 @@ def time_models(configs: list[str], checkpoints: list[str | None], data: Path, s
     gemm.BACKEND = "auto"
     means = ms.mean(axis=(1, 2))
     return [{"config": configs[j], "weights": checkpoints[j] or "random", "gemm": "mkl" if b == "mkl" else "onednn",
-             "mean_ms": dict(zip(COMPONENTS, map(float, means[r])))} for r, (j, b) in enumerate(runs)]
+             "mean_ms": dict(zip(COMPONENTS, map(float, means[r])))} for r, (j, b) in enumerate(runs)], density
 
 
 def format_result(result: dict) -> str:
@@ -113,6 +136,9 @@ def format_result(result: dict) -> str:
         lines.append(f"| {s['name']} ({m} x {k} x {o}) | {s['gflop']:.3f} | {s['mkl_min_ms']:.3f} "
                      f"({s['mkl_cpu_ms']:.3f}) | {s['onednn_min_ms']:.3f} ({s['onednn_cpu_ms']:.3f}) | "
                      f"{s['mkl_min_ms'] / s['onednn_min_ms']:.2f}x |")
+    ns = result["new_shapes"]
+    lines.append(f"| new shape: oneDNN {ns['shape']}, a row count not seen before / one seen | | | "
+                 f"{ns['new_shape_ms']:.3f} / {ns['cached_ms']:.3f} | |")
     models = result["models"]
     if models:
         lines += ["", "| model | GEMM library | Feature Extract | Backbone | Head | Total |",
@@ -128,9 +154,13 @@ def format_result(result: dict) -> str:
                 a, b = rows[0]["mean_ms"], r["mean_ms"]
                 lines.append(f"| {Path(rows[0]['config']).stem} / {Path(r['config']).stem} | {lib} (both sides) | "
                              f"{a['backbone'] / b['backbone']:.1f}x | {a['total'] / b['total']:.1f}x |")
-    mach = result["machine"]
-    lines += ["", f"{mach['cpu']}; {mach['torch_threads']} torch threads; allocator {mach['allocator']}; "
-              f"load average (1 min) {mach['loadavg_1m']}."]
+    mach, dens = result["machine"], result["density"]
+    lines += ["", ("Both sides eager PyTorch fp32 with their inference workspaces; " if models else "")
+              + f"{mach['cpu']}; {mach['torch_threads']} torch threads; allocator {mach['allocator']}; load average "
+              f"(1 min) {mach['loadavg_1m']}."]
+    if dens is not None:
+        lines.append(f"Density D (pillars / canvas cells) of the frames: median {dens['median']:.5f}, min "
+                     f"{dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames.")
     return "\n".join(lines)
 
 
@@ -157,23 +187,22 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError("this torch build has no oneDNN (torch.backends.mkldnn): nothing to compare")
         if args.config and args.data is None:
             raise InputError("--config needs --data")
-        if args.checkpoint and len(args.checkpoint) != len(args.config):
-            raise InputError(f"give one --checkpoint per --config ('-' for random weights): "
-                             f"{len(args.checkpoint)} for {len(args.config)}")
+        ckpts = bench_checkpoints(args.config, args.checkpoint)
         if args.frames < 1 or args.trials < 1 or args.repeats < 1:
             raise InputError("--frames, --trials and --repeats must be >= 1")
         if args.json is not None:
             check_writable(args.json)
         device = use_device("cpu", args.threads)
-        ckpts = [None if c in ("-", "") else c for c in args.checkpoint] or [None] * len(args.config)
         with torch.no_grad():
             shapes = time_shapes(args.repeats)
-            models = time_models(args.config, ckpts, args.data, args.split, args.frames, args.trials,
-                                 device) if args.config else []
+            new_shapes = time_new_shapes(max(2, args.repeats))
+            models, density = time_models(args.config, ckpts, args.data, args.split, args.frames, args.trials,
+                                          device) if args.config else ([], None)
     except (InputError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    result = {"shapes": shapes, "models": models, "machine": {**machine_info(device), "gemm": "both"},
+    result = {"shapes": shapes, "new_shapes": new_shapes, "models": models, "density": density,
+              "machine": {**machine_info(device), "gemm": "both"},
               "protocol": {"data": str(args.data), "split": args.split, "frames": args.frames, "trials": args.trials,
                            "repeats": args.repeats, "interleaved": True, "batch_size": 1}}
     if args.json is not None:

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from detector.bench.reference_head import format_reference_head, run_reference_head_bench
-from detector.bench.run import BenchModel
+from detector.bench.run import BenchModel, bench_checkpoints
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
 from mpchair.core.errors import InputError
@@ -43,10 +43,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     """The tool's work once its options are parsed; 2 with one ``error:`` line on bad input."""
     try:
-        if args.checkpoint and len(args.checkpoint) != len(args.config):
-            raise InputError(f"give one --checkpoint per --config ('-' for random weights): "
-                             f"{len(args.checkpoint)} for {len(args.config)}")
-        ckpts = [None if c in ("-", "") else c for c in args.checkpoint] or [None] * len(args.config)
+        ckpts = bench_checkpoints(args.config, args.checkpoint)
         if args.json is not None:
             check_writable(args.json)
         result = run_reference_head_bench([BenchModel("", c, k) for c, k in zip(args.config, ckpts)], args.data,

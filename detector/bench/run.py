@@ -74,6 +74,15 @@ class BenchModel:
     checkpoint: str | None = None
 
 
+def bench_checkpoints(configs: Sequence[str], checkpoints: Sequence[str]) -> list[str | None]:
+    """The weights of each ``--config`` from the ``--checkpoint`` options (``-`` or none at all: random weights, None);
+    an :class:`InputError` unless there is one per config or none."""
+    if checkpoints and len(checkpoints) != len(configs):
+        raise InputError(f"give one --checkpoint per --config ('-' for random weights): {len(checkpoints)} "
+                         f"checkpoint(s) for {len(configs)} config(s)")
+    return [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
+
+
 class TimedRow(NamedTuple):
     """One row of the result: its display ``name``, the ``model`` / ``cfg`` it was built from (the peer: the first
     model's), a description of its ``weights``, ``peer`` (None for ours), its ``timer`` and the ``frames`` it is fed

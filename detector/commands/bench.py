@@ -72,15 +72,12 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
-    from detector.bench.run import Variant
+    from detector.bench.run import Variant, bench_checkpoints
     from detector.device import free_cores, load_1m, oversubscription_warning, usable_cores
     from mpchair.core.atomic import check_writable, write_text
     from mpchair.core.errors import InputError
 
-    if checkpoints and len(checkpoints) != len(configs):
-        raise InputError(f"give one --checkpoint per --config ('-' for random weights): {len(checkpoints)} "
-                         f"checkpoint(s) for {len(configs)} config(s)")
-    ckpts = [None if c in ("-", "") else c for c in checkpoints] or [None] * len(configs)
+    ckpts = bench_checkpoints(configs, checkpoints)
     models = [BenchModel(name="", config=c, checkpoint=k) for c, k in zip(configs, ckpts)]
     if json_out:
         check_writable(json_out)  # before the minutes of timing, not after

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from detector.models.grad_layout import conv2d
-from detector.sparse.gemm import linear, row_buffer, uses_onednn
+from detector.sparse.gemm import linear, linear_rows, row_buffer, uses_onednn
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace
 
@@ -97,7 +97,8 @@ class AnchorHead(nn.Module):
         rows = x.permute(0, 2, 3, 1)  # (B, H, W, C): contiguous for a channels-last map
         if not low and rows.is_contiguous() and uses_onednn(x, weight):
             # oneDNN (detector.sparse.gemm), the pixels as its "weight" operand: weight (O, C) @ rows (H*W, C).t() is
-            # the planar (O, H*W) map straight away (1 thread, Matterport map: 13.6 ms against baddbmm's 25.2)
+            # the planar (O, H*W) map straight away (Matterport map, trained weights, 2 threads: Head 8.9 ms against
+            # 20.6 ms in MKL's baddbmm; tools/bench_gemm.py, docs/sparse.md "GEMM library")
             planes = [linear(weight, rows[i].reshape(h * w, -1)).add_(bias[:, None]) for i in range(b)]
             out = planes[0][None] if b == 1 else torch.stack(planes)
             return self.split(out.unflatten(2, (h, w)).permute(0, 2, 3, 1))
@@ -160,9 +161,7 @@ class SparseExactHead(AnchorHead):
             return self._reused(x, bi, yi, xi, weight.to(x.dtype), bias.to(x.dtype), workspace)
         feats = x[bi, :, yi, xi]
         if uses_onednn(feats, weight):  # oneDNN (detector.sparse.gemm), at a bucketed row count
-            rows = row_buffer(feats.shape[0], c, feats)
-            rows[: feats.shape[0]].copy_(feats)
-            vals = linear(rows, weight, bias)[: feats.shape[0]]
+            vals = linear_rows(feats, weight, bias)
         else:
             vals = F.linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's
         # (B, O, H, W), planar like the dense head's, in the dtype the convs would give (bias rounded as theirs is)
@@ -180,8 +179,10 @@ class SparseExactHead(AnchorHead):
         n = bi.numel()
         onednn = uses_onednn(x, weight)
         # oneDNN (detector.sparse.gemm) runs at a bucketed row count: the gather fills the first n rows of the buffer
-        buf = row_buffer(n, c, x, lambda shape: workspace.take(self, "feats", shape, x.dtype, x.device)) if onednn \
-            else workspace.take(self, "feats", (n, c), x.dtype, x.device)
+        if onednn:
+            buf = row_buffer(n, c, x, workspace, self, "feats")
+        else:
+            buf = workspace.take(self, "feats", (n, c), x.dtype, x.device)
         feats = buf[:n]
         if rows.is_contiguous():
             torch.index_select(rows.view(b * h * w, c), 0, (bi * h + yi) * w + xi, out=feats)

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from detector.sparse.autograd import GatherUnique, SubMGemm
-from detector.sparse.gemm import linear, row_buffer, uses_onednn
+from detector.sparse.gemm import linear, linear_rows, row_buffer, uses_onednn
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
@@ -149,9 +149,7 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     if uses_onednn(padded, w):
         # inference in oneDNN (detector.sparse.gemm): the gather fills the first m rows of a bucket-sized matrix, the
         # rows past them are ignored (each output row depends on its own input row only)
-        take = None if workspace is None else (lambda shape: workspace.take(owner, "cols", shape, padded.dtype,
-                                                                            padded.device))
-        cols = row_buffer(m, kc, padded, take)
+        cols = row_buffer(m, kc, padded, workspace, owner, "cols")
         torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
         return linear(cols, w)[:m]
     if workspace is None:
@@ -175,9 +173,7 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     if uses_onednn(features, matrix):
         # inference in oneDNN (detector.sparse.gemm): the features and a zero row (whose s products are zero: the
         # sentinel row m * s) in a bucket-sized matrix; rows past them give products no index names
-        take = None if workspace is None else (lambda shape: workspace.take(owner, "padded", shape, features.dtype,
-                                                                            features.device))
-        rows = row_buffer(m + 1, features.shape[1], features, take)
+        rows = row_buffer(m + 1, features.shape[1], features, workspace, owner, "padded")
         rows[:m].copy_(features)
         rows[m].zero_()
         prod = linear(rows, matrix.t()).view(-1, o)
@@ -453,11 +449,7 @@ class SparseConvTranspose2d(SparseModule):
             # same site set: a plain 1x1 matmul
             dt = compute_dtype(x.features)
             if uses_onednn(x.features, w):
-                # oneDNN (detector.sparse.gemm) on a bucket-sized copy of the rows
-                take = None if ws is None else (lambda shape: ws.take(self, "rows", shape, dt, w.device))
-                rows = row_buffer(x.num_active, c, x.features, take)
-                rows[: x.num_active].copy_(x.features)
-                out = linear(rows, w.t())[: x.num_active]
+                out = linear_rows(x.features, w.t(), workspace=ws, owner=self)  # oneDNN (detector.sparse.gemm)
             else:
                 out = x.features @ w if ws is None else torch.mm(
                     x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))

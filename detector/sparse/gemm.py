@@ -3,23 +3,23 @@
 Why not ``torch.mm``: PyTorch's float32 ``mm`` / ``addmm`` / ``F.linear`` on the CPU call MKL's sgemm, while its
 convolutions run in oneDNN. On AMD CPUs MKL dispatches its AVX2 kernels even where the CPU has AVX-512, so a float32
 GEMM there runs at about half the speed the same CPU gives a convolution. Measured on the 2-core AMD EPYC (AVX-512,
-AVX512-BF16), torch 2.13, CPU time per call at 1 thread: the sparse model's block-3 SubM GEMM (300, 2304) x (2304,
-256) 3.05 ms in MKL, 1.29 ms in oneDNN; block 1 (1200, 576) x (576, 64) 0.78 vs 0.33 ms; the neck's (300, 256) x
-(256, 2048) 2.64 vs 1.13 ms; the dense neck's (98304, 64) x (64, 128) 32.3 vs 24.4 ms (``tools/bench_gemm.py``).
-On Intel CPUs the two libraries are close. The dense backbone's convolutions are oneDNN already, so routing every
-other inference GEMM of both models (the sparse convs, the exact head, the dense neck's levels) through oneDNN is
-what makes the dense / sparse comparison like with like: one GEMM library on both sides.
+AVX512-BF16), torch 2.13, 2 threads, minimum of 20 calls (``tools/bench_gemm.py``, docs/sparse.md "GEMM library"):
+the sparse model's block-3 SubM GEMM (150, 2304) x (2304, 256) 0.78 ms in MKL, 0.35 ms in oneDNN; block 1 (1200,
+576) x (576, 64) 0.39 vs 0.20 ms; a 4 MiB chunk of the dense neck's level 3, (512, 256) x (256, 2048), 2.45 vs 1.12
+ms. The dense backbone's convolutions are oneDNN already, so routing every other inference GEMM of both models (the
+sparse convs, the exact head, the dense neck's levels and head) through oneDNN is what makes the dense / sparse
+comparison like with like: one GEMM library on both sides.
 
 The oneDNN call is ``torch.ops.mkldnn._linear_pointwise``, the op PyTorch's own inductor emits for CPU linears (a
 private op, hence this one wrapper; the version is pinned). It takes the plain ``(O, K)`` weight (transposed views
 too) and allocates its output. oneDNN builds (JIT-compiles) a kernel per operand shape and caches it: a shape it has
-not seen costs about 0.6 ms more (2 threads, (1000, 576) x (576, 64): 0.79 ms against 0.17 cached), and the sparse
+not seen costs far more than a cached one (``tools/bench_gemm.py``'s "new shape" row), and the sparse
 convs' row counts change every frame. So callers with a varying row count hand it a buffer of :func:`bucket_rows`
 rows (the first ``m`` being theirs, the rest ignored) and keep the first ``m`` output rows: about 50 shapes per
-weight over 64..8,192 rows, at most 12.5 % (about 6 % on average) extra rows. Only inference uses it (the forms with
-autograd keep ``torch.mm``: their backward needs MKL's transposed products at every row count), and only in float32:
-oneDNN has no float64 GEMM (the exactness tests run float64) and bf16's ``mm`` is oneDNN already. Results differ from
-MKL's by float rounding only (another summation order; tested to 1e-5 relative).
+weight over 64..8,192 rows, at most 12.5 % (about 6 % on average) extra rows. Only inference uses it (training
+keeps ``torch.mm``; docs/sparse.md "GEMM library" says why its measured oneDNN form is not landed), and only in
+float32: oneDNN has no float64 GEMM (the exactness tests run float64) and bf16's ``mm`` is oneDNN already. Results
+differ from MKL's by float rounding only (another summation order; tested to 1e-5 relative).
 
 ``BACKEND`` picks the library: ``"auto"`` (oneDNN where it applies, the default), ``"mkl"`` (always ``torch.mm``;
 ``tools/bench_gemm.py`` flips it between frames to time both in one process). The environment variable
@@ -33,6 +33,8 @@ import os
 import torch
 from torch import Tensor
 
+from detector.sparse.workspace import Workspace
+
 #: ``"auto"`` (oneDNN for float32 CPU inference) or ``"mkl"`` (``torch.mm`` always); see the module docstring.
 BACKEND: str = os.environ.get("DETECTOR_GEMM", "auto")
 if BACKEND not in ("auto", "mkl"):
@@ -42,8 +44,8 @@ _HAVE_ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn
 
 
 def library() -> str:
-    """The library of eager float32 CPU GEMMs under the current ``BACKEND``: ``"onednn"`` or ``"mkl"`` (recorded with
-    every timing, :func:`detector.device.machine_info`)."""
+    """The library of eager float32 CPU GEMMs under the current ``BACKEND``: ``"onednn"`` or ``"mkl"`` (``detector
+    bench`` records it, :func:`detector.bench.run.machine_record`)."""
     return "onednn" if BACKEND == "auto" and _HAVE_ONEDNN else "mkl"
 
 
@@ -78,8 +80,22 @@ def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     return x @ weight.t() if bias is None else torch.addmm(bias, x, weight.t())
 
 
-def row_buffer(m: int, cols: int, like: Tensor, take=None) -> Tensor:
+def row_buffer(m: int, cols: int, like: Tensor, workspace: Workspace | None = None, owner: object | None = None,
+               name: str = "rows") -> Tensor:
     """A ``(bucket_rows(m), cols)`` buffer of ``like``'s dtype and device (contents unspecified) for an ``m``-row
-    oneDNN GEMM: ``take(shape)`` (a workspace's, reused from frame to frame) or a new tensor."""
+    oneDNN GEMM: ``owner``'s buffer ``name`` of ``workspace`` (reused from frame to frame), or a new tensor."""
     shape = (bucket_rows(m), cols)
-    return take(shape) if take is not None else like.new_empty(shape)
+    if workspace is None:
+        return like.new_empty(shape)
+    return workspace.take(owner, name, shape, like.dtype, like.device)
+
+
+def linear_rows(x: Tensor, weight: Tensor, bias: Tensor | None = None, workspace: Workspace | None = None,
+                owner: object | None = None) -> Tensor:
+    """:func:`linear` of rows whose count varies from call to call, in oneDNN: ``x`` copied into a :func:`row_buffer`
+    (``owner``'s ``"rows"`` in ``workspace``, if given), the first ``len(x)`` output rows returned. Callers check
+    :func:`uses_onednn` first (elsewhere ``linear`` itself is the right call)."""
+    m = x.shape[0]
+    rows = row_buffer(m, x.shape[1], x, workspace, owner)
+    rows[:m].copy_(x)
+    return linear(rows, weight, bias)[:m]
