@@ -21,6 +21,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from detector.sparse.gemm import bucket_rows, linear, uses_onednn
+
 
 def _taps_matrix(weight: Tensor) -> Tensor:
     """``(O, C, kh, kw)`` → ``(O, kh * kw * C)``, column ``(ky * kw + kx) * C + c`` (``conv.conv_matrix``)."""
@@ -39,10 +41,20 @@ class SubMGemm(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, features: Tensor, weight: Tensor, index: Tensor) -> Tensor:
         n = features.shape[0]
+        matrix = _taps_matrix(weight)
+        ctx.features_dtype = features.dtype
+        ctx.onednn = uses_onednn(features, matrix)  # fp32 on the CPU outside autocast (autograd is off in here)
+        if ctx.onednn:
+            # oneDNN's GEMMs (detector.sparse.gemm) at a bucketed row count: the gather fills the first n rows, the
+            # rest are zero (the weight gradient sums over every row)
+            cols = features.new_empty((bucket_rows(n), matrix.shape[1]))
+            torch.index_select(_padded(features), 0, index, out=cols.view(-1, features.shape[1])[: index.numel()])
+            cols[n:].zero_()
+            ctx.save_for_backward(cols, weight, index)
+            return linear(cols, matrix)[:n]
         cols = _padded(features).index_select(0, index).view(n, -1)
         ctx.save_for_backward(cols, weight, index)
-        ctx.features_dtype = features.dtype
-        return cols @ _taps_matrix(weight).t()  # bf16 under autocast (the backward runs in the gradient's dtype)
+        return cols @ matrix.t()  # bf16 under autocast (the backward runs in the gradient's dtype)
 
     @staticmethod
     @once_differentiable
@@ -52,6 +64,8 @@ class SubMGemm(torch.autograd.Function):
         grad_out = grad_out.contiguous()
         dt = grad_out.dtype  # bf16 after an autocast forward: the products run in it, the results in the inputs' dtypes
         grad_features = grad_weight = None
+        if ctx.onednn and dt == torch.float32:
+            return (*_onednn_backward(ctx, grad_out, cols, weight, index), None)
         if ctx.needs_input_grad[0]:
             mirrored = weight.flip(2, 3).transpose(0, 1)  # (C, O, kh, kw): tap k of the backward is W_{K-1-k}^T
             g = _padded(grad_out).index_select(0, index).view(grad_out.shape[0], -1)
@@ -62,6 +76,25 @@ class SubMGemm(torch.autograd.Function):
             gw = (grad_out.t() @ cols.to(dt)).to(weight.dtype)
             grad_weight = gw.view(o, kh, kw, c).permute(0, 3, 1, 2)
         return grad_features, grad_weight, None
+
+
+def _onednn_backward(ctx: Any, grad_out: Tensor, cols: Tensor, weight: Tensor,
+                     index: Tensor) -> tuple[Tensor | None, Tensor | None]:
+    """:class:`SubMGemm`'s backward in oneDNN at the forward's bucketed row count: the mirrored SubM for the input
+    gradient (rows past n ignored) and ``grad_out.t() @ cols`` over zero-padded rows for the weight gradient."""
+    o, c, kh, kw = weight.shape
+    n, rows = grad_out.shape[0], cols.shape[0]
+    grad_features = grad_weight = None
+    if ctx.needs_input_grad[0]:
+        mirrored = _taps_matrix(weight.flip(2, 3).transpose(0, 1))  # (C, K*O)
+        g = grad_out.new_empty((rows, mirrored.shape[1]))
+        torch.index_select(_padded(grad_out), 0, index, out=g.view(-1, o)[: index.numel()])
+        grad_features = linear(g, mirrored)[:n]
+    if ctx.needs_input_grad[1]:
+        padded = grad_out.new_zeros((rows, o))
+        padded[:n] = grad_out
+        grad_weight = linear(padded.t(), cols.t()).view(o, kh, kw, c).permute(0, 3, 1, 2)
+    return grad_features, grad_weight
 
 
 class GatherUnique(torch.autograd.Function):
