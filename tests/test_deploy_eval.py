@@ -25,6 +25,15 @@ pytest.importorskip("nncf")
 #: training of test_train.py measured 43.5 at 12 epochs, 65.0 at 15).
 EPOCHS = 16
 
+#: How far a bf16 / int8 deployment's AP may move from eager fp32's here, in boxes: one ground-truth box found or
+#: lost moves Overall R40 AP by about 100 / n_gt points (29 chairs here: 3.4). Their rounding moves the briefly
+#: trained models' marginal boxes across the score or IoU threshold, in either direction. Over 6 training seeds x 2
+#: models x 3 deployments x BEV / 3D (72 moves, 2026-12-06): |move| <= 1 point in 58, 1.1-3.9 in 11, 5.0-6.7 in 3
+#: (the fixed 5-point bound this test had failed those: it passed or failed with the training's rounding). A broken
+#: deployment (a bad export, scale or calibration) loses most boxes. The full-scale drop is the reproduction's deploy
+#: step (docs/deployment.md).
+BOXES_OF_SLACK = 3
+
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
@@ -56,6 +65,12 @@ def _eval(capsys, cfg, data, ckpt, out, *extra) -> dict:
     return json.loads(stdout)
 
 
+def _chairs(data) -> int:
+    """Ground-truth chairs of the (training) split the test evaluates on."""
+    return sum(line.startswith("Chair ") for f in (data / "training" / "label_2").glob("*.txt")
+               for line in f.read_text().splitlines())
+
+
 def _ap(metrics: dict, metric: str) -> float:
     """Overall R40 AP of Chair (every box of the class)."""
     return metrics["Chair"][metric]["overall"]["R40"]
@@ -79,8 +94,9 @@ def test_deployed_ap_matches_eager(trained, backbone, tmp_path, capsys):
         assert len(list((out / "data").glob("*.txt"))) == 8
         for metric in ("bev", "3d"):
             drop = _ap(eager, metric) - _ap(got, metric)
-            # fp32: the same maps to 1e-4, so the same boxes; bf16 and int8 were measured within 3.3 points here
-            assert abs(drop) <= (1e-6 if precision == "fp32" else 5.0), (runtime, precision, metric, drop)
+            # fp32: the same maps to 1e-4, so the same boxes. bf16 / int8: within three boxes (BOXES_OF_SLACK)
+            bound = 1e-6 if precision == "fp32" else BOXES_OF_SLACK * 100 / _chairs(data)
+            assert abs(drop) <= bound, (runtime, precision, metric, drop, bound)
 
 
 def test_eval_refuses_a_combination_this_cpu_cannot_run(trained, tmp_path, capsys):

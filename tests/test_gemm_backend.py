@@ -154,14 +154,53 @@ def test_sparse_model_training_step_in_onednn_equals_mkl(monkeypatch: pytest.Mon
     torch.manual_seed(0)
     model = build_model(_tiny_config(backbone="sparse", head="dense")).train()
     pts = _scene(2)[0]
-    grads = {}
+    grads, bucketed = {}, []
+    real = gemm._BucketedLinear.apply
+    monkeypatch.setattr(gemm._BucketedLinear, "apply", lambda *a: bucketed.append(a[0].shape) or real(*a))
     for backend in ("mkl", "auto"):
         monkeypatch.setattr(gemm, "BACKEND", backend)
         model.zero_grad()
         out = model([pts])
         sum((o.float() * (i + 1)).sum() for i, o in enumerate(out)).backward()
         grads[backend] = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    # under auto only: the three blocks' 2x2 down-convs, the three neck levels (transposed, or 1x1 on the same sites)
+    # and the head's three products on the neck's rows (the SubM convs count in SubMGemm, tested above)
+    assert [tuple(s) for s in bucketed] == [(194, 64), (64, 64), (16, 128), (194, 16), (64, 32), (16, 64),
+                                            (194, 96), (194, 96), (194, 96)]
     assert grads["mkl"].keys() == grads["auto"].keys() and len(grads["mkl"]) > 10
     for name, a in grads["mkl"].items():
         b = grads["auto"][name]
         torch.testing.assert_close(b, a, atol=1e-4 * max(1.0, float(a.abs().max())), rtol=1e-4, msg=name)
+
+
+@pytest.mark.parametrize(("m", "k", "o"), [(0, 8, 4), (1, 5, 3), (100, 64, 17), (300, 576, 64)])
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_train_linear_gives_the_float64_values_and_gradients(monkeypatch: pytest.MonkeyPatch, m: int, k: int, o: int,
+                                                             with_bias: bool) -> None:
+    """Training's product in oneDNN (``train_linear``: rows zero-padded to a bucket): output and the gradients of the
+    input, weight (a transposed view, as the transposed convs pass it) and bias equal float64 autograd's; it is
+    oneDNN's ``_BucketedLinear`` under ``auto`` and plain ``F.linear`` under ``mkl``."""
+    g = torch.Generator().manual_seed(m + k + o)
+    x0 = torch.randn(m, k, generator=g)
+    w0 = torch.randn(k, o, generator=g)  # used as its (O, K) transpose
+    b0 = torch.randn(o, generator=g) if with_bias else None
+    r = torch.randn(m, o, generator=g)
+
+    def run(dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+        leaves = [t.to(dtype).requires_grad_(True) for t in (x0, w0) + ((b0,) if with_bias else ())]
+        x, w = leaves[0], leaves[1]
+        out = gemm.train_linear(x, w.t(), leaves[2] if with_bias else None)
+        return (out.detach(), *torch.autograd.grad((out * r.to(dtype)).sum(), leaves)), out.grad_fn
+
+    for backend, node in (("auto", "_BucketedLinear"), ("mkl", "")):
+        monkeypatch.setattr(gemm, "BACKEND", backend)
+        assert gemm.trains_in_onednn(x0, w0) == (backend == "auto")
+        got, fn = run(torch.float32)
+        assert (node in type(fn).__name__) if node else "Bucketed" not in type(fn).__name__
+        ref, _ = run(torch.float64)
+        for a, b in zip(ref, got):
+            assert b.shape == a.shape and b.dtype == torch.float32
+            scale = float(a.abs().max()) if a.numel() else 0.0
+            torch.testing.assert_close(b.double(), a, atol=1e-5 * max(1.0, scale), rtol=1e-5)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # bf16 autocast keeps its own (oneDNN bf16) matmul
+        assert not gemm.trains_in_onednn(x0, w0)

@@ -371,3 +371,28 @@ def test_compact_training_path_under_bf16_autocast_and_its_fallbacks() -> None:
     net.train()
     net.norm.momentum = None  # a cumulative-average BN: the torch layers
     assert not net.compact_applies()
+
+
+def test_segment_max_gives_each_max_and_its_gradient_to_one_winner() -> None:
+    """The training pillar net's max (``SegmentMax``): per pillar and channel the max of its rows and, for a pillar
+    with padded slots, of the padding's value; the gradient goes to the winning row only: the first of tied rows, and
+    a row rather than a tied padding (the slot order of the reference's ``max(dim=1)``)."""
+    from detector.models.pillar_net import SegmentMax
+
+    y = torch.tensor([[1.0, 0.0], [3.0, 0.0], [3.0, 2.0],  # pillar 0: rows 0-2, tied maxima in both channels
+                      [0.5, 4.0],  # pillar 1: one row, padded
+                      [float("nan"), 1.0], [7.0, 1.0]], dtype=torch.float64, requires_grad=True)  # pillar 2
+    pad = torch.tensor([0.5, 0.25], dtype=torch.float64, requires_grad=True)
+    offsets = torch.tensor([0, 3, 4, 6, 6])  # pillar 3: no rows (its padding, or 0 without)
+    has_pad = torch.tensor([False, True, False, True])
+    out = SegmentMax.apply(y, pad, offsets, has_pad)
+    want = torch.tensor([[3.0, 2.0], [0.5, 4.0], [float("nan"), 1.0], [0.5, 0.25]], dtype=torch.float64)
+    torch.testing.assert_close(out, want, equal_nan=True)
+    grad = torch.tensor([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0], [70.0, 80.0]], dtype=torch.float64)
+    gy, gpad = torch.autograd.grad(out, (y, pad), grad)
+    want_gy = torch.zeros(6, 2, dtype=torch.float64)
+    want_gy[1, 0], want_gy[2, 1] = 10.0, 20.0  # the first of the tied 3.0s; channel 1's single max
+    want_gy[3, 0], want_gy[3, 1] = 30.0, 40.0  # the row ties the padding in channel 0 and wins it
+    want_gy[4, 0], want_gy[4, 1] = 50.0, 60.0  # NaN wins; the first of the tied 1.0s
+    torch.testing.assert_close(gy, want_gy)
+    torch.testing.assert_close(gpad, torch.tensor([70.0, 80.0], dtype=torch.float64))

@@ -9,10 +9,13 @@ The GT-sampling database is built once per config and shared by its runs.
 
     python tools/bench_train_step.py --data out/reproduce-full-e12-bf16/dataset \\
         --config configs/models/mpchair_dense_cpu.yaml --config configs/models/mpchair_sparse_cpu.yaml \\
-        [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--precision fp32 [--precision bf16]] [--json OUT]
+        [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--precision fp32 [--precision bf16]]
+        [--gemm auto [--gemm mkl]] [--json OUT]
 
 With several configs the rounds interleave them too (round 1: every config at every precision, then round 2, ...),
 so load drift hits every config alike; the table's last rows are ``first / other`` step-time ratios per precision.
+``--gemm auto --gemm mkl`` times every config under both fp32 GEMM settings (``detector.sparse.gemm.BACKEND``: oneDNN
+or MKL) in the same interleaved rounds, with the ratios per setting.
 
 Set ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736`` as for training (docs/training.md, "Speed on CPU").
 """
@@ -33,9 +36,19 @@ from typing import get_args
 import torch
 
 from detector.config import Precision
+from detector.sparse import gemm
 from detector.train import train
 
 PRECISIONS = get_args(Precision)  # ("fp32", "bf16"): the ratio is fp32 / bf16
+
+
+def _library(backend: str) -> str:
+    """The library ``backend`` gives fp32 CPU GEMMs here (``detector.sparse.gemm.library``)."""
+    saved, gemm.BACKEND = gemm.BACKEND, backend
+    try:
+        return gemm.library()
+    finally:
+        gemm.BACKEND = saved
 
 
 def step_seconds(run: Path, warmup: int) -> list[float]:
@@ -55,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--precision", action="append", choices=PRECISIONS, default=None,
                    help="precisions to time (repeat; default: all)")
+    p.add_argument("--gemm", action="append", choices=("auto", "mkl"), default=None,
+                   help="fp32 GEMM library setting to time (repeat to time both side by side; default: "
+                        "DETECTOR_GEMM, i.e. auto = oneDNN)")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON")
     args = p.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.rounds < 1:
@@ -62,47 +78,54 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     precisions = tuple(args.precision) if args.precision else PRECISIONS
-    times: dict[str, dict[str, list[float]]] = {c: {pr: [] for pr in precisions} for c in args.config}
+    libraries = tuple(dict.fromkeys(args.gemm)) if args.gemm else (gemm.BACKEND,)
+    variants = [(c, lib) for lib in libraries for c in args.config]
+    times: dict[tuple[str, str], dict[str, list[float]]] = {v: {pr: [] for pr in precisions} for v in variants}
     with tempfile.TemporaryDirectory(prefix="bench_train_step_") as tmp:
         database: dict[str, Path] = {}  # built once per config, then shared by its runs
         for rnd in range(args.rounds):
-            for config in args.config:
+            for config, lib in variants:
+                gemm.BACKEND = lib  # read at every product (detector.sparse.gemm), so one process times both
                 for pr in precisions:
-                    run = Path(tmp) / f"{Path(config).stem}-{pr}-{rnd}"
+                    run = Path(tmp) / f"{Path(config).stem}-{lib}-{pr}-{rnd}"
                     run.mkdir()
                     if config in database:
                         shutil.copyfile(database[config], run / "gt_database.npz")
                     train(config, args.data, run, max_steps=args.warmup + args.steps, threads=args.threads,
                           split=args.split, precision=pr, progress=False)
                     database.setdefault(config, run / "gt_database.npz")
-                    times[config][pr] += step_seconds(run, args.warmup)
+                    times[(config, lib)][pr] += step_seconds(run, args.warmup)
     rows = []
-    for config in args.config:
-        t = times[config]
+    for (config, lib), t in times.items():
         ms = {pr: 1000 * statistics.mean(v) for pr, v in t.items()}
         sd = {pr: 1000 * statistics.stdev(v) if len(v) > 1 else 0.0 for pr, v in t.items()}
-        row = {"config": config, "steps": {pr: len(v) for pr, v in t.items()}, "mean_ms": ms, "std_ms": sd}
+        row = {"config": config, "gemm": lib, "steps": {pr: len(v) for pr, v in t.items()}, "mean_ms": ms,
+               "std_ms": sd}
         if "fp32" in ms and "bf16" in ms:
             row["fp32_over_bf16"] = ms["fp32"] / ms["bf16"]
         rows.append(row)
-    ratios = [{"first": args.config[0], "other": r["config"],
-               "ratio": {pr: rows[0]["mean_ms"][pr] / r["mean_ms"][pr] for pr in precisions}} for r in rows[1:]]
+    ratios = []
+    for lib in libraries:  # first config / each other one, at the same GEMM setting
+        same = [r for r in rows if r["gemm"] == lib]
+        ratios += [{"first": same[0]["config"], "other": r["config"], "gemm": lib,
+                    "ratio": {pr: same[0]["mean_ms"][pr] / r["mean_ms"][pr] for pr in precisions}} for r in same[1:]]
 
     machine = {"cpu": platform.processor() or platform.machine(), "threads": args.threads, "torch": torch.__version__,
                "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
     print(f"training step time (threads {args.threads}, torch {torch.__version__}, "
-          f"{machine['cpu_capability']}; {args.rounds} rounds x {args.steps} steps after {args.warmup} warm-up)")
-    print("| config | " + " | ".join(f"{pr} ms/step" for pr in precisions) + " |"
+          f"{machine['cpu_capability']}; {args.rounds} rounds x {args.steps} steps after {args.warmup} warm-up; "
+          f"DETECTOR_GEMM {' / '.join(libraries)}: fp32 products in {' / '.join(_library(x) for x in libraries)})")
+    print("| config | GEMM | " + " | ".join(f"{pr} ms/step" for pr in precisions) + " |"
           + (" fp32 / bf16 |" if len(precisions) == 2 else ""))
-    print("|---|" + "---|" * (len(precisions) + (len(precisions) == 2)))
+    print("|---|---|" + "---|" * (len(precisions) + (len(precisions) == 2)))
     for r in rows:
         cells = [f"{r['mean_ms'][pr]:.0f} ± {r['std_ms'][pr]:.0f}" for pr in precisions]
         if "fp32_over_bf16" in r:
             cells.append(f"{r['fp32_over_bf16']:.2f}x")
-        print(f"| {Path(r['config']).name} | " + " | ".join(cells) + " |")
+        print(f"| {Path(r['config']).name} | {r['gemm']} | " + " | ".join(cells) + " |")
     for q in ratios:
         cells = [f"{q['ratio'][pr]:.2f}x" for pr in precisions]
-        print(f"| {Path(q['first']).stem} / {Path(q['other']).stem} | " + " | ".join(cells)
+        print(f"| {Path(q['first']).stem} / {Path(q['other']).stem} | {q['gemm']} | " + " | ".join(cells)
               + (" |" if len(precisions) == 1 else " | |"))
     if args.json is not None:
         args.json.write_text(json.dumps({"models": rows, "ratios": ratios, "machine": machine}, indent=1) + "\n")

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from detector.models.grad_layout import conv2d
-from detector.sparse.gemm import linear, linear_rows, row_buffer, uses_onednn
+from detector.sparse.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace
 
@@ -134,7 +134,7 @@ class AnchorHead(nn.Module):
         maps = []
         for conv in (self.conv_cls, self.conv_reg, self.conv_dir):
             o = conv.out_channels
-            vals = F.linear(rows.features, conv.weight.view(o, conv.in_channels), conv.bias)
+            vals = train_linear(rows.features, conv.weight.view(o, conv.in_channels), conv.bias)  # oneDNN in fp32
             # channel-planar (B, O, H*W) like the inference head: filling each channel's plane with its bias is a
             # contiguous broadcast (an interleaved (B*H*W, O) fill ran 1.5 GB/s); the N sites written in place
             full = conv.bias.to(vals.dtype)[None, :, None].expand(b, o, h * w).clone()

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from detector.sparse.autograd import GatherUnique, SubMGemm
-from detector.sparse.gemm import linear, linear_rows, row_buffer, uses_onednn
+from detector.sparse.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
@@ -153,9 +153,10 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
         torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
         return linear(cols, w)[:m]
     if workspace is None:
+        # training's product in oneDNN at a bucketed row count where it applies (detector.sparse.gemm.train_linear)
         if unique and _training(padded):
-            return GatherUnique.apply(padded, index).view(m, kc) @ matrix.t()
-        return padded.index_select(0, index).view(m, kc) @ matrix.t()
+            return train_linear(GatherUnique.apply(padded, index).view(m, kc), matrix)
+        return train_linear(padded.index_select(0, index).view(m, kc), matrix)
     cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
     torch.index_select(padded, 0, index, out=cols)
     out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
@@ -182,7 +183,7 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
         out = workspace.take(owner, "out", (index.numel(), o), features.dtype, features.device)
         return torch.index_select(prod, 0, index, out=out)
     if workspace is None:
-        prod = torch.cat([(features @ matrix).view(m * s, o), features.new_zeros(1, o)], dim=0)
+        prod = torch.cat([train_linear(features, matrix.t()).view(m * s, o), features.new_zeros(1, o)], dim=0)
         # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
         return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
     dtype = compute_dtype(features)
@@ -451,7 +452,7 @@ class SparseConvTranspose2d(SparseModule):
             if uses_onednn(x.features, w):
                 out = linear_rows(x.features, w.t(), workspace=ws, owner=self)  # oneDNN (detector.sparse.gemm)
             else:
-                out = x.features @ w if ws is None else torch.mm(
+                out = train_linear(x.features, w.t()) if ws is None else torch.mm(
                     x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
             t = up_table(target.coords, x.spatial_shape, x.lookup(), s)

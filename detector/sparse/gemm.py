@@ -1,4 +1,4 @@
-"""The inference GEMM of both models: ``x @ weight.t() (+ bias)`` through oneDNN on the CPU in float32.
+"""The GEMM of both models: ``x @ weight.t() (+ bias)`` through oneDNN on the CPU in float32 (inference and training).
 
 Why not ``torch.mm``: PyTorch's float32 ``mm`` / ``addmm`` / ``F.linear`` on the CPU call MKL's sgemm, while its
 convolutions run in oneDNN. On AMD CPUs MKL dispatches its AVX2 kernels even where the CPU has AVX-512, so a float32
@@ -6,9 +6,9 @@ GEMM there runs at about half the speed the same CPU gives a convolution. Measur
 AVX512-BF16), torch 2.13, 2 threads, minimum of 20 calls (``tools/bench_gemm.py``, docs/sparse.md "GEMM library"):
 the sparse model's block-3 SubM GEMM (150, 2304) x (2304, 256) 0.78 ms in MKL, 0.35 ms in oneDNN; block 1 (1200,
 576) x (576, 64) 0.39 vs 0.20 ms; a 4 MiB chunk of the dense neck's level 3, (512, 256) x (256, 2048), 2.45 vs 1.12
-ms. The dense backbone's convolutions are oneDNN already, so routing every other inference GEMM of both models (the
-sparse convs, the exact head, the dense neck's levels and head) through oneDNN is what makes the dense / sparse
-comparison like with like: one GEMM library on both sides.
+ms. The dense backbone's convolutions are oneDNN already (in training too), so routing every other GEMM of both
+models (the sparse convs, the exact head, the dense neck's levels and head; the sparse model's training products)
+through oneDNN is what makes the dense / sparse comparison like with like: one GEMM library on both sides.
 
 The oneDNN call is ``torch.ops.mkldnn._linear_pointwise``, the op PyTorch's own inductor emits for CPU linears (a
 private op, hence this one wrapper; the version is pinned). It takes the plain ``(O, K)`` weight (transposed views
@@ -16,8 +16,9 @@ too) and allocates its output. oneDNN builds (JIT-compiles) a kernel per operand
 not seen costs far more than a cached one (``tools/bench_gemm.py``'s "new shape" row), and the sparse
 convs' row counts change every frame. So callers with a varying row count hand it a buffer of :func:`bucket_rows`
 rows (the first ``m`` being theirs, the rest ignored) and keep the first ``m`` output rows: about 50 shapes per
-weight over 64..8,192 rows, at most 12.5 % (about 6 % on average) extra rows. Only inference uses it (training
-keeps ``torch.mm``; docs/sparse.md "GEMM library" says why its measured oneDNN form is not landed), and only in
+weight over 64..8,192 rows, at most 12.5 % (about 6 % on average) extra rows. Training's products take it as well
+(:func:`train_linear`, and ``SubMGemm`` in ``detector.sparse.autograd``): the rows zero-padded to a bucket, so the
+weight gradient's sum over rows is unchanged, and the backward's two products at the same row count. Only in
 float32: oneDNN has no float64 GEMM (the exactness tests run float64) and bf16's ``mm`` is oneDNN already. Results
 differ from MKL's by float rounding only (another summation order; tested to 1e-5 relative).
 
@@ -29,13 +30,15 @@ differ from MKL's by float rounding only (another summation order; tested to 1e-
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from detector.sparse.workspace import Workspace
 
-#: ``"auto"`` (oneDNN for float32 CPU inference) or ``"mkl"`` (``torch.mm`` always); see the module docstring.
+#: ``"auto"`` (oneDNN for float32 CPU GEMMs) or ``"mkl"`` (``torch.mm`` always); see the module docstring.
 BACKEND: str = os.environ.get("DETECTOR_GEMM", "auto")
 if BACKEND not in ("auto", "mkl"):
     raise ValueError(f"DETECTOR_GEMM must be 'auto' or 'mkl', got {BACKEND!r}")
@@ -99,3 +102,52 @@ def linear_rows(x: Tensor, weight: Tensor, bias: Tensor | None = None, workspace
     rows = row_buffer(m, x.shape[1], x, workspace, owner)
     rows[:m].copy_(x)
     return linear(rows, weight, bias)[:m]
+
+
+def trains_in_onednn(x: Tensor, weight: Tensor) -> bool:
+    """Whether a training product of these operands runs in oneDNN (:func:`train_linear`, ``SubMGemm``): ``BACKEND``
+    auto, float32 CPU tensors, outside autocast (bf16 autocast's ``mm`` is oneDNN already)."""
+    return (
+        BACKEND == "auto"
+        and _HAVE_ONEDNN
+        and x.device.type == "cpu"
+        and x.dtype == weight.dtype == torch.float32
+        and not torch.is_autocast_enabled("cpu")
+    )
+
+
+class _BucketedLinear(torch.autograd.Function):
+    """``x @ weight.t() (+ bias)`` for training in oneDNN: the rows zero-padded to :func:`bucket_rows` (one kernel per
+    bucket, like inference), the forward and both gradient products (``g @ W``, ``g.t() @ x``) run at that row
+    count. The padding rows are zero in ``x`` and in the output gradient, so the weight gradient's sum is unchanged."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+        m = x.shape[0]
+        rows = x.new_empty((bucket_rows(m), x.shape[1]))
+        rows[:m].copy_(x)
+        rows[m:].zero_()
+        ctx.save_for_backward(rows, weight)
+        ctx.m = m
+        return linear(rows, weight, bias)[:m]
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        rows, weight = ctx.saved_tensors
+        m = ctx.m
+        g = grad.new_empty((rows.shape[0], grad.shape[1]))
+        g[:m].copy_(grad)
+        g[m:].zero_()
+        grad_x = linear(g, weight.t())[:m] if ctx.needs_input_grad[0] else None  # (M, O) x (O, K)
+        grad_w = linear(g.t(), rows.t()) if ctx.needs_input_grad[1] else None  # (O, M) x (M, K)
+        grad_b = grad.sum(0) if ctx.needs_input_grad[2] else None
+        return grad_x, grad_w, grad_b
+
+
+def train_linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``x @ weight.t() (+ bias)`` with autograd: in oneDNN at a bucketed row count where :func:`trains_in_onednn`
+    says so (forward and backward; docs/sparse.md "GEMM library"), else ``torch.nn.functional.linear`` (MKL)."""
+    if trains_in_onednn(x, weight) and (bias is None or bias.dtype == torch.float32):
+        return _BucketedLinear.apply(x, weight, bias)
+    return torch.nn.functional.linear(x, weight, bias)
