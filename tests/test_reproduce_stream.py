@@ -22,6 +22,7 @@ from detector.reproduce.stream.report import (
 )
 from detector.reproduce.stream.results import StreamSummary, check_houses, read_runs, stream_frames
 from detector.reproduce.stream.sweep import HEADLINE, Setting, eval_dir, settings, stream_dir, sweep_points
+from mpchair.core.errors import InputError
 
 T2, T1 = Setting("768x512", 2), Setting("768x512", 1)
 
@@ -99,6 +100,15 @@ def test_report_section_and_markers(tmp_path):
     out = doc.read_text()
     assert out.startswith("# Title\n\nprotocol text\n\n") and out.endswith(f"{END}\n\nafter\n")
     assert "old" not in out and text in out
+    fresh = tmp_path / "new.md"  # no markers yet: the block is appended
+    fresh.write_text("# Title\n")
+    write_section(fresh, text)
+    assert fresh.read_text() == f"# Title\n\n{BEGIN}\n{text.rstrip(chr(10))}\n{END}\n"
+    broken = tmp_path / "broken.md"  # one marker without the other: an error naming the doc, the doc untouched
+    broken.write_text(f"# Title\n{BEGIN}\nold\n")
+    with pytest.raises(InputError, match="broken.md: expected one"):
+        write_section(broken, text)
+    assert broken.read_text() == f"# Title\n{BEGIN}\nold\n"
     paths = plot_curves(runs, T2, speeds, rates, tmp_path / "img")
     assert all(p.stat().st_size > 1000 for p in paths.values())
 

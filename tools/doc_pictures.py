@@ -21,6 +21,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from mpchair.core.doctable import replace_block
+from mpchair.core.errors import InputError
+
 ROOT = Path(__file__).resolve().parents[1]
 # The console script installed next to this interpreter: the venv's mpchair, not whatever is first on PATH.
 MPCHAIR = Path(sys.executable).with_name("mpchair")
@@ -108,10 +111,10 @@ def fill_blocks(text: str, blocks: dict[str, str], doc: Path) -> str:
     """``text`` with the lines between each block's markers replaced by ``blocks[name]``; a missing marker is an
     error (the doc and the script must name the same blocks)."""
     for name, body in blocks.items():
-        begin, end = markers(name)
-        if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
-            raise CommandError(f"{doc}: expected one '{begin}' line followed by one '{end}' line")
-        text = text[: text.index(begin) + len(begin)] + "\n" + body.rstrip("\n") + "\n" + text[text.index(end):]
+        try:
+            text = replace_block(text, *markers(name), body, doc)
+        except InputError as e:
+            raise CommandError(str(e)) from None
     return text
 
 

@@ -14,11 +14,15 @@ def markers(name: str) -> tuple[str, str]:
     return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
 
 
+def replace_block(text: str, begin: str, end: str, body: str, where: str | Path) -> str:
+    """``text`` with the lines between its one ``begin`` line and its one ``end`` line replaced by ``body``; ``where``
+    (the doc's path) names the doc in the error when the markers are missing, repeated or out of order."""
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise InputError(f"expected one '{begin}' line followed by one '{end}' line", where)
+    return text[: text.index(begin) + len(begin)] + "\n" + body.rstrip("\n") + "\n" + text[text.index(end):]
+
+
 def write_doc_table(doc: Path, table: str, marker: str) -> None:
     """Put ``table`` between the ``marker`` markers of ``doc`` (atomically); a doc without them is an error."""
     begin, end = markers(marker)
-    text = doc.read_text(encoding="utf-8")
-    if begin not in text or end not in text:
-        raise InputError(f"no {begin} ... {end} markers", doc)
-    head, rest = text.split(begin, 1)
-    write_text(doc, head + begin + "\n" + table + end + rest.split(end, 1)[1])
+    write_text(doc, replace_block(doc.read_text(encoding="utf-8"), begin, end, table, doc))

@@ -50,6 +50,7 @@ from detector.reproduce.stream.sweep import (
     stream_dir,
     sweep_points,
 )
+from mpchair.core.errors import InputError
 
 #: The seed of the held-out houses (make reproduce synthesizes its houses with its --seed, 0 by default).
 HELDOUT_SEED = 1000
@@ -189,6 +190,10 @@ def main(argv: list[str] | None = None) -> int:
     for run_step in COMMAND_STEPS:
         run_step(plan, r)
     if "report" in steps and not args.dry_run:
-        print(f"wrote {_report(args, plan)}")
+        try:
+            print(f"wrote {_report(args, plan)}")
+        except InputError as e:  # a report doc with one marker of the pair: say which, leave it as it was
+            print(f"error: {e}", file=sys.stderr)
+            return 1
     print(f"total time {(time.perf_counter() - t0) / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0

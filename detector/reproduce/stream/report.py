@@ -11,6 +11,7 @@ from detector.reproduce.runner import logged_commands
 from detector.reproduce.stream.results import HouseCheck, RunKey, StreamSummary
 from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting
 from mpchair.core.atomic import atomic_open, write_text
+from mpchair.core.doctable import replace_block
 
 BEGIN, END = "<!-- reproduce-stream results: begin -->", "<!-- reproduce-stream results: end -->"
 Runs = dict[RunKey, StreamSummary]
@@ -261,11 +262,9 @@ def plot_curves(runs: Runs, setting: Setting, speeds: list[float], rates: list[f
 
 
 def write_section(doc: Path, section: str) -> None:
-    """Replace the text between the markers of ``doc`` with ``section`` (markers appended if absent)."""
+    """Replace the text between the markers of ``doc`` with ``section`` (markers appended if both are absent; one
+    without the other is an :class:`~mpchair.core.errors.InputError` naming the doc, which stays as it was)."""
     text = doc.read_text(encoding="utf-8") if doc.exists() else ""
-    block = f"{BEGIN}\n{section}{END}"
-    if BEGIN in text and END in text:
-        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END):]
-    else:
-        text = text.rstrip("\n") + ("\n\n" if text else "") + block + "\n"
-    write_text(doc, text)
+    if BEGIN not in text and END not in text:
+        text = text.rstrip("\n") + ("\n\n" if text else "") + f"{BEGIN}\n{END}\n"
+    write_text(doc, replace_block(text, BEGIN, END, section, doc))
