@@ -18,7 +18,8 @@ def replace_block(text: str, begin: str, end: str, body: str, where: str | Path)
     """``text`` with the lines between its one ``begin`` line and its one ``end`` line replaced by ``body``; ``where``
     (the doc's path) names the doc in the error when the markers are missing, repeated or out of order."""
     if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
-        raise InputError(f"expected one '{begin}' line followed by one '{end}' line", where)
+        raise InputError(f"expected one '{begin}' line followed by one '{end}' line (the generated block's markers)",
+                         where)
     return text[: text.index(begin) + len(begin)] + "\n" + body.rstrip("\n") + "\n" + text[text.index(end):]
 
 
