@@ -49,15 +49,6 @@ from detector.train import train
 PRECISIONS = get_args(Precision)  # ("fp32", "bf16"): the ratio is fp32 / bf16
 
 
-def _library(backend: str) -> str:
-    """The library ``backend`` gives fp32 CPU GEMMs here (``detector.sparse.gemm.library``)."""
-    saved, gemm.BACKEND = gemm.BACKEND, backend
-    try:
-        return gemm.library()
-    finally:
-        gemm.BACKEND = saved
-
-
 def step_seconds(run: Path, warmup: int) -> list[float]:
     """Per-step seconds logged by the training loop in ``run/metrics.jsonl``, without the first ``warmup`` steps."""
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -122,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                "onednn_primitive_cache": int(os.environ["ONEDNN_PRIMITIVE_CACHE_CAPACITY"])}
     print(f"training step time (threads {args.threads}, torch {torch.__version__}, "
           f"{machine['cpu_capability']}; {args.rounds} rounds x {args.steps} steps after {args.warmup} warm-up; "
-          f"DETECTOR_GEMM {' / '.join(libraries)}: fp32 products in {' / '.join(_library(x) for x in libraries)}; "
+          f"DETECTOR_GEMM {' / '.join(libraries)}: fp32 products in {' / '.join(gemm.library(x) for x in libraries)}; "
           f"oneDNN kernel cache {machine['onednn_primitive_cache']})")
     print("| config | GEMM | " + " | ".join(f"{pr} ms/step" for pr in precisions) + " |"
           + (" fp32 / bf16 |" if len(precisions) == 2 else ""))

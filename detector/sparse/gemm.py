@@ -46,23 +46,28 @@ if BACKEND not in ("auto", "mkl"):
 _HAVE_ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
-def library() -> str:
-    """The library of eager float32 CPU GEMMs under the current ``BACKEND``: ``"onednn"`` or ``"mkl"`` (``detector
-    bench`` records it, :func:`detector.bench.run.machine_record`)."""
-    return "onednn" if BACKEND == "auto" and _HAVE_ONEDNN else "mkl"
+def library(backend: str | None = None) -> str:
+    """The library of eager float32 CPU GEMMs under ``backend`` (default: the current ``BACKEND``): ``"onednn"`` or
+    ``"mkl"`` (``detector bench`` records it, :func:`detector.bench.run.machine_record`)."""
+    return "onednn" if (BACKEND if backend is None else backend) == "auto" and _HAVE_ONEDNN else "mkl"
 
 
-def uses_onednn(x: Tensor, weight: Tensor) -> bool:
-    """Whether :func:`linear` of these operands runs in oneDNN: ``BACKEND`` auto, float32 CPU tensors, outside
-    autocast, autograd not recording them."""
+def trains_in_onednn(x: Tensor, weight: Tensor) -> bool:
+    """Whether a product of these operands runs in oneDNN when autograd may record it (:func:`train_linear`,
+    ``SubMGemm``): ``BACKEND`` auto, float32 CPU tensors, outside autocast (bf16 autocast's ``mm`` is oneDNN
+    already)."""
     return (
-        BACKEND == "auto"
-        and _HAVE_ONEDNN
+        library() == "onednn"
         and x.device.type == "cpu"
         and x.dtype == weight.dtype == torch.float32
         and not torch.is_autocast_enabled("cpu")
-        and not (torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad))
     )
+
+
+def uses_onednn(x: Tensor, weight: Tensor) -> bool:
+    """Whether :func:`linear` of these operands runs in oneDNN: :func:`trains_in_onednn`'s conditions, and autograd
+    not recording them (recorded products take :func:`train_linear`)."""
+    return trains_in_onednn(x, weight) and not (torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad))
 
 
 def bucket_rows(m: int) -> int:
@@ -104,16 +109,12 @@ def linear_rows(x: Tensor, weight: Tensor, bias: Tensor | None = None, workspace
     return linear(rows, weight, bias)[:m]
 
 
-def trains_in_onednn(x: Tensor, weight: Tensor) -> bool:
-    """Whether a training product of these operands runs in oneDNN (:func:`train_linear`, ``SubMGemm``): ``BACKEND``
-    auto, float32 CPU tensors, outside autocast (bf16 autocast's ``mm`` is oneDNN already)."""
-    return (
-        BACKEND == "auto"
-        and _HAVE_ONEDNN
-        and x.device.type == "cpu"
-        and x.dtype == weight.dtype == torch.float32
-        and not torch.is_autocast_enabled("cpu")
-    )
+def _zero_padded(x: Tensor, rows: int) -> Tensor:
+    """``x`` ``(M, K)`` as the first rows of a new ``(rows, K)`` matrix whose other rows are zero."""
+    out = x.new_empty((rows, x.shape[1]))
+    out[: x.shape[0]].copy_(x)
+    out[x.shape[0]:].zero_()
+    return out
 
 
 class _BucketedLinear(torch.autograd.Function):
@@ -124,9 +125,7 @@ class _BucketedLinear(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
         m = x.shape[0]
-        rows = x.new_empty((bucket_rows(m), x.shape[1]))
-        rows[:m].copy_(x)
-        rows[m:].zero_()
+        rows = _zero_padded(x, bucket_rows(m))
         ctx.save_for_backward(rows, weight)
         ctx.m = m
         return linear(rows, weight, bias)[:m]
@@ -136,9 +135,7 @@ class _BucketedLinear(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
         rows, weight = ctx.saved_tensors
         m = ctx.m
-        g = grad.new_empty((rows.shape[0], grad.shape[1]))
-        g[:m].copy_(grad)
-        g[m:].zero_()
+        g = _zero_padded(grad, rows.shape[0])
         grad_x = linear(g, weight.t())[:m] if ctx.needs_input_grad[0] else None  # (M, O) x (O, K)
         grad_w = linear(g.t(), rows.t()) if ctx.needs_input_grad[1] else None  # (O, M) x (M, K)
         grad_b = grad.sum(0) if ctx.needs_input_grad[2] else None
