@@ -164,7 +164,8 @@ class SegmentMax(torch.autograd.Function):
     """``max(rows of each pillar, pad where the pillar has a padded slot)`` per channel (:func:`_segment_max`), CPU,
     with a backward that hands each max's gradient to its one winning row (or to ``pad``). Torch's
     ``scatter_reduce(amax)`` + ``maximum`` did the same with tie-splitting backwards over eq masks: 9.3 ms of a CPU
-    training step (forward + backward, ``mpchair_sparse_cpu.yaml`` batches, 2 threads, 2026-12-06), 2.4 ms here."""
+    training step (forward + backward, torch.profiler on ``mpchair_sparse_cpu.yaml`` batches, 2 threads, 2026-12-06),
+    2.4 ms here."""
 
     @staticmethod
     def forward(ctx: Any, y: torch.Tensor, pad: torch.Tensor, offsets: torch.Tensor,

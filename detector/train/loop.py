@@ -249,8 +249,9 @@ def _model_and_optimiser(run: RunPlan, checkpoint: Checkpoint | None) -> tuple[M
     if run.info.distributed:
         convert_to_global_batchnorm(model)
     # fused: one kernel over every parameter instead of torch's foreach ops, the same update up to float rounding;
-    # 4.98 -> 2.73 ms per step for these models' 4.6 M parameters at 2 CPU threads (2-core EPYC, torch 2.13), a cost
-    # both models pay alike (docs/training.md, "Speed on CPU")
+    # 4.98 -> 2.73 ms per step for these models' 4.6 M parameters at 2 CPU threads (2-core EPYC, torch 2.13, a one-off
+    # timing loop; the train-step effect: tools/bench_train_step.py), a cost both models pay alike (docs/training.md,
+    # "Speed on CPU")
     optimizer = torch.optim.AdamW(model.parameters(), lr=tc.lr, betas=tc.betas, weight_decay=tc.weight_decay,
                                   fused=True)
     # Built before the optimiser state is loaded: its constructor resets lr / beta1 to step 0, the loaded param groups
