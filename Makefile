@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 export MPLBACKEND := Agg
 export PYVISTA_OFF_SCREEN := true
 
-.PHONY: demo test venv reproduce reproduce-stream reproduce-ablations
+.PHONY: demo test venv reproduce reproduce-stream reproduce-ablations accuracy-study
 
 venv:
 	@tools/bootstrap.sh $(PYTHON)
@@ -40,3 +40,11 @@ reproduce-ablations: venv
 # scripts are front-ends of detector/reproduce/.
 reproduce-stream: venv
 	$(BIN)/python tools/reproduce_stream.py --scale $(SCALE)
+
+# The accuracy study (issue 44; docs/results.md, "Accuracy"): restores docs/results-data/accuracy, regenerates the
+# house-split dataset (refused unless it is the recorded one), trains the next unfinished training for at most
+# MINUTES, tests finished ones, and writes the record and its analysis back. One session's share at a time: commit
+# docs/results-data/accuracy afterwards.
+MINUTES ?= 100
+accuracy-study: venv
+	$(BIN)/python tools/accuracy_study.py --minutes $(MINUTES)

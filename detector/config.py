@@ -140,8 +140,9 @@ class DataConfig:
     scaling: tuple[float, float] | None = None
 
 
-Schedule = Literal["constant", "onecycle"]
-"""Learning-rate schedule: ``constant`` (the reference) or ``onecycle`` (OpenPCDet's ``adam_onecycle``)."""
+Schedule = Literal["constant", "onecycle", "plateau"]
+"""Learning-rate schedule: ``constant`` (the reference), ``onecycle`` (OpenPCDet's ``adam_onecycle``) or ``plateau``
+(warm-up, constant LR, decay at a validation plateau, stop at the next: :mod:`detector.train.plateau`)."""
 Precision = Literal["fp32", "bf16"]
 """Training precision: ``fp32`` (the reference) or ``bf16`` (bfloat16 autocast of the forward pass)."""
 
@@ -162,6 +163,10 @@ class TrainConfig:
     ``lr / (div_factor * final_div_factor)``; AdamW's beta1 runs ``beta1_range[0] → beta1_range[1]`` (at the peak)
     ``→ beta1_range[0]`` and replaces ``betas[0]``. The defaults are OpenPCDet's ``adam_onecycle`` (pct_start 0.4,
     div_factor 10, final LR = initial / 1e4, moms [0.95, 0.85]). The one-cycle keys are ignored by ``constant``.
+``plateau``: a linear warm-up from ``lr / div_factor`` to ``lr`` over ``warmup_epochs``, then ``lr`` until the
+validation 3D AP (Overall R40, evaluated every epoch: ``eval_every`` must be 1) has not risen by ``plateau_min_delta``
+points over ``plateau_patience`` epochs; each of the first ``plateau_decays`` such plateaus multiplies the LR by
+``plateau_factor``, the next one stops the run; ``epochs`` is the cap (:mod:`detector.train.plateau`).
 
     ``precision``: ``fp32`` (the paper's), or ``bf16``: the forward pass runs under ``torch.autocast`` in bfloat16
     (convolutions and matmuls in bf16, accumulated in fp32 inside the kernels) while weights, optimiser state,
@@ -189,6 +194,11 @@ class TrainConfig:
     checkpoint_every: int = 2
     eval_every: int = 5
     precision: Precision = "fp32"
+    warmup_epochs: float = 1.0
+    plateau_patience: int = 5
+    plateau_min_delta: float = 1.0
+    plateau_decays: int = 1
+    plateau_factor: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -382,6 +392,17 @@ def check_train_config(cfg: TrainConfig, source: str = "<config>") -> None:
              f"{cfg.final_div_factor}")
     if not all(0.0 <= b < 1.0 for b in cfg.beta1_range):
         fail(f"beta1_range: both values must be in [0, 1), got {list(cfg.beta1_range)}")
+    if not (math.isfinite(cfg.warmup_epochs) and 0.0 <= cfg.warmup_epochs <= MAX_EPOCHS):
+        fail(f"warmup_epochs: must be >= 0, got {cfg.warmup_epochs}")
+    if not 1 <= cfg.plateau_patience <= MAX_EPOCHS or not 0 <= cfg.plateau_decays <= 10:
+        fail(f"plateau_patience / plateau_decays: must be >= 1 / in 0..10, got {cfg.plateau_patience}, "
+             f"{cfg.plateau_decays}")
+    if not (math.isfinite(cfg.plateau_min_delta) and cfg.plateau_min_delta >= 0.0):
+        fail(f"plateau_min_delta: must be a finite number >= 0 (AP points), got {cfg.plateau_min_delta}")
+    if not 0.0 < cfg.plateau_factor < 1.0:
+        fail(f"plateau_factor: must be strictly between 0 and 1, got {cfg.plateau_factor}")
+    if cfg.schedule == "plateau" and cfg.eval_every != 1:
+        fail(f"eval_every: the plateau schedule evaluates after every epoch (eval_every: 1), got {cfg.eval_every}")
 
 
 def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConfig:

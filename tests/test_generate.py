@@ -349,6 +349,29 @@ def test_split_modes_end_to_end(house_root, tmp_path, capsys):
     assert got == {s: [f"{i:06d}" for i in expect[s]] for s in got}
     houses = [{house_of[f] for f in got[s]} for s in ("train", "val", "test")]
     assert sum(map(len, houses)) == 3 and set().union(*houses) == set(ids)
+    manifest = read_manifest(tmp_path / "house")
+    assert {s: set(v) for s, v in manifest.split_houses.items()} == dict(zip(("train", "val", "test"), houses))
+
+    # chosen houses: --val-house / --test-house imply house mode; the manifest and its command record the choice
+    code, text = _cli(capsys, "generate", "--root", three, *sum((["--house", h] for h in ids), []), "--frames", "1",
+                      "--out", tmp_path / "chosen", "--val-house", ids[0], "--test-house", ids[2], "--quiet")
+    assert code == 0, text
+    manifest = read_manifest(tmp_path / "chosen")
+    assert manifest.split_houses == {"train": [ids[1]], "val": [ids[0]], "test": [ids[2]]}
+    assert manifest.config["split_mode"] == "house" and manifest.config["val_houses"] == [ids[0]]
+    assert ("--val-house", ids[0]) == tuple(manifest.command[manifest.command.index("--val-house"):][:2])
+    got = {s: read_imageset(tmp_path / "chosen" / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test")}
+    assert got == {"train": ["000001"], "val": ["000000"], "test": ["000002"]}
+    assert "split_houses" not in json.loads((tmp_path / "paper" / "manifest.json").read_text())  # other modes as before
+    for extra, message in ((["--val-house", ids[0], "--test-house", ids[0]], "both splits"),
+                           (["--val-house", "nope", "--test-house", ids[0]], "not one of the --house ids"),
+                           (["--val-house", ids[0], "--test-house", ids[1], "--split-mode", "frame"],
+                            "need --split-mode house"),
+                           (["--val-house", ids[0]], "at least one house for each")):
+        code, text = _cli(capsys, "generate", "--root", three, *sum((["--house", h] for h in ids), []), "--frames",
+                          "1", "--out", tmp_path / "bad", *extra, "--quiet")
+        assert code != 0 and message in text and "Traceback" not in text, text
+        assert not (tmp_path / "bad" / "training").exists()
 
 
 def test_open3d_backend_gives_the_embree_dataset(dataset, house_root, tmp_path):

@@ -50,6 +50,9 @@ def _resume_command(ctx: click.Context) -> str:
                    "and losses stay fp32); ~1.85x faster dense steps on CPUs with AVX512-BF16/AMX.")
 @click.option("--resume", is_flag=True, help="Continue from OUT/last.pt (identical to an uninterrupted run).")
 @click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps (whole run) and save.")
+@click.option("--max-minutes", type=float, default=None,
+              help="Stop after this much wall time (at the next step), save last.pt and print how to resume: a "
+                   "long training split over sessions.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
 @click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
 @click.option("--split", default="train", show_default=True, help="ImageSets split to train on.")
@@ -58,7 +61,8 @@ def _resume_command(ctx: click.Context) -> str:
 @click.option("--no-progress", is_flag=True,
               help="No progress bars (the plan, the duration estimate and one line per epoch are still printed).")
 def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, precision: str | None, resume: bool,
-          max_steps: int | None, device: str, threads: int | None, split: str, eval_split: str,
+          max_steps: int | None, max_minutes: float | None, device: str, threads: int | None, split: str,
+          eval_split: str,
           no_progress: bool) -> None:
     """Train dense or sparse PointPillars on a KITTI-format dataset.
 
@@ -79,7 +83,7 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
     check_writable(out_dir, folder=True)
     try:
         result = run_training(config_path, data_dir, out_dir, epochs=epochs, precision=precision, resume=resume,
-                              max_steps=max_steps, device=device, threads=threads, split=split,
+                              max_steps=max_steps, max_minutes=max_minutes, device=device, threads=threads, split=split,
                               eval_split=eval_split, progress=not no_progress, log=_say)
     except KeyboardInterrupt:
         if main_rank:
@@ -96,5 +100,7 @@ def train(config_path: str, data_dir: str, out_dir: str, epochs: int | None, pre
         sys.exit(1)
     if main_rank:
         loss = "n/a" if result.last_loss is None else f"{result.last_loss:.4f}"
+        ended = {"plateau": "; ended by the plateau rule", "time": "; --max-minutes reached: continue with "
+                 + _resume_command(click.get_current_context()), "max-steps": ""}.get(result.ended_by, "")
         click.echo(f"trained {result.epoch} epoch(s), {result.step} step(s), last loss {loss}; "
-                   f"checkpoint {result.last_checkpoint}")
+                   f"checkpoint {result.last_checkpoint}{ended}")

@@ -3,7 +3,7 @@
 Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as subprocesses and recorded):
 
     synth     mpchair synth              synthetic houses (Matterport3D release format)
-    generate  mpchair generate           the dataset (mp3d-depth90 sensor, seeded 60/20/20 frame split)
+    generate  mpchair generate           the dataset (mp3d-depth90 sensor, seeded 8 / 2 / 2 house split)
     stats     mpchair stats --density    D per frame at the paper's 768x512 geometry (test split)
     train     detector train             dense and sparse, the CPU-sized configs (mpchair_*_cpu.yaml)
     eval      detector eval              BEV / 3D AP at IoU 0.5 (val split): the KITTI protocol (Overall, where every
@@ -39,8 +39,9 @@ ablations to the committed run without training the dense and sparse models agai
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
 ``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule chosen to fit one 3-hour
-session of 2 cores together with ``make reproduce-stream``: 8 houses, 5,000 frames = 3,000 train / 1,000 val /
-1,000 test, dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in bfloat16 autocast where the CPU has native
+session of 2 cores together with ``make reproduce-stream``: 12 houses, 4,800 frames split by house = 3,200 train /
+800 val / 800 test (8 / 2 / 2 houses, none shared), dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in
+bfloat16 autocast where the CPU has native
 bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (a dense step ~0.25 s in bf16 on 2 AVX512-BF16 cores, ~1.75 s in
 fp32 on 2 AVX2-only ones: docs/benchmarks.md). ``--scale recipe`` is
 the longer schedule, dense 16 / sparse 20 epochs (about 4.5 hours on 2 native-bf16 cores, about 16 hours on 2

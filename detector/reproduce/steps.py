@@ -133,12 +133,15 @@ def run_synth(plan: Plan, r: Runner) -> None:
 
 
 def run_generate(plan: Plan, r: Runner) -> None:
-    """``mpchair generate``: the dataset of every house (mp3d-depth90 sensor, seeded per-frame split)."""
+    """``mpchair generate``: the dataset of every house (mp3d-depth90 sensor, the scale's seeded split: whole houses
+    per split, or per frame)."""
     if plan.todo("generate", step_outputs(plan.out)["generate"]["dataset"]):
         ids = house_ids(plan.houses) or [f"<house ids from {plan.houses}>"]
         cmd = [_tool("mpchair"), "generate", "--root", str(plan.houses), "--frames", str(plan.scale.frames_per_house),
                "--out", str(plan.data), "--sensor", "mp3d-depth90", "--seed", str(plan.seed), "--workers",
                str(plan.workers), "--quiet"]
+        if plan.scale.split_mode != "frame":  # the default, left out so that older records' commands stay as logged
+            cmd += ["--split-mode", plan.scale.split_mode]
         for h in ids:
             cmd += ["--house", h]
         r.run(cmd)

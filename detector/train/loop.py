@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -47,6 +48,7 @@ from detector.train.metrics import (
     plan_line,
     validation_line,
 )
+from detector.train.plateau import PlateauState, plateau_lr, plateau_state, tracked_ap
 from detector.train.resume import (
     Position,
     check_global_batch,
@@ -68,13 +70,21 @@ SAVE_INTERVAL_S = 900.0
 
 @dataclasses.dataclass(frozen=True)
 class TrainResult:
-    """What a finished (or ``max_steps``-stopped) run reached: completed ``epoch``s, global ``step``, final loss."""
+    """What a finished (or ``max_steps`` / ``max_minutes``-stopped) run reached: completed ``epoch``s, global
+    ``step``, final loss, and why it ended: ``epochs`` (the cap), ``plateau`` (the plateau schedule's rule),
+    ``max-steps`` or ``time`` (stopped early, resumable)."""
 
     out_dir: Path
     epoch: int
     step: int
     last_checkpoint: Path
     last_loss: float | None
+    ended_by: str = "epochs"
+
+    @property
+    def finished(self) -> bool:
+        """Whether the run is complete (not cut by ``max_steps`` or ``max_minutes``)."""
+        return self.ended_by in ("epochs", "plateau")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +104,8 @@ class RunPlan:
     steps_per_epoch: int
     total_steps: int
     max_steps: int | None
+    #: ``time.monotonic()`` after which the run saves and stops at the next step (None: no limit)
+    deadline: float | None
     data_dir: Path
     eval_split: str
     progress: bool
@@ -115,6 +127,13 @@ class RunPlan:
     def reached_max_steps(self, step: int) -> bool:
         return self.max_steps is not None and step >= self.max_steps
 
+    def out_of_time(self) -> bool:
+        """Whether ``max_minutes`` has run out (checked between steps, the same answer on every rank)."""
+        if self.deadline is None:
+            return False
+        late = float(time.monotonic() >= self.deadline)
+        return all_reduce_sum(torch.tensor([late], device=self.device))[0].item() > 0
+
     def say(self, line: str) -> None:
         """Hand one line meant for a person to ``report`` (rank 0 only)."""
         if self.report is not None and self.info.is_main:
@@ -130,6 +149,7 @@ def train(
     precision: str | None = None,
     resume: bool = False,
     max_steps: int | None = None,
+    max_minutes: float | None = None,
     device: str = "cpu",
     threads: int | None = None,
     split: str = "train",
@@ -140,7 +160,8 @@ def train(
     """Train the experiment ``config_path`` on ``data_dir`` (KITTI layout) into the run folder ``out_dir``.
 
     ``epochs`` overrides ``train.epochs`` and ``precision`` ``train.precision``; ``max_steps`` stops after that many
-    global steps (counted over the whole run, resumed parts included) and saves ``last.pt``; ``resume`` continues
+    global steps (counted over the whole run, resumed parts included) and saves ``last.pt``, ``max_minutes`` does the
+    same after that much wall time (at the next step boundary); ``resume`` continues
     from ``out_dir/last.pt`` (a fresh start if there is none). Under torchrun (``WORLD_SIZE`` > 1) the process group
     is joined here (gloo on CPU, nccl on CUDA). ``log`` receives the lines meant for a person, on rank 0 only: the
     plan and, after the first few steps, the expected duration (steps x measured seconds per step), one line per
@@ -158,6 +179,9 @@ def train(
         raise InputError(f"--max-steps must be >= 0, got {max_steps}")
     if epochs is not None and epochs < 0:
         raise InputError(f"--epochs must be >= 0, got {epochs}")
+    if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
+        raise InputError(f"--max-minutes must be a finite number > 0, got {max_minutes}")
+    deadline = None if max_minutes is None else time.monotonic() + 60.0 * max_minutes
     cfg = _experiment(config_path, epochs=epochs, precision=precision, device=dev)
     out = Path(out_dir)
     checkpoint = read_resume_checkpoint(out / "last.pt", cfg, resume=resume, config_path=config_path)
@@ -169,7 +193,7 @@ def train(
                   samples_per_epoch=samples_per_epoch, steps_per_epoch=samples_per_epoch // global_batch,
                   # The schedule spans the run's global steps: steps_per_epoch counts global batches, so it is the
                   # same number in a torchrun job and in one process with the same global batch.
-                  total_steps=tc.epochs * (samples_per_epoch // global_batch), max_steps=max_steps,
+                  total_steps=tc.epochs * (samples_per_epoch // global_batch), max_steps=max_steps, deadline=deadline,
                   data_dir=Path(data_dir), eval_split=eval_split, progress=progress, report=log)
     _check_plan(run, checkpoint, split=split, config_path=config_path)
     # Every frame's files are checked (and the GT database built in memory) before the run writes anything.
@@ -234,10 +258,10 @@ def _run(run: RunPlan, checkpoint: Checkpoint | None, database: GTDatabase | Non
                 and not log.has_eval(at.epoch))
         if all_reduce_sum(torch.tensor([float(redo)], device=run.device))[0] > 0:
             _evaluate(run, parts.model, at, log)
-        at, last_loss = _train_epochs(run, parts, base, at, log)
+        at, last_loss, ended_by = _train_epochs(run, parts, base, at, log)
     barrier()
     return TrainResult(out_dir=run.out, epoch=at.epoch, step=at.step, last_checkpoint=run.last_path,
-                       last_loss=last_loss)
+                       last_loss=last_loss, ended_by=ended_by)
 
 
 def _model_and_optimiser(run: RunPlan, checkpoint: Checkpoint | None) -> tuple[ModelAndOptimiser, Position]:
@@ -291,38 +315,74 @@ class _EpochPart(NamedTuple):
     last_loss: float | None
 
 
-def _train_epochs(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: Position,
-                  log: MetricsLog) -> tuple[Position, float | None]:
-    """Epoch after epoch from ``at`` until ``train.epochs`` or ``max_steps`` (then ``last.pt`` is saved there);
-    returns the final position and the last step's loss."""
+def _plateau(run: RunPlan, log: MetricsLog) -> PlateauState | None:
+    """The plateau rule's state after the evaluated epochs in ``log`` (None: another schedule). Rank 0 decides from
+    its log; the other ranks receive its decision."""
     tc = run.cfg.train
+    if tc.schedule != "plateau":
+        return None
+    aps = [tracked_ap(log.evals[e], run.cfg.eval.classes) for e in range(1, len(log.evals) + 1) if e in log.evals]
+    state = plateau_state(aps, tc)
+    if run.info.distributed:
+        mine = torch.tensor([float(state.decays), float(state.stopped_at or 0)], device=run.device)
+        decided = all_reduce_sum(mine if run.info.is_main else torch.zeros_like(mine))
+        stopped = int(decided[1].item())
+        state = PlateauState(decays=int(decided[0].item()), decay_epochs=state.decay_epochs,
+                             stopped_at=stopped or None)
+    return state
+
+
+def _train_epochs(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: Position,
+                  log: MetricsLog) -> tuple[Position, float | None, str]:
+    """Epoch after epoch from ``at`` until ``train.epochs``, the plateau rule, ``max_steps`` or ``max_minutes``
+    (then ``last.pt`` is saved there); returns the final position, the last step's loss and why the run ended
+    (:attr:`TrainResult.ended_by`)."""
+    tc = run.cfg.train
+    plateau = _plateau(run, log)
+    if plateau is not None and plateau.stopped_at is not None:
+        run.say(f"the plateau rule stopped this run after epoch {plateau.stopped_at}: nothing to train")
+        return at, None, "plateau"
     end_step = run.total_steps if run.max_steps is None else min(run.total_steps, max(run.max_steps, at.step))
     estimate = DurationEstimate(first_step=at.step, todo=end_step - at.step)
     saves = _SaveClock()
     run.say(plan_line(todo=estimate.todo, epochs=tc.epochs, steps_per_epoch=run.steps_per_epoch,
                       global_batch=run.global_batch, resumed_at=at.step, max_steps=run.max_steps,
                       stops_early=end_step < run.total_steps, will_estimate=estimate.will_measure))
-    last_loss, stopped = None, False
+    last_loss, stopped, ended_by = None, False, "epochs"
     while at.epoch < tc.epochs:
-        if run.reached_max_steps(at.step):
+        if run.reached_max_steps(at.step) or run.out_of_time():
             stopped = True
             break
-        part = _train_epoch(run, parts, base, at, log, estimate, saves)
+        part = _train_epoch(run, parts, base, at, log, estimate, saves, plateau)
         at = part.at
         if part.last_loss is not None:
             last_loss = part.last_loss
         if part.stopped or at.step_in_epoch < run.steps_per_epoch:
-            stopped = True  # --max-steps hit inside the epoch
+            stopped = True  # --max-steps / --max-minutes hit inside the epoch
             break
         at = Position(epoch=at.epoch + 1, step_in_epoch=0, step=at.step)
         _finish_epoch(run, parts, at, part, log, saves, per_step=estimate.rolling(), steps_left=end_step - at.step)
+        if plateau is not None:
+            before, plateau = plateau, _plateau(run, log)
+            if plateau.stopped_at is not None:
+                ended_by = "plateau"
+                break
+            if plateau.decays > before.decays:
+                lr = plateau_lr(at.step, steps_per_epoch=run.steps_per_epoch, decays=plateau.decays, tc=tc)
+                run.say(f"plateau after epoch {at.epoch}: LR x {tc.plateau_factor:g} from now ({lr:.3g})")
     if stopped:
         _save(run, parts, at, run.last_path)
-    return at, last_loss
+        return at, last_loss, "max-steps" if run.reached_max_steps(at.step) else "time"
+    log.end(epoch=at.epoch, step=at.step, reason=ended_by,
+            decay_epochs=list(plateau.decay_epochs) if plateau is not None else [])
+    if ended_by == "plateau":
+        run.say(f"plateau rule: stopped after epoch {at.epoch} (LR decays after epochs "
+                f"{', '.join(map(str, plateau.decay_epochs)) or 'none'})")
+    return at, last_loss, ended_by
 
 
 def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: Position, log: MetricsLog,
-                 estimate: DurationEstimate, saves: _SaveClock) -> _EpochPart:
+                 estimate: DurationEstimate, saves: _SaveClock, plateau: PlateauState | None) -> _EpochPart:
     """The steps of epoch ``at.epoch + 1`` from ``at.step_in_epoch`` to its end (or ``max_steps``): each trained,
     logged, counted in the estimate, and ``last.pt`` saved when the save clock is due."""
     tc = run.cfg.train
@@ -339,9 +399,13 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
     sums, steps, last_loss, stopped = ZERO_LOSSES, 0, None, False
     t_epoch = time.perf_counter()
     for batch in rank_loader(keys, base, tc.num_workers, pin=pin_memory(settings.device)):
-        if run.reached_max_steps(at.step):
+        if run.reached_max_steps(at.step) or run.out_of_time():
             stopped = True
             break
+        if plateau is not None:  # the plateau schedule's LR is a function of the step and the decays so far
+            lr = plateau_lr(at.step, steps_per_epoch=run.steps_per_epoch, decays=plateau.decays, tc=tc)
+            for group in parts.optimizer.param_groups:
+                group["lr"] = lr
         t0 = time.perf_counter()
         stats = train_step(batch, parts, settings, epoch=at.epoch, step=at.step)
         at = Position(epoch=at.epoch, step_in_epoch=at.step_in_epoch + 1, step=at.step + 1)

@@ -53,6 +53,12 @@ class MetricsLog:
     def __init__(self, path: Path, *, step: int, writes: bool) -> None:
         self.path = path
         self._kept = read_metrics(path, step) if writes else []
+        #: the evaluation records by epoch (kept ones, then this run's), for the plateau rule
+        self.evals: dict[int, dict] = {}
+        for line in self._kept:
+            rec = json.loads(line)
+            if rec.get("kind") == "eval":
+                self.evals[int(rec["epoch"])] = rec
         if writes:
             write_text(path, "".join(line + "\n" for line in self._kept))
         self._file = open(path, "a", encoding="utf-8") if writes else None  # noqa: SIM115 (closed by close())
@@ -89,7 +95,13 @@ class MetricsLog:
 
     def eval(self, *, epoch: int, step: int, split: str, result: dict) -> None:
         """The evaluation of the weights after epoch ``epoch`` on ``split`` (a KITTI result's JSON dict)."""
-        self.write({"kind": "eval", "epoch": epoch, "step": step, "split": split, **result})
+        record = {"kind": "eval", "epoch": epoch, "step": step, "split": split, **result}
+        self.evals[epoch] = record
+        self.write(record)
+
+    def end(self, *, epoch: int, step: int, reason: str, **details: object) -> None:
+        """The record of a run's end: ``reason`` ``plateau`` (the plateau rule stopped it) or ``epochs`` (the cap)."""
+        self.write({"kind": "end", "epoch": epoch, "step": step, "reason": reason, **details})
 
     def close(self) -> None:
         if self._file is not None:

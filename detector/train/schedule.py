@@ -19,14 +19,15 @@ from mpchair.core.errors import InputError
 
 def build_scheduler(optimizer: torch.optim.Optimizer, cfg: ExperimentConfig,
                     total_steps: int) -> torch.optim.lr_scheduler.LRScheduler | None:
-    """The LR scheduler of ``train.schedule`` over ``total_steps`` global optimiser steps (None: constant LR).
+    """The LR scheduler of ``train.schedule`` over ``total_steps`` global optimiser steps (None: constant LR, or
+    ``plateau``, whose LR the epoch loop sets from :func:`detector.train.plateau.plateau_lr`).
 
     ``onecycle``: ``OneCycleLR`` with ``max_lr = train.lr``, cosine annealing, and AdamW's beta1 cycled from
     ``beta1_range[0]`` down to ``beta1_range[1]`` at the peak and back (OpenPCDet's ``adam_onecycle``). Creating it
     sets the optimiser's lr and beta1 to their step-0 values. A run without steps (``total_steps == 0``) gets None.
     """
     tc = cfg.train
-    if tc.schedule == "constant" or total_steps == 0:
+    if tc.schedule in ("constant", "plateau") or total_steps == 0:  # plateau: the loop sets the LR per step
         return None
     return torch.optim.lr_scheduler.OneCycleLR(
         optimizer, max_lr=tc.lr, total_steps=total_steps, pct_start=tc.pct_start, anneal_strategy="cos",

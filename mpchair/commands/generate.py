@@ -37,7 +37,14 @@ def _parse_shard(value: str) -> tuple[int, int]:
               help="mpcat40 class to label; repeat for several.")
 @click.option("--keep-empty", is_flag=True, help="Keep frames without a kept box (they get one DontCare row).")
 @click.option("--split-mode", type=click.Choice(["frame", "house", "paper"]), default="frame", show_default=True,
-              help="frame: seeded 60/20/20 over frames; house: over houses; paper: the paper's layout.")
+              help="frame: seeded 60/20/20 over frames; house: whole houses per split (no house shared; seeded "
+                   "60/20/20 of the houses, or --val-house / --test-house); paper: the paper's layout.")
+@click.option("--val-house", "val_houses", multiple=True,
+              help="House (one of --house) held out for the val split; repeat for several. Implies --split-mode "
+                   "house; every house not named for val or test trains.")
+@click.option("--test-house", "test_houses", multiple=True,
+              help="House (one of --house) held out for the test split; repeat for several (implies --split-mode "
+                   "house).")
 @click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree", show_default=True,
               help="Raycasting backend.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Worker processes.")
@@ -53,7 +60,8 @@ def _parse_shard(value: str) -> tuple[int, int]:
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor: str, seed: int, height: float,
-             robot_radius: float, categories: tuple[str, ...], keep_empty: bool, split_mode: str, backend: str,
+             robot_radius: float, categories: tuple[str, ...], keep_empty: bool, split_mode: str,
+             val_houses: tuple[str, ...], test_houses: tuple[str, ...], backend: str,
              workers: int, shard: str, viewpoints: str, max_attempts: int, as_json: bool, quiet: bool) -> None:
     """Generate a Matterport-Chair dataset in KITTI layout by raycasting the labelled house meshes (Embree).
 
@@ -67,6 +75,8 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
       mpchair generate --root houses/ --house X --frames 200 --out dataset/
       mpchair generate --root mp3d_habitat.zip --house X --frames 200 --viewpoints navmesh --out dataset/
       mpchair generate --root mp3d/ --house A --house B --frames 3750 --height 1.25 --split-mode paper --out mpc/
+      mpchair generate --root mp3d/ --house A --house B --house C --house D --frames 500 \
+          --val-house C --test-house D --out mpc/   # house-disjoint: A, B train; C val; D test
       mpchair generate ... --shard 3/8        # one job of a cluster array
     """
     from mpchair.core.atomic import check_writable
@@ -77,9 +87,13 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
     keep_freed_memory()  # this process makes frames itself when --workers 1 (see mpchair/core/heap.py)
 
     check_writable(out, folder=True)
+    if (val_houses or test_houses) and (click.get_current_context().get_parameter_source("split_mode")
+                                        == click.core.ParameterSource.DEFAULT):
+        split_mode = "house"
     req = GenerateRequest(
         root=root, houses=tuple(houses), frames=frames, out=out, sensor=sensor, seed=seed, height=height,
         robot_radius=robot_radius, categories=tuple(categories), keep_empty=keep_empty, split_mode=split_mode,
+        val_houses=tuple(val_houses), test_houses=tuple(test_houses),
         backend=backend, workers=workers, shard=_parse_shard(shard), max_attempts=max_attempts, progress=not quiet,
         viewpoints=viewpoints,
     )  # fmt: skip

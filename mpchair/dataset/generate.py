@@ -65,7 +65,7 @@ from mpchair.dataset.manifest import (
     describe_records,
     read_frame_record,
 )
-from mpchair.dataset.splits import SPLIT_MODES, TESTING_KINDS, split_frames, write_testing_folder
+from mpchair.dataset.splits import SPLIT_MODES, TESTING_KINDS, house_splits, split_frames, write_testing_folder
 from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.kitti import write_imageset
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
@@ -97,6 +97,9 @@ class GenerateRequest:
     categories: tuple[str, ...] = ("chair",)
     keep_empty: bool = False
     split_mode: str = "frame"
+    #: ``house`` mode: the houses held out for val / test (every other house trains); empty: a seeded choice
+    val_houses: tuple[str, ...] = ()
+    test_houses: tuple[str, ...] = ()
     backend: str = "embree"
     workers: int = 1
     shard: tuple[int, int] = (0, 1)
@@ -187,6 +190,9 @@ def _settings(req: GenerateRequest, sensor: SensorConfig, params: ViewpointParam
         "categories": list(cats),
         "keep_empty": req.keep_empty,
         "split_mode": req.split_mode,
+        # only when chosen, so that the settings (and bytes) of every other run stay as they were
+        **({"val_houses": list(req.val_houses), "test_houses": list(req.test_houses)}
+           if req.val_houses or req.test_houses else {}),
         "backend": req.backend,
         "max_attempts": req.max_attempts,
     }
@@ -326,8 +332,16 @@ def _check_numbers(req: GenerateRequest) -> None:
         raise InputError(f"--robot-radius must be a finite number >= 0 (metres), got {req.robot_radius}")
     if req.split_mode not in SPLIT_MODES:
         raise InputError(f"--split-mode must be one of {', '.join(SPLIT_MODES)}, got {req.split_mode!r}")
-    if req.split_mode == "house" and len(req.houses) < 3:
+    if req.split_mode == "house" and len(req.houses) < 3 and not (req.val_houses or req.test_houses):
         raise InputError(f"--split-mode house needs at least 3 houses, got {len(req.houses)}")
+    if (req.val_houses or req.test_houses) and req.split_mode != "house":
+        raise InputError(f"--val-house / --test-house choose whole houses: they need --split-mode house, not "
+                         f"{req.split_mode}")
+    for flag, chosen in (("--val-house", req.val_houses), ("--test-house", req.test_houses)):
+        for h in chosen:
+            if h not in req.houses:
+                raise InputError(f"{flag} {h}: not one of the --house ids ({', '.join(req.houses)})")
+    held_out_positions(req)  # the split itself (a house in both, none left to train) is checked before any frame
 
 
 def generate(req: GenerateRequest) -> GenerateSummary:
@@ -495,17 +509,33 @@ def _assemble(plan: _Plan, n_total: int) -> Manifest:
                     q.unlink(missing_ok=True)
     records = tuple(read_frame_record(record_path(out, f"{g:06d}")) for g in range(n_total))
     req = plan.req
-    splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed)
+    splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed, held_out_positions(req))
     for name, ids in splits.items():
         write_imageset(out / "ImageSets" / f"{name}.txt", ids)
     write_testing_folder(out, list(splits.get("test", ())))
-    manifest = _manifest(plan, records, {k: len(v) for k, v in splits.items()})
+    split_houses = None
+    if req.split_mode == "house":
+        positions = house_splits(len(req.houses), req.seed, held_out_positions(req))
+        split_houses = {name: [req.houses[p] for p in ps] for name, ps in positions.items()}
+    manifest = _manifest(plan, records, {k: len(v) for k, v in splits.items()}, split_houses)
     write_text(out / MANIFEST_NAME, manifest.to_json() + "\n")
     return manifest
 
 
-def _manifest(plan: _Plan, records: tuple[FrameRecord, ...], splits: dict[str, int]) -> Manifest:
-    """The manifest of the complete dataset: ``records`` every frame's, ``splits`` the split sizes."""
+def held_out_positions(req: GenerateRequest) -> dict[str, tuple[int, ...]] | None:
+    """The ``--house`` positions of the chosen val / test houses (None: none chosen), checked as a split."""
+    if not (req.val_houses or req.test_houses):
+        return None
+    held = {"val": tuple(req.houses.index(h) for h in req.val_houses),
+            "test": tuple(req.houses.index(h) for h in req.test_houses)}
+    house_splits(len(req.houses), req.seed, held)
+    return held
+
+
+def _manifest(plan: _Plan, records: tuple[FrameRecord, ...], splits: dict[str, int],
+              split_houses: dict[str, list[str]] | None = None) -> Manifest:
+    """The manifest of the complete dataset: ``records`` every frame's, ``splits`` the split sizes,
+    ``split_houses`` which house went where (house mode)."""
     req, houses, settings = plan.req, plan.houses, plan.settings
     counts = describe_records(records)
     return Manifest(
@@ -522,6 +552,7 @@ def _manifest(plan: _Plan, records: tuple[FrameRecord, ...], splits: dict[str, i
         totals=ManifestTotals(frames=len(records), boxes_kept=counts.kept, boxes_rejected=counts.rejected,
                               points=int(sum(r.points for r in records))),
         frames=records,
+        split_houses=split_houses,
     )
 
 
@@ -532,6 +563,8 @@ def _command(req: GenerateRequest, sensor_name: str, cats: tuple[str, ...]) -> t
         command += ["--house", h]
     command += ["--frames", str(req.frames), "--sensor", sensor_name, "--seed", str(req.seed),
                 "--height", repr(req.height), "--robot-radius", repr(req.robot_radius), "--split-mode", req.split_mode,
+                *[w for h in req.val_houses for w in ("--val-house", h)],
+                *[w for h in req.test_houses for w in ("--test-house", h)],
                 "--backend", req.backend, "--max-attempts", str(req.max_attempts)]
     for c in cats:
         command += ["--category", c]

@@ -184,8 +184,9 @@ class Manifest:
     """What ``manifest.json`` holds: ``format`` (:data:`MANIFEST_FORMAT`), the ``command`` that makes the dataset
     (``--root`` by folder name only), ``config`` (the run's settings, as ``.generate.json`` holds them), package
     ``versions``, ``seed``, ``houses`` (id → :class:`ManifestHouse`, in ``--house`` order), ``conventions`` (what the
-    files mean, :func:`conventions`), ``splits`` (name → frames, in train / val / test order), ``totals`` and one
-    :class:`FrameRecord` per frame in id order."""
+    files mean, :func:`conventions`), ``splits`` (name → frames, in train / val / test order), ``totals``, one
+    :class:`FrameRecord` per frame in id order and, for a house-disjoint split (``--split-mode house``),
+    ``split_houses`` (split name → its house ids, in ``--house`` order; None and absent from the file otherwise)."""
 
     format: str
     command: tuple[str, ...]
@@ -197,6 +198,7 @@ class Manifest:
     splits: dict[str, int]
     totals: ManifestTotals
     frames: tuple[FrameRecord, ...]
+    split_houses: dict[str, list[str]] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The manifest as JSON data."""
@@ -206,7 +208,8 @@ class Manifest:
         return {"format": self.format, "command": list(self.command), "config": self.config,
                 "versions": self.versions, "seed": self.seed,
                 "houses": {hid: h.to_dict() for hid, h in self.houses.items()}, "conventions": self.conventions,
-                "splits": self.splits, "totals": self.totals.to_dict()}  # fmt: skip
+                "splits": self.splits, "totals": self.totals.to_dict(),
+                **({"split_houses": self.split_houses} if self.split_houses is not None else {})}  # fmt: skip
 
     def to_json(self) -> str:
         """The file's text without its final newline: sorted keys, indented by one space, except that the ``frames``
@@ -232,6 +235,7 @@ class Manifest:
                    houses={hid: ManifestHouse.from_dict(h) for hid, h in data["houses"].items()},
                    conventions=dict(data["conventions"]), splits=dict(data["splits"]),
                    totals=ManifestTotals.from_dict(data["totals"]),
+                   split_houses=_split_houses(data.get("split_houses")),
                    frames=tuple(_frame_at(data["frames"], i) for i in range(len(data["frames"]))))  # fmt: skip
 
 
@@ -245,6 +249,16 @@ def _frame_at(frames: Sequence[Any], i: int) -> FrameRecord:
         return FrameRecord.from_dict(frames[i])
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise ValueError(f"frames[{i}]: {_why(e)}") from None
+
+
+def _split_houses(value: Any) -> dict[str, list[str]] | None:
+    """The manifest's optional ``split_houses`` (split → house ids), checked."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(v, list) and all(isinstance(h, str) for h in v)
+                                              for v in value.values()):
+        raise TypeError("split_houses: expected an object of split name -> list of house ids")
+    return {str(k): list(v) for k, v in value.items()}
 
 
 def _why(e: Exception) -> str:

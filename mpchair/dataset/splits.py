@@ -4,8 +4,10 @@
   to ``test``; the pool (houses in command-line order) is split at 2/3: indices below go to ``train``, the last third
   to ``val`` (the original: training index < 5000 of 7500). As in the paper, train and test share houses.
 * ``frame`` (default): a seeded random permutation of all frames, cut 60 / 20 / 20 % into train / val / test.
-* ``house``: houses (not frames) are shuffled with the seed and assigned whole, 60 / 20 / 20 % of the houses (at least
-  one each; needs 3 houses), so no house is shared between splits.
+* ``house``: houses (not frames) are assigned whole, so no house is shared between splits: the ones the user names
+  for ``val`` / ``test`` (``--val-house`` / ``--test-house``, every other house trains), or else a seeded shuffle
+  cut 60 / 20 / 20 % of the houses (at least one each; needs 3 houses; 12 houses give 8 / 2 / 2). The manifest
+  records which house went where (``split_houses``).
 
 Frame ids are global 6-digit indices, ``house position * frames_per_house + frame index``.
 """
@@ -25,8 +27,34 @@ SPLIT_MODES = ("frame", "house", "paper")
 FRACTIONS = (0.6, 0.2, 0.2)
 
 
-def split_frames(n_houses: int, frames_per_house: int, mode: str, seed: int) -> dict[str, list[int]]:
-    """``{"train": [...], "val": [...], "test": [...]}`` of global frame indices (each list sorted)."""
+def house_splits(n_houses: int, seed: int, held_out: dict[str, tuple[int, ...]] | None = None) -> dict[str, list[int]]:
+    """``{"train": [...], "val": [...], "test": [...]}`` of house positions (``--house`` order, each list sorted) for
+    ``house`` mode: ``held_out`` names the val / test positions (the rest train), else a seeded 60 / 20 / 20 cut."""
+    if held_out:
+        val, test = sorted(held_out.get("val", ())), sorted(held_out.get("test", ()))
+        if not val or not test:
+            raise InputError("--val-house and --test-house: name at least one house for each")
+        if set(val) & set(test):
+            raise InputError("--val-house and --test-house: a house cannot be in both splits")
+        train = [p for p in range(n_houses) if p not in set(val) | set(test)]
+        if not train:
+            raise InputError("--val-house / --test-house leave no house to train on")
+        return {"train": train, "val": val, "test": test}
+    if n_houses < 3:
+        raise InputError(f"--split-mode house needs at least 3 houses, got {n_houses}")
+    rng = np.random.default_rng([seed, zlib.crc32(b"split"), zlib.crc32(b"house")])
+    perm = rng.permutation(n_houses)
+    n_val = max(1, int(round(FRACTIONS[1] * n_houses)))
+    n_test = max(1, int(round(FRACTIONS[2] * n_houses)))
+    n_train = n_houses - n_val - n_test
+    parts = np.split(perm, [n_train, n_train + n_val])
+    return {name: sorted(int(p) for p in part) for name, part in zip(("train", "val", "test"), parts, strict=True)}
+
+
+def split_frames(n_houses: int, frames_per_house: int, mode: str, seed: int,
+                 held_out: dict[str, tuple[int, ...]] | None = None) -> dict[str, list[int]]:
+    """``{"train": [...], "val": [...], "test": [...]}`` of global frame indices (each list sorted); ``held_out``:
+    :func:`house_splits`' chosen val / test house positions (``house`` mode only)."""
     n = n_houses * frames_per_house
     ids = np.arange(n)
     rng = np.random.default_rng([seed, zlib.crc32(b"split"), zlib.crc32(mode.encode())])
@@ -43,15 +71,9 @@ def split_frames(n_houses: int, frames_per_house: int, mode: str, seed: int) -> 
         b = a + int(round(FRACTIONS[1] * n))
         train, val, test = perm[:a], perm[a:b], perm[b:]
     elif mode == "house":
-        if n_houses < 3:
-            raise InputError(f"--split-mode house needs at least 3 houses, got {n_houses}")
-        perm = rng.permutation(n_houses)
-        n_val = max(1, int(round(FRACTIONS[1] * n_houses)))
-        n_test = max(1, int(round(FRACTIONS[2] * n_houses)))
-        n_train = n_houses - n_val - n_test
-        parts = np.split(perm, [n_train, n_train + n_val])
+        parts = house_splits(n_houses, seed, held_out)
         house_of = ids // frames_per_house
-        train, val, test = (ids[np.isin(house_of, p)] for p in parts)
+        train, val, test = (ids[np.isin(house_of, parts[k])] for k in ("train", "val", "test"))
     else:
         raise InputError(f"unknown split mode {mode!r} (choose from {', '.join(SPLIT_MODES)})")
     return {"train": sorted(int(i) for i in train), "val": sorted(int(i) for i in val),

@@ -8,7 +8,7 @@ Bad input raises :class:`mpchair.core.errors.InputError` naming the file and lin
 
 from mpchair.kitti.calib import CALIB_KEYS, Calib, format_calib, read_calib, to_4x4, write_calib
 from mpchair.kitti.imagesets import read_imageset, write_imageset
-from mpchair.kitti.labels import DONTCARE, Labels, format_labels, read_labels, write_labels
+from mpchair.kitti.labels import DONTCARE, Labels, format_labels, parse_labels, read_labels, write_labels
 from mpchair.kitti.layout import FramePaths, frame_paths, imageset_path, read_image_size
 from mpchair.kitti.odometry import format_poses, format_times, read_poses, read_times, write_poses, write_times
 from mpchair.kitti.velodyne import read_velodyne, velodyne_rows, write_velodyne
@@ -21,6 +21,7 @@ __all__ = [
     "Labels",
     "format_calib",
     "format_labels",
+    "parse_labels",
     "format_poses",
     "format_times",
     "frame_paths",

@@ -142,7 +142,12 @@ def read_labels(path: str | Path) -> Labels:
     rows, a non-number, a NaN / infinity or a non-integer ``occluded`` is an :class:`InputError` naming file and line.
     """
     path = Path(path)
-    text = read_text(path, "label file")
+    return parse_labels(read_text(path, "label file"), path)
+
+
+def parse_labels(text: str, path: str | Path) -> Labels:
+    """The labels in ``text``, a label file's content (:func:`read_labels`; ``path`` names it in errors: a file, or an
+    entry of an archive)."""
     names: list[str] = []
     rows: list[list[float]] = []
     occluded: list[int] = []

@@ -1,0 +1,136 @@
+"""``tools/accuracy_study.py`` (``make accuracy-study``): the accuracy study, one session's share at a time.
+
+Steps, in order (``--steps`` picks a subset):
+
+    restore   copy the record's trainings into the work folder (a cut training continues from its ``last.pt``)
+    dataset   mpchair synth + generate: the full scale's 12 houses, 4,800 frames split 8 / 2 / 2 by house; refused
+              (exit 2) unless byte for byte the record's dataset
+    train     detector train of the next unfinished training (or ``--training``), for at most ``--minutes``: it stops
+              at the plateau rule, the 60-epoch cap, or the time limit (then it is saved and resumes next session)
+    test      detector eval on the test split of every finished, untested training (KITTI + Open3D-ML protocol)
+    record    the work folder's state into the record (docs/results-data/accuracy): run summaries, a cut training's
+              resumable last.pt, test detections; then the analysis (accuracy.json, accuracy.md, curves.png)
+
+A full study is 10 trainings (dense and sparse x seeds 0-2, the four ablations x seed 0); docs/results.md,
+"Accuracy", says how many are in the record and what the gap's interval supports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from detector.reproduce.record import dataset_fingerprint
+from detector.reproduce.runner import ROOT, Runner
+from detector.reproduce.study import (
+    Study,
+    by_name,
+    done_trainings,
+    make_dataset,
+    next_training,
+    read_study_record,
+    restore,
+    save,
+    test,
+    train,
+    trainings,
+)
+
+STEPS = ("restore", "dataset", "train", "test", "record")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n", 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "accuracy", help="work folder (default out/accuracy)")
+    p.add_argument("--record", type=Path, default=ROOT / "docs" / "results-data" / "accuracy",
+                   help="the study's record (default docs/results-data/accuracy)")
+    p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
+    p.add_argument("--training", default=None,
+                   help="the training to run (default: the first unfinished one of "
+                        f"{', '.join(t.name for t in trainings())})")
+    p.add_argument("--minutes", type=float, default=100.0,
+                   help="wall-time limit of this session's training (default 100): it saves and stops there")
+    p.add_argument("--threads", type=int, default=2, help="torch threads for train / eval")
+    p.add_argument("--workers", type=int, default=2, help="mpchair generate worker processes")
+    p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples of the test frames")
+    p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p.add_argument("--status", action="store_true", help="print each training's state in the record and exit")
+    return p
+
+
+def _status(study: Study) -> list[str]:
+    meta = read_study_record(study.record)
+    states = meta.get("trainings", {})
+    lines = [f"accuracy study record {study.record}: {sum(s.get('status') == 'done' for s in states.values())} of "
+             f"{len(trainings())} trainings finished"]
+    for t in trainings():
+        s = states.get(t.name, {})
+        lines.append(f"  {t.name:22s} {s.get('status', 'not started'):12s}"
+                     + (" tested" if s.get("tested") else ""))
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the steps asked for; 2 on bad input (one line)."""
+    args = _parser().parse_args(argv)
+    steps = [s.strip() for s in args.steps.split(",") if s.strip()]
+    if [s for s in steps if s not in STEPS] or not steps:
+        print(f"error: --steps takes a comma-separated subset of {','.join(STEPS)}", file=sys.stderr)
+        return 2
+    if not (args.minutes > 0 and args.minutes < 1e6) or not 1 <= args.threads <= 256 or args.resamples < 1:
+        print("error: --minutes must be > 0, --threads in 1..256 and --resamples >= 1", file=sys.stderr)
+        return 2
+    study = Study(out=args.out.resolve(), record=args.record.resolve(), threads=args.threads, workers=args.workers)
+    try:
+        if args.status:
+            print("\n".join(_status(study)))
+            return 0
+        chosen = by_name(args.training) if args.training else None
+        return _run(study, steps, chosen, args)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> int:
+    t0 = time.monotonic()
+    study.out.mkdir(parents=True, exist_ok=True)
+    r = Runner(args.dry_run, study.out / "commands.log")
+    if "restore" in steps and not args.dry_run:
+        names = restore(study)
+        print(f"restored {len(names)} training(s) from {study.record}: {', '.join(names) or 'none'}")
+    fingerprint = None
+    if "dataset" in steps:
+        make_dataset(study, r)
+        if not args.dry_run:
+            fingerprint = dataset_fingerprint(study.data)
+            want = read_study_record(study.record).get("dataset_sha256")
+            if want and fingerprint != want:
+                print(f"error: {study.data} is not the dataset of the record {study.record} (sha256 "
+                      f"{fingerprint[:12]} vs {want[:12]}): the code or seed that made it differs, so trainings on it "
+                      "would not belong to the study", file=sys.stderr)
+                return 2
+    if "train" in steps:
+        t = chosen or next_training(study, done_trainings(study))
+        if t is None:
+            print("every training of the study is finished")
+        else:
+            left = args.minutes - (time.monotonic() - t0) / 60.0
+            print(f"[train] {t.name} for at most {max(left, 1.0):.0f} min")
+            finished = train(study, t, r, max(left, 1.0))
+            print(f"[train] {t.name}: {'finished' if finished else 'not finished: resumes next session'}")
+    if "test" in steps:
+        for t in trainings():
+            if study.done(t) and not study.tested(t):
+                test(study, t, r)
+    if "record" in steps and not args.dry_run:
+        written = save(study, fingerprint)
+        print(f"record: wrote {len(written)} file(s) into {study.record}")
+        from detector.reproduce.study_report import write_analysis
+
+        data = write_analysis(study.record, args.resamples)
+        print(f"record: {study.record / 'accuracy.json'} ({len(data['trainings'])} training(s))")
+    return 0

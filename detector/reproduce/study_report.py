@@ -1,0 +1,224 @@
+"""The accuracy study's analysis, from its record alone (no dataset, no weights): learning curves, test AP, the
+sparse - dense gap with its 95 % interval (:mod:`detector.eval.bootstrap`), the ablations against the seed spread.
+
+Writes ``accuracy.json`` (machine-readable: ``splits``, ``trainings``, ``gap_3d`` ...), ``accuracy.md`` (the tables
+docs/results.md shows between its ``accuracy`` markers) and ``curves.png`` into the record. AP in percent, KITTI
+protocol Overall level R40 unless a key names the paper's Open3D-ML metric.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from detector.eval.bootstrap import GapEstimate, bootstrap_gap, kitti_ap, open3d_ml_ap
+from detector.reproduce.results import ABLATIONS, OPEN3D_ML_JSON
+from detector.reproduce.study import MODELS, STUDY_TRAIN, by_name, read_study_record, read_zip_texts
+from mpchair.kitti import Labels, parse_labels
+
+#: The paper's sparse - dense 3D AP gap on Matterport-Chair (its Table II, Open3D-ML mAP).
+PAPER_GAP_3D = -4.61
+#: Bootstrap resamples of the test frames (per resample every tested seed of both models is evaluated).
+RESAMPLES = 200
+CLASS = "Chair"
+
+
+@dataclass(frozen=True)
+class Curve:
+    """A training's validation curve: per evaluated epoch the 3D and BEV AP; ``end`` its end record (None: running)."""
+
+    epochs: tuple[int, ...]
+    ap_3d: tuple[float, ...]
+    ap_bev: tuple[float, ...]
+    end: dict | None
+
+
+def read_curve(metrics: Path) -> Curve:
+    """The validation curve in a run's metrics.jsonl."""
+    epochs, ap3, apb, end = [], [], [], None
+    for line in metrics.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if not isinstance(rec, dict):
+            continue
+        if rec.get("kind") == "eval" and CLASS in rec:
+            epochs.append(int(rec["epoch"]))
+            ap3.append(float(rec[CLASS]["3d"]["overall"]["R40"]))
+            apb.append(float(rec[CLASS]["bev"]["overall"]["R40"]))
+        elif rec.get("kind") == "end":
+            end = rec
+    return Curve(tuple(epochs), tuple(ap3), tuple(apb), end)
+
+
+def _test_ap(folder: Path) -> dict:
+    """A tested training's test AP: KITTI 3D / BEV (Overall R40) and Open3D-ML 3D / BEV."""
+    out: dict = {}
+    metrics = folder / "metrics.json"
+    if metrics.is_file():
+        m = json.loads(metrics.read_text())
+        result = m.get("result", m)
+        if CLASS in result:
+            out["ap_3d"] = float(result[CLASS]["3d"]["overall"]["R40"])
+            out["ap_bev"] = float(result[CLASS]["bev"]["overall"]["R40"])
+    o3d = folder / OPEN3D_ML_JSON
+    if o3d.is_file():
+        m = json.loads(o3d.read_text())
+        if CLASS in m:
+            out["open3d_ml_3d"], out["open3d_ml_bev"] = float(m[CLASS]["3d"]), float(m[CLASS]["bev"])
+    return out
+
+
+def _frames(zip_path: Path, ids: list[str], *, results: bool) -> list[Labels]:
+    texts = read_zip_texts(zip_path)
+    missing = [i for i in ids if i not in texts]
+    if missing:
+        raise ValueError(f"{zip_path}: no file for test frame {missing[0]}")
+    frames = [parse_labels(texts[i], f"{zip_path}:{i}.txt") for i in ids]
+    if results:
+        frames = [f if f.score is not None else Labels.empty(with_score=True) for f in frames]
+    return frames
+
+
+def gaps(record: Path, tested: dict[str, list[str]], resamples: int = RESAMPLES) -> dict[str, GapEstimate]:
+    """sparse - dense gaps (``3d``, ``bev``, ``open3d_ml_3d``, ``open3d_ml_bev`` where Open3D-ML loads) over the
+    tested seeds ``tested[model]`` (training names), from the record's test detections and labels."""
+    labels = read_zip_texts(record / "test_labels.zip")
+    ids = sorted(labels)
+    gt = [parse_labels(labels[i], f"{record / 'test_labels.zip'}:{i}.txt") for i in ids]
+    dets = {m: [_frames(record / "test" / n / "detections.zip", ids, results=True) for n in tested[m]]
+            for m in MODELS}
+    fns = {"3d": kitti_ap(CLASS, "3d"), "bev": kitti_ap(CLASS, "bev")}
+    try:
+        from detector.eval.open3d_ml import load_open3d_ml_map
+
+        load_open3d_ml_map()
+        fns |= {"open3d_ml_3d": open3d_ml_ap(CLASS, "3d"), "open3d_ml_bev": open3d_ml_ap(CLASS, "bev")}
+    except Exception:  # noqa: BLE001 (Open3D-ML is an optional extra: its gaps are then left out, and said so)
+        pass
+    return {k: bootstrap_gap(gt, dets["dense"], dets["sparse"], fn, resamples=resamples) for k, fn in fns.items()}
+
+
+def analyse(record: Path, resamples: int = RESAMPLES) -> dict:
+    """accuracy.json's data from the record (see the module docstring)."""
+    meta = read_study_record(record)
+    trainings = []
+    for name, state in sorted(meta.get("trainings", {}).items(), key=lambda kv: _order(kv[0])):
+        metrics = record / "runs" / name / "metrics.jsonl"
+        if not metrics.is_file():
+            continue
+        curve = read_curve(metrics)
+        entry = {"name": name, "model": state.get("model"), "seed": state.get("seed"),
+                 "status": state.get("status"), "epochs": len(curve.epochs), "val_epochs": list(curve.epochs),
+                 "val_ap_3d": [round(x, 4) for x in curve.ap_3d], "val_ap_bev": [round(x, 4) for x in curve.ap_bev],
+                 "ended_by": (curve.end or {}).get("reason"),
+                 "decay_epochs": (curve.end or {}).get("decay_epochs")}
+        if state.get("tested"):
+            entry["test"] = _test_ap(record / "test" / name)
+        trainings.append(entry)
+    tested = {m: [t["name"] for t in trainings if t["model"] == m and t.get("test")] for m in MODELS}
+    out: dict = {"splits": meta.get("split_houses"), "dataset_sha256": meta.get("dataset_sha256"),
+                 "schedule": dict(STUDY_TRAIN), "trainings": trainings,
+                 "rule": "plateau: best val 3D AP (Overall R40) of the last 5 epochs < 1.0 above the best before "
+                         "them; first plateau: LR x 0.1, second: stop (cap 60 epochs)",
+                 "paper_gap_3d": PAPER_GAP_3D}
+    if all(tested[m] for m in MODELS) and (record / "test_labels.zip").is_file():
+        for key, g in gaps(record, tested, resamples).items():
+            out[f"gap_{key}"] = {**g.to_json(), "verdict": g.verdict(PAPER_GAP_3D)}
+    spread = [t["test"]["ap_3d"] for t in trainings if t["model"] == "dense" and "ap_3d" in t.get("test", {})]
+    if spread:
+        mean = sum(spread) / len(spread)
+        out["ablations"] = [
+            {"name": t["name"], "ap_3d": t["test"]["ap_3d"], "delta_to_dense_mean": t["test"]["ap_3d"] - mean,
+             "dense_seed_range": [min(spread) - mean, max(spread) - mean]}
+            for t in trainings if t["model"] in ABLATIONS and "ap_3d" in t.get("test", {})]
+    return out
+
+
+def _order(name: str) -> int:
+    from detector.reproduce.study import trainings
+
+    names = [t.name for t in trainings()]
+    by_name(name)
+    return names.index(name)
+
+
+def _fmt(x: float | None) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.2f}"
+
+
+def markdown(data: dict) -> str:
+    """accuracy.md: the study's state, its trainings and the gap with what its interval supports."""
+    done = [t for t in data["trainings"] if t["status"] == "done"]
+    lines = [f"Trainings in the record: {len(data['trainings'])} of 10 started, {len(done)} finished "
+             "(3 seeds each of dense and sparse, one of each ablation; tools/accuracy_study.py).", ""]
+    splits = data.get("splits") or {}
+    if splits:
+        lines += ["Houses per split: " + "; ".join(f"{k} {', '.join(v)}" for k, v in splits.items()) + ".", ""]
+    lines += ["| training | status | epochs | best val 3D AP | ended by | test 3D AP | test BEV AP |",
+              "|---|---|---|---|---|---|---|"]
+    for t in data["trainings"]:
+        best = max(t["val_ap_3d"]) if t["val_ap_3d"] else None
+        test = t.get("test", {})
+        lines.append(f"| {t['name']} | {t['status']} | {t['epochs']} | {_fmt(best)} | {t['ended_by'] or '–'} | "
+                     f"{_fmt(test.get('ap_3d'))} | {_fmt(test.get('ap_bev'))} |")
+    lines.append("")
+    g = data.get("gap_3d")
+    if g is None:
+        lines.append("Sparse - dense gap: not measured yet (it needs at least one tested seed of each model; the "
+                     "interval needs three of each to hold the seed-to-seed spread).")
+    else:
+        for key, label in (("gap_3d", "3D AP (KITTI Overall R40)"), ("gap_bev", "BEV AP (KITTI Overall R40)"),
+                           ("gap_open3d_ml_3d", "3D mAP (Open3D-ML, the paper's metric)")):
+            if key in data:
+                gk = data[key]
+                lines.append(f"- Sparse - dense, {label}: {gk['mean']:+.2f}, 95 % interval "
+                             f"[{gk['ci95'][0]:+.2f}, {gk['ci95'][1]:+.2f}] ({gk['seeds']['a']} dense x "
+                             f"{gk['seeds']['b']} sparse seeds, {gk['resamples']} resamples of {gk['frames']} test "
+                             f"frames): {gk['verdict']}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(data: dict, path: Path) -> None:
+    """Validation 3D AP per epoch of every training: dense and sparse on one figure, seeds as thin lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
+    colours = {"dense": "tab:blue", "sparse": "tab:orange"}
+    labelled = set()
+    for t in data["trainings"]:
+        if t["model"] not in colours or not t["val_ap_3d"]:
+            continue
+        label = None if t["model"] in labelled else f"{t['model']} (one line per seed)"
+        labelled.add(t["model"])
+        ax.plot(t["val_epochs"], t["val_ap_3d"], color=colours[t["model"]], lw=1.0, alpha=0.8, label=label,
+                marker="o", ms=2)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("val 3D AP, Overall R40 (%)")
+    ax.set_title("Learning curves on the validation houses (house-disjoint split)")
+    ax.grid(alpha=0.3)
+    if labelled:
+        ax.legend(loc="lower right")
+    fig.tight_layout()
+    from mpchair.core.atomic import atomic_open
+
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png")
+    plt.close(fig)
+
+
+def write_analysis(record: Path, resamples: int = RESAMPLES) -> dict:
+    """accuracy.json, accuracy.md and curves.png into ``record``; returns the data."""
+    from mpchair.core.atomic import write_text
+
+    data = analyse(record, resamples)
+    write_text(record / "accuracy.json", json.dumps(data, indent=1, sort_keys=True) + "\n")
+    write_text(record / "accuracy.md", markdown(data))
+    plot_curves(data, record / "curves.png")
+    return data

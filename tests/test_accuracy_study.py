@@ -1,0 +1,134 @@
+"""The accuracy study's parts: the paired bootstrap of the AP gap, and the record a session writes, a later one
+restores and continues, and the analysis reads (real tiny trainings and evaluations, not the full study)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
+
+from detector.eval.bootstrap import bootstrap_gap, kitti_ap
+from detector.reproduce.study import Study, Training, read_zip_texts, restore, save, study_config, trainings
+from detector.reproduce.study_report import markdown, write_analysis
+from detector.train import train
+from mpchair.kitti import Labels, read_labels
+
+
+def _with_scores(labels: Labels, score: float) -> Labels:
+    import dataclasses
+
+    return dataclasses.replace(labels, score=np.full(len(labels), score))
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return make_tiny_dataset(tmp_path_factory.mktemp("tiny"), n_frames=4, seed=0)
+
+
+def test_bootstrap_gap_of_a_model_that_misses_boxes(tmp_path):
+    """Detections = the ground truth (score 0.9) vs the same with every other frame's boxes dropped: the gap is
+    negative, its interval holds the whole-split gap and excludes 0; identical models give exactly 0 and [0, 0];
+    the same seed gives the same interval."""
+    data = make_tiny_dataset(tmp_path, n_frames=16, seed=3)
+    ids = [f"{i:06d}" for i in range(16)]
+    gt = [read_labels(data / "training" / "label_2" / f"{i}.txt") for i in ids]
+    perfect = [_with_scores(g, 0.9) for g in gt]
+    missing = [p if k % 2 else Labels.empty(with_score=True) for k, p in enumerate(perfect)]
+    ap = kitti_ap("Chair", "3d")
+    assert ap(gt, perfect) > 40.0
+    g = bootstrap_gap(gt, [perfect], [missing], ap, resamples=40, seed=1)
+    assert g.mean == pytest.approx(ap(gt, missing) - ap(gt, perfect))
+    assert g.mean < 0 and g.ci95[0] <= g.mean <= g.ci95[1] and g.ci95[1] < 0
+    assert g == bootstrap_gap(gt, [perfect], [missing], ap, resamples=40, seed=1)
+    same = bootstrap_gap(gt, [perfect, perfect], [perfect], ap, resamples=10)
+    assert (same.mean, same.ci95, same.seeds, len(same.pair_gaps)) == (0.0, (0.0, 0.0), (2, 1), 2)
+    assert "inconclusive" in bootstrap_gap(gt, [perfect], [perfect], ap, resamples=5).verdict(0.0)
+    assert "not zero" in g.verdict(10.0)
+    with pytest.raises(ValueError, match="every test frame"):
+        bootstrap_gap(gt, [perfect[:3]], [missing], ap)
+
+
+def test_study_configs_are_the_cpu_configs_with_the_plateau_schedule():
+    names = [t.name for t in trainings()]
+    assert names[:6] == ["dense_s0", "sparse_s0", "dense_s1", "sparse_s1", "dense_s2", "sparse_s2"]
+    assert len(names) == 10 and names[6:] == [f"{a}_s0" for a in ("sparse1_dense23", "sparse12_dense3",
+                                                                    "sparse_wide", "sparse_wide_down")]
+    cfg = study_config(Training("sparse", 2))
+    assert cfg["train"]["schedule"] == "plateau" and cfg["train"]["seed"] == 2 and cfg["train"]["eval_every"] == 1
+    assert cfg["train"]["precision"] == "fp32" and cfg["model"]["backbone"] == "sparse"
+    assert cfg["model"]["output_shape"] == [288, 144]
+
+
+def _tiny_plateau_config(path: Path, seed: int) -> Path:
+    return write_test_config(path, train=dict(batch_size=2, epochs=30, schedule="plateau", eval_every=1,
+                                              plateau_patience=1, plateau_min_delta=1000.0, plateau_decays=1,
+                                              checkpoint_every=10, seed=seed))
+
+
+def _train_and_test(study: Study, t: Training, data: Path, capsys, **kw) -> None:
+    study.config(t).parent.mkdir(parents=True, exist_ok=True)
+    config = _tiny_plateau_config(study.config(t), t.seed)
+    result = train(config, data, study.run(t), threads=1, progress=False, eval_split="val", **kw)
+    if result.finished:
+        (study.run(t) / "done").write_text("trained\n")
+        code, out, err = detector_cli(["eval", "--config", config, "--data", data, "--checkpoint",
+                                       study.run(t) / "last.pt", "--split", "test", "--out", study.test(t),
+                                       "--threads", "1"], capsys)
+        assert code == 0, out + err
+
+
+def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp_path, capsys):
+    """Session 1 finishes dense_s0 and sparse_s0 and cuts dense_s1; its record holds the summaries, the test
+    detections and dense_s1's last.pt. Session 2 restores it into a new work folder, finishes dense_s1 from the
+    restored checkpoint, and its record drops that last.pt. The analysis then has curves, test AP and a gap."""
+    record = tmp_path / "record"
+    (record / "notes.txt").parent.mkdir(parents=True)
+    (record / "notes.txt").write_text("a file of someone else\n")
+    one = Study(out=tmp_path / "one", record=record)
+    shutil.copytree(data, one.data)
+    dense0, sparse0, dense1 = Training("dense", 0), Training("sparse", 0), Training("dense", 1)
+    _train_and_test(one, dense0, one.data, capsys)
+    _train_and_test(one, sparse0, one.data, capsys)
+    _train_and_test(one, dense1, one.data, capsys, max_steps=3)
+    save(one, fingerprint="abc")
+    meta = json.loads((record / "record.json").read_text())
+    assert meta["trainings"]["dense_s0"] == {"status": "done", "model": "dense", "seed": 0, "tested": True}
+    assert meta["trainings"]["dense_s1"]["status"] == "partial" and meta["dataset_sha256"] == "abc"
+    assert (record / "runs" / "dense_s1" / "last.pt").is_file()
+    assert not (record / "runs" / "dense_s0" / "last.pt").exists()
+    kinds = {json.loads(x)["kind"] for x in (record / "runs" / "dense_s0" / "metrics.jsonl").read_text().splitlines()}
+    assert kinds == {"epoch", "eval", "end"}  # no per-step records in the record
+    assert sorted(read_zip_texts(record / "test" / "sparse_s0" / "detections.zip")) == [f"{i:06d}" for i in range(4)]
+    assert (record / "notes.txt").read_text() == "a file of someone else\n"
+
+    two = Study(out=tmp_path / "two", record=record)
+    shutil.copytree(data, two.data)
+    assert sorted(restore(two)) == ["dense_s0", "dense_s1", "sparse_s0"]
+    assert (two.run(dense1) / "last.pt").read_bytes() == (record / "runs" / "dense_s1" / "last.pt").read_bytes()
+    step = torch.load(two.run(dense1) / "last.pt", weights_only=True)["step"]
+    assert step == 3
+    _train_and_test(two, dense1, two.data, capsys, resume=True)
+    assert two.done(dense1)
+    save(two, fingerprint=None)
+    assert not (record / "runs" / "dense_s1" / "last.pt").exists()
+    assert json.loads((record / "record.json").read_text())["dataset_sha256"] == "abc"
+
+    data_out = write_analysis(record, resamples=20)
+    by = {t["name"]: t for t in data_out["trainings"]}
+    assert set(by) == {"dense_s0", "sparse_s0", "dense_s1"}
+    assert by["dense_s0"]["val_epochs"] == [1, 2, 3] and by["dense_s0"]["ended_by"] == "plateau"
+    assert len(by["dense_s0"]["val_ap_3d"]) == 3 and "ap_3d" in by["dense_s0"]["test"]
+    gap = data_out["gap_3d"]
+    assert gap["seeds"] == {"a": 2, "b": 1} and gap["ci95"][0] <= gap["ci95"][1]
+    dense_mean = np.mean([by[n]["test"]["ap_3d"] for n in ("dense_s0", "dense_s1")])
+    assert gap["mean"] == pytest.approx(by["sparse_s0"]["test"]["ap_3d"] - dense_mean)
+    saved = json.loads((record / "accuracy.json").read_text())
+    assert saved["gap_3d"]["mean"] == pytest.approx(gap["mean"])
+    md = (record / "accuracy.md").read_text()
+    assert md == markdown(saved) and f"{gap['mean']:+.2f}" in md
+    assert (record / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
