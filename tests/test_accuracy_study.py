@@ -95,8 +95,11 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     _train_and_test(one, dense0, one.data, capsys)
     _train_and_test(one, sparse0, one.data, capsys)
     _train_and_test(one, dense1, one.data, capsys, max_steps=3)
-    save(one, fingerprint="abc")
+    _train_and_test(one, Training("sparse", 1), one.data, capsys, max_steps=1)  # cut inside its first epoch
+    save(one, fingerprint="abc", notes=("ran here",))
     meta = json.loads((record / "record.json").read_text())
+    assert "sparse_s1" not in meta["trainings"] and not (record / "runs" / "sparse_s1").exists()
+    assert meta["notes"] == ["ran here"]
     assert meta["trainings"]["dense_s0"] == {"status": "done", "model": "dense", "seed": 0, "tested": True}
     assert meta["trainings"]["dense_s1"]["status"] == "partial" and meta["dataset_sha256"] == "abc"
     assert (record / "runs" / "dense_s1" / "last.pt").is_file()
@@ -130,5 +133,26 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     saved = json.loads((record / "accuracy.json").read_text())
     assert saved["gap_3d"]["mean"] == pytest.approx(gap["mean"])
     md = (record / "accuracy.md").read_text()
-    assert md == markdown(saved) and f"{gap['mean']:+.2f}" in md
+    assert md == markdown(saved) and f"{gap['mean']:+.2f}" in md and "Note: ran here" in md
     assert (record / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_committed_accuracy_record_agrees_with_its_analysis_and_results_md():
+    """docs/results-data/accuracy: accuracy.json is the analysis of the record's files (the curves, states and test
+    AP; the gap's bootstrap where it has one is checked by its own tests), accuracy.md is written from it, and
+    docs/results.md shows that text."""
+    from detector.reproduce.study_report import analyse
+
+    record = ROOT / "docs" / "results-data" / "accuracy"
+    saved = json.loads((record / "accuracy.json").read_text())
+    fresh = analyse(record, resamples=1)
+    assert fresh["trainings"] == saved["trainings"] and fresh["splits"] == saved["splits"]
+    assert set(saved["splits"]) == {"train", "val", "test"} and len(saved["splits"]["test"]) >= 2
+    assert len(saved["splits"]["val"]) >= 2 and not set(saved["splits"]["test"]) & set(saved["splits"]["train"])
+    for t in saved["trainings"]:
+        assert t["val_epochs"] == list(range(1, len(t["val_ap_3d"]) + 1)) and t["epochs"] == len(t["val_ap_3d"])
+    assert (record / "accuracy.md").read_text() == markdown(saved)
+    assert (record / "accuracy.md").read_text().strip() in (ROOT / "docs" / "results.md").read_text()

@@ -82,7 +82,8 @@ def _ap_targets(ev: EvalOutputs) -> list[str]:
         if d is not None:
             rows.append(f"| dense {name} AP, Overall R40 | {target} | {d:.2f} |")
         if d is not None and sp is not None:
-            limit = f">= -5 (paper {delta[kind]})" if kind == "3d" else f"paper {delta[kind]}"
+            # one seed, no interval: a number beside the paper's, not a pass or a fail (the Accuracy section tests)
+            limit = f"paper {delta[kind]} (one seed, no interval)"
             rows.append(f"| sparse - dense, {name} AP Overall R40 | {limit} | {sp - d:+.2f} |")
         d, sp = (ev.open3d_ml[m].get(kind) if m in ev.open3d_ml else None for m in MODELS)
         if d is not None:
@@ -200,9 +201,12 @@ def paper_gap_verdict(ev: EvalOutputs) -> str:
     if d is None or sp is None:
         return ""
     gap, paper = sp - d, PAPER["sparse_3d_delta"]
-    verdict = "within 1 point of it" if abs(gap - paper) <= 1.0 else "not reproduced"
+    verdict = ("close to it" if abs(gap - paper) <= 1.0 else "apart from it") + (
+        ", but one seed per model on validation frames of the training houses, with no interval, cannot tell a "
+        "real difference from training noise (retraining one config moved its AP by 1.4): inconclusive")
     return (f"On the paper's metric (Open3D-ML mAP, recall-blind: see the detection section) this run's sparse - dense "
-            f"3D gap is {gap:+.2f} against the paper's {paper}: {verdict}; the Overall R40 rows are another metric.")
+            f"3D gap is {gap:+.2f} against the paper's {paper}: {verdict}; the Overall R40 rows are another metric. "
+            "The accuracy study (section Accuracy) measures the gap with an interval on held-out houses.")
 
 
 def targets_section(res: Path) -> list[str]:
@@ -614,6 +618,33 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
     return text
 
 
+#: The accuracy study's record (tools/accuracy_study.py), whose analysis the report's Accuracy section shows.
+ACCURACY_RECORD = ROOT / "docs" / "results-data" / "accuracy"
+
+
+def accuracy_section(record: Path, figure) -> list[str]:
+    """The accuracy study's state and results (its record's accuracy.md and learning curves); nothing without it."""
+    md = record / "accuracy.md"
+    if not md.is_file():
+        return []
+    lines = ["## Accuracy: house-disjoint splits, plateau-trained seeds, an interval", "",
+             "The AP tables above come from one short training per model, validated on frames of its own training "
+             "houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) replaces them: the "
+             "dataset's 12 houses split 8 / 2 / 2 by house (val and test houses never trained on), three seeds per "
+             "model trained in fp32 until the validation 3D AP plateaus (docs/training.md, \"Trained to a "
+             "plateau\"), the paper's four ablations one seed each, and the sparse - dense gap on the test houses "
+             "with a 95 % interval that holds both seed-to-seed spread and test-frame resampling (a paired bootstrap, "
+             "detector/eval/bootstrap.py). Each session adds one training to its record "
+             "(docs/results-data/accuracy/, with accuracy.json); until the interval exists, no sentence here or in "
+             "README says whether the paper's gap is reproduced.", "",
+             *md.read_text().rstrip().splitlines(), ""]
+    curves = record / "curves.png"
+    if curves.is_file() and "| training |" in md.read_text():
+        lines += [f"![validation 3D AP per epoch, dense and sparse, one line per seed]({figure(curves, 'curves.png')})",
+                  ""]
+    return lines
+
+
 def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes: list[str] | None = None) -> None:
     """docs/results.md (``path``) from the step outputs of work folder ``out`` (results folder ``res``) that exist
     (missing ones are named); ``notes``: sentences the operator adds to the opening paragraph (how the run deviated
@@ -644,6 +675,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         *ablations_section(res),
         *_sparsity_section(res, figure),
         *deploy_section(res),
+        *(accuracy_section(ACCURACY_RECORD, figure) if scale in ("full", "recipe") else []),
         *_not_in_this_run(),
         "## Commands", "", "```",
         *log.rstrip().splitlines(), "```", "",

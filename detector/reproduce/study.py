@@ -223,6 +223,15 @@ def _log_summary(metrics: Path) -> str:
     return "".join(line + "\n" for line in lines)
 
 
+def completed_epochs(last: Path) -> int:
+    """The completed epochs of a run's ``last.pt`` (0 when there is none)."""
+    if not last.is_file():
+        return 0
+    import torch
+
+    return int(torch.load(last, map_location="cpu", weights_only=True).get("epoch", 0))
+
+
 def read_study_record(record: Path) -> dict:
     """The record's ``record.json`` ({} when there is none yet)."""
     path = record / RECORD_JSON
@@ -234,7 +243,7 @@ def read_study_record(record: Path) -> dict:
     return meta
 
 
-def save(study: Study, fingerprint: str | None) -> list[str]:
+def save(study: Study, fingerprint: str | None, notes: tuple[str, ...] = ()) -> list[str]:
     """Add the work folder's state to the record: dataset files, every training's run summary (and ``last.pt`` while
     unfinished; removed from the record once done), every tested training's results. Files of the record that this
     work folder does not have are kept (another session's trainings). The paths written."""
@@ -263,6 +272,10 @@ def save(study: Study, fingerprint: str | None) -> list[str]:
         run = study.run(t)
         if not (run / "metrics.jsonl").is_file():
             continue
+        if not study.done(t) and completed_epochs(run / "last.pt") < 1:
+            # less than an epoch is minutes on a fast machine: not worth a ~55 MB checkpoint in the history
+            print(f"record: {t.name} is left out (cut before its first epoch ended; it starts afresh next time)")
+            continue
         put(f"runs/{t.name}/config.yaml", (run / "config.yaml").read_bytes())
         put(f"runs/{t.name}/metrics.jsonl", _log_summary(run / "metrics.jsonl").encode())
         if study.done(t):
@@ -284,6 +297,7 @@ def save(study: Study, fingerprint: str | None) -> list[str]:
         states[t.name] = state
     meta["trainings"] = states
     meta["format"] = 1
+    meta["notes"] = [*meta.get("notes", []), *notes]
     write_text(rec / RECORD_JSON, json.dumps(meta, indent=1, sort_keys=True) + "\n")
     log = study.out / "commands.log"
     if log.is_file():

@@ -56,6 +56,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=2, help="torch threads for train / eval")
     p.add_argument("--workers", type=int, default=2, help="mpchair generate worker processes")
     p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples of the test frames")
+    p.add_argument("--note", action="append", default=[],
+                   help="a sentence for the record's notes (e.g. the machine a training ran on); repeatable")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--status", action="store_true", help="print each training's state in the record and exit")
     return p
@@ -127,7 +129,7 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
             if study.done(t) and not study.tested(t):
                 test(study, t, r)
     if "record" in steps and not args.dry_run:
-        written = save(study, fingerprint)
+        written = save(study, fingerprint, tuple(args.note))
         print(f"record: wrote {len(written)} file(s) into {study.record}")
         from detector.reproduce.study_report import write_analysis
 

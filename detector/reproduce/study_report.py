@@ -124,7 +124,7 @@ def analyse(record: Path, resamples: int = RESAMPLES) -> dict:
                  "schedule": dict(STUDY_TRAIN), "trainings": trainings,
                  "rule": "plateau: best val 3D AP (Overall R40) of the last 5 epochs < 1.0 above the best before "
                          "them; first plateau: LR x 0.1, second: stop (cap 60 epochs)",
-                 "paper_gap_3d": PAPER_GAP_3D}
+                 "paper_gap_3d": PAPER_GAP_3D, "notes": list(meta.get("notes", []))}
     if all(tested[m] for m in MODELS) and (record / "test_labels.zip").is_file():
         for key, g in gaps(record, tested, resamples).items():
             out[f"gap_{key}"] = {**g.to_json(), "verdict": g.verdict(PAPER_GAP_3D)}
@@ -155,17 +155,21 @@ def markdown(data: dict) -> str:
     done = [t for t in data["trainings"] if t["status"] == "done"]
     lines = [f"Trainings in the record: {len(data['trainings'])} of 10 started, {len(done)} finished "
              "(3 seeds each of dense and sparse, one of each ablation; tools/accuracy_study.py).", ""]
+    lines += [*(f"Note: {n}" for n in data.get("notes", [])), *([""] if data.get("notes") else [])]
     splits = data.get("splits") or {}
     if splits:
-        lines += ["Houses per split: " + "; ".join(f"{k} {', '.join(v)}" for k, v in splits.items()) + ".", ""]
-    lines += ["| training | status | epochs | best val 3D AP | ended by | test 3D AP | test BEV AP |",
-              "|---|---|---|---|---|---|---|"]
+        lines += ["Houses per split: " + "; ".join(f"{k} {', '.join(splits[k])}" for k in ("train", "val", "test")
+                                                   if k in splits) + ".", ""]
+    if data["trainings"]:
+        lines += ["| training | status | epochs | best val 3D AP | ended by | test 3D AP | test BEV AP |",
+                  "|---|---|---|---|---|---|---|"]
     for t in data["trainings"]:
         best = max(t["val_ap_3d"]) if t["val_ap_3d"] else None
         test = t.get("test", {})
         lines.append(f"| {t['name']} | {t['status']} | {t['epochs']} | {_fmt(best)} | {t['ended_by'] or '–'} | "
                      f"{_fmt(test.get('ap_3d'))} | {_fmt(test.get('ap_bev'))} |")
-    lines.append("")
+    if data["trainings"]:
+        lines.append("")
     g = data.get("gap_3d")
     if g is None:
         lines.append("Sparse - dense gap: not measured yet (it needs at least one tested seed of each model; the "
@@ -220,5 +224,6 @@ def write_analysis(record: Path, resamples: int = RESAMPLES) -> dict:
     data = analyse(record, resamples)
     write_text(record / "accuracy.json", json.dumps(data, indent=1, sort_keys=True) + "\n")
     write_text(record / "accuracy.md", markdown(data))
-    plot_curves(data, record / "curves.png")
+    if any(t["val_ap_3d"] for t in data["trainings"]):
+        plot_curves(data, record / "curves.png")
     return data
