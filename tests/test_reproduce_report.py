@@ -238,7 +238,8 @@ def test_report_leads_with_overall_and_the_reference_metric(tmp_path: Path) -> N
     paper = text.index("Paper (real Matterport-Chair, Open3D-ML mAP, recall-blind, one level)")
     assert paper < text.index(lines[levels])
     # the paper's gap on its own metric: -3.75 against -4.61 is within a point; the KITTI half-found case at 100 GT
-    assert "this run's sparse - dense 3D gap is -3.75 against the paper's -4.61: close to it, but one seed per model" in text
+    assert ("this run's sparse - dense 3D gap is -3.75 against the paper's -4.61: close to it, but one seed per "
+            "model") in text
     assert ("finding half of the chairs perfectly scores 100 there and R40 50 on the KITTI level with this val set's "
             "100 chairs (R40 10 with 10 ground-truth boxes") in text
     recall_blind = next(ln for ln in lines[head:levels] if ln.startswith("Open3D-ML's mAP is recall-blind"))
