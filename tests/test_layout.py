@@ -23,6 +23,7 @@ FLOORS: dict[str, int] = {
     "detector": -1,
     # the shared floor, imported by both stacks
     "mpchair.core": 0,
+    "mpchair.paper": 0,  # the paper's published figures (data only, imports nothing)
     "mpchair.kitti": 1,
     "mpchair.geometry": 2,  # camera conversions read kitti's Calib / Labels
     "mpchair.recording": 3,
@@ -58,7 +59,7 @@ FLOORS: dict[str, int] = {
     "detector.cli": 12,
     "detector.__main__": 13,
 }
-SHARED_FLOOR = ("mpchair.core", "mpchair.geometry", "mpchair.kitti", "mpchair.recording")
+SHARED_FLOOR = ("mpchair.core", "mpchair.geometry", "mpchair.kitti", "mpchair.paper", "mpchair.recording")
 
 
 def module_files() -> dict[str, Path]:

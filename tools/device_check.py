@@ -37,6 +37,7 @@ from pathlib import Path
 import yaml
 
 from mpchair.core.atomic import write_text
+from mpchair.paper import TABLE_II, TABLE_IV, ComponentTimes
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "models"
@@ -64,25 +65,11 @@ TINY_GRID: dict[str, dict] = {
 }
 #: Untimed first steps of a training throughput run (the first allocates every buffer and picks kernels).
 WARMUP_STEPS = 2
-#: The paper's runtimes (ms per frame, mean and std over trials, batch 1) on its Desktop: an NVIDIA 2080 Ti with an
-#: AMD Ryzen 7 3700X. Table II's Desktop rows (Matterport-Chair, 768 x 512) and Table IV (KITTI, 504 x 440).
-PAPER_DESKTOP: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
-    "mpchair": {
-        "dense": {"to_device": (0.072, 0.001), "feature_extract": (1.783, 0.010), "feature_net": (0.390, 0.005),
-                  "backbone": (2.512, 0.017), "head": (0.199, 0.001), "bbox_extract": (15.198, 0.145),
-                  "total": (20.154, 0.143)},
-        "sparse": {"to_device": (0.073, 0.001), "feature_extract": (1.747, 0.015), "feature_net": (0.130, 0.002),
-                   "backbone": (6.633, 0.038), "head": (0.218, 0.002), "bbox_extract": (4.854, 0.010),
-                   "total": (13.655, 0.060)},
-    },
-    "kitti": {
-        "dense": {"to_device": (0.064, 0.000), "feature_extract": (2.375, 0.010), "feature_net": (0.303, 0.004),
-                  "backbone": (2.358, 0.027), "head": (0.204, 0.002), "bbox_extract": (9.105, 0.030),
-                  "total": (14.410, 0.033)},
-        "sparse": {"to_device": (0.064, 0.000), "feature_extract": (2.330, 0.009), "feature_net": (0.133, 0.002),
-                   "backbone": (7.578, 0.038), "head": (0.244, 0.004), "bbox_extract": (3.877, 0.010),
-                   "total": (14.226, 0.056)},
-    },
+#: The paper's runtimes on its Desktop (an NVIDIA 2080 Ti with an AMD Ryzen 7 3700X): Table II's Desktop rows
+#: (Matterport-Chair, 768 x 512) and Table IV's dense / sparse rows (KITTI, 504 x 440), from ``mpchair.paper``.
+PAPER_DESKTOP: dict[str, dict[str, ComponentTimes]] = {
+    "mpchair": dict(TABLE_II["desktop"]),
+    "kitti": {m: TABLE_IV[m] for m in ("dense", "sparse")},
 }
 COMPONENT_TITLES: dict[str, str] = {"to_device": "To Device", "feature_extract": "Feature Extract",
                                     "feature_net": "Feature Net", "backbone": "Backbone", "head": "Head",
@@ -351,8 +338,8 @@ def paper_rows(bench: dict, geometry: str) -> list[list[str]]:
     for key, title in COMPONENT_TITLES.items():
         row = [title]
         for model in ("dense", "sparse"):
-            mean, std = paper[model][key]
-            row += [f"{mean:.3f} ± {std:.3f}", _ms(ours.get(model, {}).get(key, {}).get("mean_ms"))]
+            cell = getattr(paper[model], key)
+            row += [f"{cell.mean_ms:.3f} ± {cell.std_ms:.3f}", _ms(ours.get(model, {}).get(key, {}).get("mean_ms"))]
         row.append(_ms(ours.get("sparse+sparse_head", {}).get(key, {}).get("mean_ms")))
         rows.append(row)
     return rows
@@ -452,8 +439,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     train = [r for p in (res / "train").glob("*.json") if (r := _load(p))]
     train.sort(key=lambda r: (MODEL_ORDER.index(r["model"]) if r["model"] in MODEL_ORDER else len(MODEL_ORDER),
                               r["model"], PRECISION_ORDER.index(r["precision"])))
+    paper = {g: {m: t.to_json() for m, t in rows.items()} for g, rows in PAPER_DESKTOP.items()}
     summary = {"dry_run": bool(machine and machine.get("dry_run")), "machine": machine, "steps": steps,
-               "tests": _load(res / "tests.json"), "bench": bench, "paper_desktop": PAPER_DESKTOP, "train": train,
+               "tests": _load(res / "tests.json"), "bench": bench, "paper_desktop": paper, "train": train,
                "eval": _load(res / "eval.json"), "ddp": _load(res / "ddp.json"),
                "failed": [s["name"] for s in steps if s["status"] == "failed"]}
     _json(out / "summary.json", summary)

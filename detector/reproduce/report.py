@@ -44,13 +44,9 @@ from detector.reproduce.training import (
     trained_schedules,
 )
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, TABLE_II
+from mpchair.paper import MATTERPORT_CHAIR_AP as PAPER_AP
 
-#: The paper's numbers the report compares with (AP percent, ms, D as a fraction of the pillars).
-PAPER = {
-    "dense_3d": 80.66, "dense_bev": 84.09, "sparse_3d_delta": -4.61, "sparse_bev_delta": -6.04,
-    "robot_backbone_ms": (879.225, 66.045), "robot_total_ms": (1082.135, 236.737),
-    "density_median": {"matterport_chair": 0.00750, "kitti": 0.02459},
-}
 #: The reference's setup where the paper's numbers came from its released code rather than its text (metres): the
 #: generator's sensor height (the text says 1.0) and the radius of the agent habitat's navmesh was built for.
 REFERENCE = {"sensor_height_m": 1.25, "text_sensor_height_m": 1.0, "navmesh_agent_radius_m": 0.1}
@@ -74,8 +70,8 @@ def _ap_targets(ev: EvalOutputs) -> list[str]:
     """Target-table rows for AP: the paper's numbers (one level, every chair) beside our Overall AP (R40) and the
     reference's own metric (Open3D-ML mAP) on the same detections."""
     rows = []
-    paper = {"3d": PAPER["dense_3d"], "bev": PAPER["dense_bev"]}
-    delta = {"3d": PAPER["sparse_3d_delta"], "bev": PAPER["sparse_bev_delta"]}
+    paper = {"3d": PAPER_AP.dense_3d, "bev": PAPER_AP.dense_bev}
+    delta = {"3d": PAPER_AP.sparse_3d_delta, "bev": PAPER_AP.sparse_bev_delta}
     for kind, name in (("3d", "3D"), ("bev", "BEV")):
         target = f">= 80 (paper {paper[kind]})" if kind == "3d" else f"paper {paper[kind]}"
         d, sp = (ev.kitti[m].overall(kind, "R40") if m in ev.kitti else None for m in MODELS)
@@ -199,7 +195,7 @@ def paper_gap_verdict(ev: EvalOutputs) -> str:
     d, sp = (ev.open3d_ml[m].get("3d") if m in ev.open3d_ml else None for m in MODELS)
     if d is None or sp is None:
         return ""
-    gap, paper = sp - d, PAPER["sparse_3d_delta"]
+    gap, paper = sp - d, PAPER_AP.sparse_3d_delta
     verdict = "within 1 point of it" if abs(gap - paper) <= 1.0 else "not reproduced"
     return (f"On the paper's metric (Open3D-ML mAP, recall-blind: see the detection section) this run's sparse - dense "
             f"3D gap is {gap:+.2f} against the paper's {paper}: {verdict}; the Overall R40 rows are another metric.")
@@ -284,11 +280,11 @@ def detection_section(res: Path) -> list[str]:
              "", *_overall_table(ev)]
     if ev.open3d_ml:
         lines += ["", recall_blind_note(ev)]
-    paper_s3 = PAPER["dense_3d"] + PAPER["sparse_3d_delta"]
-    paper_sb = PAPER["dense_bev"] + PAPER["sparse_bev_delta"]
+    paper_s3 = PAPER_AP.dense_3d + PAPER_AP.sparse_3d_delta
+    paper_sb = PAPER_AP.dense_bev + PAPER_AP.sparse_bev_delta
     lines += ["", "Paper (real Matterport-Chair, Open3D-ML mAP, recall-blind, one level): dense BEV AP "
-              f"{PAPER['dense_bev']}, 3D AP {PAPER['dense_3d']}; sparse {paper_sb:.2f} / {paper_s3:.2f} "
-              f"({PAPER['sparse_bev_delta']} / {PAPER['sparse_3d_delta']} points).", ""]
+              f"{PAPER_AP.dense_bev}, 3D AP {PAPER_AP.dense_3d}; sparse {paper_sb:.2f} / {paper_s3:.2f} "
+              f"({PAPER_AP.sparse_bev_delta} / {PAPER_AP.sparse_3d_delta} points).", ""]
     return lines + _levels_table(ev) + [""]
 
 
@@ -458,11 +454,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          "do not depend on the grid; cell-centred anchors on both, so the boxes land where they do on the crop)"
          if grid else "n/a",
          "CPU budget; the times depend on the weights only through the boxes BBox Extract suppresses"),
-        ("density D (test split)", f"Matterport-Chair median {PAPER['density_median']['matterport_chair']} (KITTI "
-         f"{PAPER['density_median']['kitti']})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
+        ("density D (test split)", f"Matterport-Chair median {MATTERPORT_CHAIR_DENSITY.median} (KITTI "
+         f"{KITTI_DENSITY.median})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
          "synthetic houses and sensor; the sparse model's work grows with D and the dense model's does not, so the "
          "ratios here are not the paper's at its D"),
-        ("sparsity figures (Figs. 3-4)", f"a KITTI frame (median D {PAPER['density_median']['kitti']})",
+        ("sparsity figures (Figs. 3-4)", f"a KITTI frame (median D {KITTI_DENSITY.median})",
          f"test frame {frame.frame_id}, a Matterport-Chair frame of D = {frame.density:.5f}" if frame else "n/a",
          "no KITTI training set here; at this D the figures look sparser than the paper's"),
     ]
@@ -487,8 +483,8 @@ def _density_section(res: Path, figure: Figure) -> list[str]:
         lines.append(f"`mpchair stats` summary: `{json.dumps(dict(density.values))}`")
     else:
         lines.append("not run")
-    lines += [f"Paper medians: Matterport-Chair {PAPER['density_median']['matterport_chair']}, KITTI "
-              f"{PAPER['density_median']['kitti']}.", ""]
+    lines += [f"Paper medians: Matterport-Chair {MATTERPORT_CHAIR_DENSITY.median}, KITTI "
+              f"{KITTI_DENSITY.median}.", ""]
     if (res / "density.png").exists():
         lines += [f"![density]({figure(res / 'density.png', 'density.png')})", ""]
     return lines
@@ -500,7 +496,9 @@ def _runtime_sections(res: Path) -> list[str]:
     for alloc in ALLOCATORS:
         lines += [f"## Runtime at 768 x 512, allocator {alloc} (ms per frame)", ""]
         lines += [read_text(res / f"bench_{alloc}.md") or "not run", ""]
-    (bd, bs), (td, ts) = PAPER["robot_backbone_ms"], PAPER["robot_total_ms"]
+    robot = TABLE_II["robot"]
+    (bd, bs), (td, ts) = ((robot["dense"].backbone.mean_ms, robot["sparse"].backbone.mean_ms),
+                          (robot["dense"].total.mean_ms, robot["sparse"].total.mean_ms))
     lines += [f"Paper, robot CPU (i5-4590S, 4 cores): backbone {bd} -> {bs} ms ({bd / bs:.1f}x), total {td} -> {ts} ms "
               f"({td / ts:.1f}x).", ""]
     lines += ["## Operation counts (Table I)", "", read_text(res / "ops.md") or "not run", ""]
@@ -589,18 +587,19 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
     head = ref.ratio("dense", "sparse", "total_reference_head")
     ap3d = ev.kitti["dense"].overall("3d", "R40")
     o3d = ev.open3d_ml["dense"].get("3d") if "dense" in ev.open3d_ml else None
-    paper_ratio = PAPER["robot_backbone_ms"][0] / PAPER["robot_backbone_ms"][1]
-    paper_total = PAPER["robot_total_ms"][0] / PAPER["robot_total_ms"][1]
+    robot = TABLE_II["robot"]
+    paper_ratio = robot["dense"].backbone.mean_ms / robot["sparse"].backbone.mean_ms
+    paper_total = robot["dense"].total.mean_ms / robot["sparse"].total.mean_ms
     machine = _machine_text(res)
     text = (f"This run is on the synthetic houses of `mpchair synth --realism {realism}`"
             + (" (calibrated to the original dataset: docs/matterport.md, \"Calibration\")" if realism == "default"
                else "") + f": the test split's density D has median {median:.5f} against the paper's "
-            f"{PAPER['density_median']['matterport_chair']}." + (f" Machine: {machine}." if machine else ""))
+            f"{MATTERPORT_CHAIR_DENSITY.median}." + (f" Machine: {machine}." if machine else ""))
     text += " Where this run differs from the paper, and why:"
     if ap3d is not None:
-        side = "below" if ap3d < PAPER["dense_3d"] else "above"
+        side = "below" if ap3d < PAPER_AP.dense_3d else "above"
         o3d_text = f", {o3d:.2f} on the paper's recall-blind Open3D-ML mAP" if o3d is not None else ""
-        text += (f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER['dense_3d']}"
+        text += (f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER_AP.dense_3d}"
                  + (f" because the models trained {schedules_text(trained)}, not 200 / 250 epochs of 5,000 (they "
                     "are far from converged);" if side == "below" and all(trained.values()) else ";"))
     text += (f" the backbone ratio ({ratios['default']:.1f}x default / {ratios['reuse']:.1f}x reuse allocator) is "
