@@ -246,3 +246,25 @@ def test_bench_and_ops_show_progress_on_a_terminal_unless_told_not_to(data, caps
             assert heads[0] == heads[1] == heads[2] and shown.split()[:3] == ["model", "To", "Device"]
     code, out, err = _run([*ops, "--json"], capsys, monkeypatch, terminal=True)
     assert code == 0 and err == "" and json.loads(out)["data"]["split"] == "test"
+
+
+def test_detector_gemm_is_read_once_by_the_cli(data, tmp_path, capsys, monkeypatch) -> None:
+    """``DETECTOR_GEMM``: the CLI reads it and runs the command under that library (the bench's machine record names
+    it), the choice ends with the command; a bad value is one error line, exit 2, before any work."""
+    from detector.ops import gemm
+
+    monkeypatch.setenv("DETECTOR_GEMM", "fast")
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "--config", DENSE, "--data", str(data), "--json", str(tmp_path / "no.json")])
+    assert e.value.code == 2 and not (tmp_path / "no.json").exists()
+    assert capsys.readouterr().err == "error: DETECTOR_GEMM must be one of auto, mkl, got 'fast'\n"
+    monkeypatch.setenv("DETECTOR_GEMM", "mkl")
+    try:
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
+                  "--threads", "1", "--json", str(tmp_path / "b.json")])
+    finally:
+        torch.set_num_threads(1)
+    assert e.value.code == 0
+    assert json.loads((tmp_path / "b.json").read_text())["machine"]["gemm"] == "mkl"
+    assert gemm.current_backend() == "auto"

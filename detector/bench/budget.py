@@ -43,6 +43,7 @@ from detector.bench.run import (
 from detector.config import load_experiment
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.device import peak_memory_bytes, reset_peak_memory, usable_cores, use_device
+from detector.ops.gemm import current_backend, gemm_backend
 from mpchair.core.errors import InputError
 
 #: The CPU share the docs' "highest rate within budget" column allows (the paper's "more than 75 % left").
@@ -96,8 +97,17 @@ def fixed_rate(run: Callable[[np.ndarray], object], frames: Sequence[np.ndarray]
 
 
 def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
-                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
-    """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
+                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int,
+                gemm: str = "auto") -> dict:
+    """One row in this (fresh) process, under the parent's GEMM library ``gemm`` (a spawned process starts outside
+    its :func:`detector.ops.gemm.gemm_backend` block): build it, warm up, run :func:`fixed_rate`; its record."""
+    with gemm_backend(gemm):
+        return _budget_row_here(model, runtime, precision, data_dir, split, frames, threads, seed, variant, rate,
+                                duration, warmup)
+
+
+def _budget_row_here(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
+                     threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
     with tempfile.TemporaryDirectory(prefix="detector-budget-") as work:
@@ -148,7 +158,8 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
                     continue
                 with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
                     rec = pool.submit(_budget_row, replace(model, name=name), runtime, precision, str(data_dir),
-                                      split, frames, threads, seed, variant, rate, duration, warmup).result()
+                                      split, frames, threads, seed, variant, rate, duration, warmup,
+                                      current_backend()).result()
                 rows.append(rec)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "

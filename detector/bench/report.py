@@ -94,7 +94,7 @@ def _notes(result: dict) -> list[str]:
         machine_line(mach),
         f"allocator: {mach['allocator']} ({env})",
         # runs before the key existed had every eager fp32 GEMM in MKL (torch.mm)
-        f"eager fp32 GEMMs: {mach.get('gemm', 'mkl')} (convolutions: oneDNN; detector.sparse.gemm)",
+        f"eager fp32 GEMMs: {mach.get('gemm', 'mkl')} (convolutions: oneDNN; detector.ops.gemm)",
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
         f"{dens['median']:.5f}, min {dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames",
     ]

@@ -56,7 +56,7 @@ from detector.data.experiment import EvalFrame, load_eval_frames
 from detector.deploy.cpu import PRECISIONS, RUNTIMES, cpu_flags, precision_flags, skip_reason
 from detector.device import machine_info, use_device
 from detector.models import PointPillars
-from detector.sparse.gemm import library as gemm_library
+from detector.ops.gemm import library as gemm_library
 from detector.sparse.workspace import Workspace
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
@@ -475,7 +475,7 @@ def protocol_record(first: TimedRow, data_dir: str | Path, split: str, peer: str
 
 def machine_record(device: torch.device, peer: str | None, variant: Variant = Variant()) -> dict:
     """:func:`detector.device.machine_info`, the CPU's native bf16 / int8 flags, the library of the eager fp32 GEMMs
-    (:func:`detector.sparse.gemm.library`), and the versions of Open3D (when a peer ran) and of the deployed runtimes
+    (:func:`detector.ops.gemm.library`), and the versions of Open3D (when a peer ran) and of the deployed runtimes
     asked for."""
     mach = machine_info(device)
     mach["precision_flags"] = precision_flags(cpu_flags())
