@@ -13,7 +13,7 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset, write_test_config
 
-from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
+from detector.bench import COMPONENTS, SHARED, BenchResult, format_table, ratio_rows, time_shared
 from detector.checkpoint import Checkpoint, load_model, save_checkpoint
 from detector.cli import cli, main
 from detector.config import load_experiment, pseudoimage_geometry
@@ -63,22 +63,24 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     assert result["density"]["min"] == pytest.approx(ds[0]) and result["density"]["max"] == pytest.approx(ds[-1])
     assert 0 < ds[0] < 1 and result["density"]["geometry"]["output_shape"] == [96, 64]
     # ratio row: dense / sparse of the means, printed
-    (name, ratios), = ratio_rows(result)
+    typed = BenchResult.from_json(result)
+    assert json.dumps(typed.to_json(), indent=2) + "\n" == out.read_text()  # the one definition reads what it wrote
+    (name, ratios), = ratio_rows(typed)
     assert name == "dense / sparse"
     d, s = (m["components"]["backbone"]["mean_ms"] for m in result["models"])
     assert ratios["backbone"] == pytest.approx(d / s)
     assert "dense / sparse" in res.output and "Feature Extract" in res.output
-    md = format_table(result, markdown=True)
+    md = format_table(typed, markdown=True)
     assert md.splitlines()[0].startswith("| model | To Device |") and md.count("\n| ") >= 3
     # the shared components, timed back to back too: their own rows and ratio row, after the per-frame table
     assert result["protocol"]["back_to_back"] == list(SHARED) == ["head", "bbox_extract"]
     for m in result["models"]:
         assert set(m["back_to_back"]) == set(SHARED)
         assert all(v["mean_ms"] > 0 and v["std_ms"] >= 0 for v in m["back_to_back"].values())
-    (name, ratios), = ratio_rows(result, "back_to_back")
+    (name, ratios), = ratio_rows(typed, "back_to_back")
     d, s = (m["back_to_back"]["bbox_extract"]["mean_ms"] for m in result["models"])
     assert name == "dense / sparse" and set(ratios) == set(SHARED) and ratios["bbox_extract"] == pytest.approx(d / s)
-    text = format_table(result)
+    text = format_table(typed)
     back = text[text.index("timed back to back"):].splitlines()
     assert back[2].split() == ["model", "Head", "BBox", "Extract"] and back[5].startswith("dense / sparse")
     assert f"{ratios['head']:.2f}x" in back[5] and "| model | Head | BBox Extract |" in md

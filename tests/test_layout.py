@@ -125,9 +125,17 @@ def test_mpchair_never_imports_detector():
     assert not bad, bad
 
 
+#: The one arrow from the detector into the mpchair stack above the shared floor: the reproduction (the experiment,
+#: which drives both command lines) reads a dataset's manifest through its one definition,
+#: ``mpchair.dataset.manifest`` (a module that loads no generator code). It stays the only one until the experiment
+#: becomes a package of its own above both stacks (issue 45).
+EXPERIMENT_READS = (("detector.reproduce", "mpchair.dataset.manifest"),)
+
+
 def test_detector_imports_only_the_shared_floor_of_mpchair():
     bad = sorted((a, b) for a, targets in GRAPH.items() if a.startswith("detector") for b in targets
-                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR))
+                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR)
+                 and not any(a.startswith(src) and b == dst for src, dst in EXPERIMENT_READS))
     assert not bad, bad
 
 

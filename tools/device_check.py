@@ -33,11 +33,15 @@ import time
 import traceback
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 
 from mpchair.core.atomic import write_text
 from mpchair.paper import TABLE_II, TABLE_IV, ComponentTimes
+
+if TYPE_CHECKING:  # imported where the summary is written: the step runner itself does not load torch
+    from detector.bench.result import BenchResult
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "models"
@@ -330,31 +334,31 @@ def _ms(x: float | None) -> str:
     return "-" if x is None else f"{x:,.3f}" if x < 100 else f"{x:,.1f}"
 
 
-def paper_rows(bench: dict, geometry: str) -> list[list[str]]:
+def paper_rows(bench: BenchResult, geometry: str) -> list[list[str]]:
     """Per component: the paper's Desktop dense / sparse (ms) beside ours (dense, sparse, sparse+sparse_head)."""
-    ours = {m["name"]: m["components"] for m in bench["models"] if not m.get("peer")}
+    ours = {name: m.mean_ms for name, m in bench.ours().items()}
     paper = PAPER_DESKTOP[geometry]
     rows = []
     for key, title in COMPONENT_TITLES.items():
         row = [title]
         for model in ("dense", "sparse"):
             cell = getattr(paper[model], key)
-            row += [f"{cell.mean_ms:.3f} ± {cell.std_ms:.3f}", _ms(ours.get(model, {}).get(key, {}).get("mean_ms"))]
-        row.append(_ms(ours.get("sparse+sparse_head", {}).get(key, {}).get("mean_ms")))
+            row += [f"{cell.mean_ms:.3f} ± {cell.std_ms:.3f}", _ms(ours.get(model, {}).get(key))]
+        row.append(_ms(ours.get("sparse+sparse_head", {}).get(key)))
         rows.append(row)
     return rows
 
 
-def _machine_lines(machine: dict | None, bench: dict | None) -> list[str]:
+def _machine_lines(machine: dict | None, bench: BenchResult | None) -> list[str]:
     lines = []
     if machine:
         gpus = ", ".join(f"{g['name']} ({g['memory_gib']} GiB, sm {g['capability']})" for g in machine["gpus"])
         lines.append(f"- device {machine['device']}: {gpus or 'no GPU'}; torch {machine['torch']}, CUDA "
                      f"{machine['cuda']}, autocast dtype {machine['autocast_dtype']}"
                      + (f"; nvidia-smi: {machine['nvidia_smi']}" if machine.get("nvidia_smi") else ""))
-    if bench:
-        m = bench["machine"]
-        lines.append(f"- host: {m['cpu']}, {m['logical_cpus']} logical CPUs, {m['torch_threads']} torch threads")
+    if bench and bench.machine:
+        m = bench.machine.machine
+        lines.append(f"- host: {m.cpu}, {m.logical_cpus} logical CPUs, {m.torch_threads} torch threads")
     return lines
 
 
@@ -375,15 +379,15 @@ def _tests_section(tests: dict | None) -> list[str]:
     return lines + [""]
 
 
-def _bench_section(geometry: str, bench: dict | None, table_md: str | None) -> list[str]:
+def _bench_section(geometry: str, bench: BenchResult | None, table_md: str | None) -> list[str]:
     if not bench:
         return [f"## Runtime, {GEOMETRY[geometry]}", "", "not run", ""]
-    grid = bench["density"]["geometry"]
-    cm = round(grid["voxel_size"][0] * 100)
-    lines = [f"## Runtime, {GEOMETRY[geometry]}: {grid['output_shape'][0]} x {grid['output_shape'][1]}, {cm} cm "
+    grid = bench.density.geometry
+    cm = round(grid.voxel_size[0] * 100)
+    lines = [f"## Runtime, {GEOMETRY[geometry]}: {grid.output_shape[0]} x {grid.output_shape[1]}, {cm} cm "
              "pillars", ""]
-    p = bench["protocol"]
-    lines += [f"`detector bench`, {p['frames']} frames of the {p['split']} split x {p['trials']} trials, {p['warmup']} "
+    p = bench.protocol
+    lines += [f"`detector bench`, {p.frames} frames of the {p.split} split x {p.trials} trials, {p.warmup} "
               "warm-up frames, batch 1, random weights (timing only), ms per frame:", "", (table_md or "").strip(), ""]
     title = "Table II's Desktop rows" if geometry == "mpchair" else "Table IV"
     lines += [f"Beside the paper's {title} (NVIDIA 2080 Ti, AMD Ryzen 7 3700X; ms, mean ± std):", ""]
@@ -447,11 +451,14 @@ def cmd_report(args: argparse.Namespace) -> int:
     _json(out / "summary.json", summary)
     title = "# GPU check (tools/device_check.sh" + (" --dry-run: CPU, tiny grids and layers)" if summary["dry_run"]
                                                     else ")")
-    any_bench = next((b for b in bench.values() if b), None)
+    from detector.bench.result import BenchResult
+
+    results = {g: BenchResult.from_json(b) if b else None for g, b in bench.items()}  # its one reader
+    any_bench = next((b for b in results.values() if b), None)
     md = [title, "", *_machine_lines(machine, any_bench), "", *_steps_section(steps), *_tests_section(summary["tests"])]
     for g in GEOMETRY:
         table = res / f"bench_{g}.md"
-        md += _bench_section(g, bench[g], table.read_text(encoding="utf-8") if table.is_file() else None)
+        md += _bench_section(g, results[g], table.read_text(encoding="utf-8") if table.is_file() else None)
     md += _train_section(train) + _eval_ddp_section(summary["eval"], summary["ddp"])
     write_text(out / "summary.md", "\n".join(md))
     print(f"wrote {out / 'summary.json'} and {out / 'summary.md'}" + (f"; failed: {', '.join(summary['failed'])}"

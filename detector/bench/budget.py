@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.bench.result import Skipped
 from detector.bench.run import (
     BenchModel,
-    Skipped,
     Variant,
     build_rows,
     check_variant,
@@ -129,7 +129,7 @@ def _budget_row_here(model: BenchModel, runtime: str, precision: str, data_dir: 
     return {"name": row.name, "runtime": runtime, "precision": precision, "config": str(model.config),
             "weights": row.weights, "backbone": row.cfg.model.backbone, "head": row.cfg.model.head,
             "threads": threads, **record, "peak_rss_mb": None if peak is None else peak / 2**20,
-            "density": density_record(row)}
+            "density": density_record(row).to_json()}
 
 
 def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: float, duration: float,
@@ -171,7 +171,7 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
         "budget": rows,
         "skipped": skipped,
         "density": density,
-        "machine": machine_record(use_device("cpu", threads), None, variant),
+        "machine": machine_record(use_device("cpu", threads), None, variant).to_json(),
         "protocol": {"data": str(data_dir), "split": split, "frames": frames, "warmup": warmup, "rate_hz": rate,
                      "duration_s": duration, "threads": threads, "budget_share": BUDGET_SHARE,
                      "process": "one fresh process per row (spawn)", "policy": "newest released frame; "

@@ -11,16 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.bench.result import BenchResult
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
-from detector.reproduce.deploy import deploy_section, native_flags
+from detector.reproduce.deploy import deploy_section
 from detector.reproduce.report_ablations import ablations_section
 from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
 from detector.reproduce.results import (
     MODELS,
-    BenchOutput,
     EvalOutputs,
     KittiMetrics,
-    _read_json,
     eval_records,
     read_bench,
     read_density,
@@ -93,7 +92,7 @@ def _ratio(a: float, b: float) -> float:
     return a / max(b, 1e-9)
 
 
-def _shared_component_rows(bench: BenchOutput, name: str, alloc: str) -> list[str]:
+def _shared_component_rows(bench: BenchResult, name: str, alloc: str) -> list[str]:
     """Rows of the components the paper calls identical in both models (Table II): model ``name`` / dense.
 
     Beside the ratio of means, the ratio of per-frame medians, which one VM hiccup in a few-ms component cannot move.
@@ -118,7 +117,7 @@ def _shared_component_rows(bench: BenchOutput, name: str, alloc: str) -> list[st
     return rows
 
 
-def _bench_targets(bench: BenchOutput, alloc: str) -> list[str]:
+def _bench_targets(bench: BenchResult, alloc: str) -> list[str]:
     """Target-table rows of one allocator's bench: dense / sparse speed-ups, the shared components, the peer."""
     rows = []
     ours = bench.ours()
@@ -336,15 +335,16 @@ def _difference_rows(out: Path, trained: Schedules) -> list[tuple[str, str, str,
     data = out / "dataset"
     splits = {k: len(read_imageset(imageset_path(data, k))) for k in ("train", "val", "test")
               if imageset_path(data, k).is_file()}
-    n_houses = len(read_manifest(data).houses) or "n/a"
+    manifest = read_manifest(data)
+    n_houses = len(manifest.houses) if manifest and manifest.houses else "n/a"
     dense, sparse = (read_run_config(out / "runs" / m) for m in MODELS)
-    grid, rng = dense.output_shape if dense else None, dense.point_cloud_range if dense else None
-    ep = {m: cfg.epochs if cfg else None for m, cfg in zip(MODELS, (dense, sparse))}
-    sched = dense.schedule if dense else None
-    sched_text = (f"{sched}, peak lr {dense.lr}" if sched == "onecycle" else f"{sched}, lr {dense.lr}") if sched \
-        else "n/a"
-    batch = dense.batch_size if dense and dense.batch_size is not None else "n/a"
-    precision = {m: (cfg.precision if cfg else None) or "fp32" for m, cfg in zip(MODELS, (dense, sparse))}
+    grid, rng = (dense.model.output_shape, dense.model.point_cloud_range) if dense else (None, None)
+    ep = {m: cfg.train.epochs if cfg else None for m, cfg in zip(MODELS, (dense, sparse))}
+    sched = dense.train.schedule if dense else None
+    lr = dense.train.lr if dense else None
+    sched_text = (f"{sched}, peak lr {lr}" if sched == "onecycle" else f"{sched}, lr {lr}") if sched else "n/a"
+    batch = dense.train.batch_size if dense else "n/a"
+    precision = {m: cfg.train.precision if cfg else "fp32" for m, cfg in zip(MODELS, (dense, sparse))}
     return [
         ("data", "4 real Matterport3D houses (VLzqgDo317F, e9zR4mvMWw7, uNb9QFRL6hY, i5noydFURQK), habitat navmesh "
          "viewpoints; train 5,000 / val 2,500 (training index split, mostly house-disjoint val) / test 7,500",
@@ -417,10 +417,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
     """(aspect, paper, this run, why) of the ways the models, the data and the measurements differ from those the
     paper's numbers came from (its released code, its KITTI figures), from this run's manifest, configs and outputs."""
     manifest = read_manifest(out / "dataset")
+    height, radius = (manifest.sensor_height, manifest.robot_radius) if manifest else (None, None)
     dense, sparse = (read_run_config(out / "runs" / m) for m in MODELS)
-    down = sparse.downsample if sparse else None
-    clip = dense.grad_clip_norm if dense else None
-    grid = dense.output_shape if dense else None
+    down = sparse.model.downsample if sparse else None
+    clip = dense.train.grad_clip_norm if dense else None
+    grid = dense.model.output_shape if dense else None
     density = read_density(res / "density.json")
     median = density.values.get("median") if density else None
     frame = read_sparsity_frame(res / "viz.json")
@@ -437,11 +438,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          "`grad_clip_norm: null` is the reference's"),
         ("sensor height", f"{_metres(REFERENCE['text_sensor_height_m'])} in the text; the released generator, which "
          f"made the paper's data, {_metres(REFERENCE['sensor_height_m'])}",
-         f"{_metres(manifest.height)} (`mpchair generate --height`)",
+         f"{_metres(height)} (`mpchair generate --height`)",
          f"the text's; `--height {REFERENCE['sensor_height_m']!r}` is the released code's"),
         ("robot radius", "viewpoints on habitat's navmesh, built for an agent of radius "
          f"{_metres(REFERENCE['navmesh_agent_radius_m'])}",
-         f"{_metres(manifest.robot_radius)}: horizontal rays at three heights must travel that far "
+         f"{_metres(radius)}: horizontal rays at three heights must travel that far "
          "(`mpchair generate --robot-radius`, docs/generate.md)",
          f"a robot's footprint; `--robot-radius {REFERENCE['navmesh_agent_radius_m']!r}` is the navmesh's agent"),
         ("head at inference", "the reference's three 1x1 convs (class, box, direction), NCHW",
@@ -555,15 +556,16 @@ def _opening(out: Path, scale: str, sc: Scale, trained: Schedules, log: str, not
 def _machine_text(res: Path) -> str:
     """"a 2-CPU AMD EPYC (AVX512-BF16, AVX512-VNNI; no AMX)": the machine the bench step timed on, from its JSON (the
     report may be written again elsewhere, from the run record); "" without it."""
-    mach = (_read_json(res / "bench_default.json") or {}).get("machine") or {}
-    if not mach.get("cpu"):
+    bench = read_bench(res / "bench_default.json")
+    mach = bench.machine if bench else None
+    if mach is None or not mach.machine.cpu:
         return ""
-    flags = native_flags(mach)
+    flags = mach.native_flags()
     named = [n for f, n in (("avx512_bf16", "AVX512-BF16"), ("avx512_vnni", "AVX512-VNNI"), ("avx_vnni", "AVX-VNNI"))
              if f in flags]
     amx = any(f.startswith("amx") for f in flags)
     feats = ", ".join((["AMX"] if amx else []) + named) or "no native bf16 / int8"
-    return f"a {mach.get('logical_cpus')}-CPU {mach['cpu']} ({feats}{'' if amx else '; no AMX'})"
+    return f"a {mach.machine.logical_cpus}-CPU {mach.machine.cpu} ({feats}{'' if amx else '; no AMX'})"
 
 
 def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:

@@ -43,8 +43,8 @@ def training_time_section(out: Path) -> list[str]:
     dense, sparse = times.get("dense"), times.get("sparse")
     if dense is not None and sparse is not None:
         cfg = read_run_config(out / "runs" / "dense")
-        grid = cfg.output_shape if cfg else None
-        lines += [_speedup_text(dense, sparse, grid, cfg.precision if cfg else None), ""]
+        grid = cfg.model.output_shape if cfg else None
+        lines += [_speedup_text(dense, sparse, grid, cfg.train.precision if cfg else None), ""]
     return lines
 
 
