@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+
+import click
+
 from detector import __version__
 from mpchair.core.clitools import lazy_group, run_cli
 
@@ -29,7 +33,15 @@ def cli() -> None:
         --config configs/models/mpchair_sparse.yaml --data dataset/
       detector export --config configs/models/mpchair_sparse_exact.yaml --format openvino --out exported/
     Distributed: torchrun --nproc-per-node=2 -m detector train ...
+
+    \b
+    Environment: DETECTOR_GEMM=auto|mkl, the library of the eager fp32 CPU GEMMs (auto: oneDNN; docs/sparse.md).
     """
+    choice = os.environ.get("DETECTOR_GEMM")
+    if choice is not None:  # read once, here; the command runs inside the library choice (detector.ops.gemm)
+        from detector.ops.gemm import gemm_backend, parse_backend
+
+        click.get_current_context().with_resource(gemm_backend(parse_backend(choice)))
 
 
 def main(args: list[str] | None = None) -> None:

@@ -241,9 +241,11 @@ def pseudoimage_geometry(cfg: ModelConfig) -> PseudoimageGeometry:
     return PseudoimageGeometry(cfg.point_cloud_range, cfg.voxel_size[:2], (nx, ny))
 
 
-def check_model_config(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1) -> None:
+def check_model_config(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1,
+                       this_machine: bool = True) -> None:
     """Raise :class:`InputError` for values the dataclass types cannot express (ranges, divisibility, lengths), or
-    for a model whose training step at ``batch_size`` cannot fit this machine's memory (:func:`check_memory`)."""
+    (``this_machine``) for a model whose training step at ``batch_size`` cannot fit this machine's memory
+    (:func:`check_memory`)."""
 
     def fail(msg: str) -> None:
         raise InputError(f"model.{msg}", source)
@@ -300,7 +302,8 @@ def check_model_config(cfg: ModelConfig, source: str = "<config>", batch_size: i
         fail(f"neg_iou_thr / pos_iou_thr: need 0 <= neg <= pos <= 1, got {cfg.neg_iou_thr}, {cfg.pos_iou_thr}")
     if cfg.nms_pre < 1:
         fail(f"nms_pre: must be >= 1, got {cfg.nms_pre}")
-    check_memory(cfg, source, batch_size)
+    if this_machine:
+        check_memory(cfg, source, batch_size)
 
 
 def memory_floor_bytes(cfg: ModelConfig, batch_size: int = 1) -> int:
@@ -341,9 +344,10 @@ def check_memory(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1
                          f"buffer) but this machine has {have / 2**30:,.1f} GiB", source)
 
 
-def check_experiment(cfg: ExperimentConfig, source: str = "<config>") -> None:
-    """Cross-section checks: class lists agree with ``model.num_classes`` and ``eval.iou_thresholds``."""
-    check_model_config(cfg.model, source, cfg.train.batch_size)
+def check_experiment(cfg: ExperimentConfig, source: str = "<config>", this_machine: bool = True) -> None:
+    """Cross-section checks: class lists agree with ``model.num_classes`` and ``eval.iou_thresholds``; the model's
+    checks (:func:`check_model_config`, this machine's memory only if ``this_machine``)."""
+    check_model_config(cfg.model, source, cfg.train.batch_size, this_machine)
     if len(cfg.data.classes) != cfg.model.num_classes:
         raise InputError(
             f"data.classes has {len(cfg.data.classes)} names but model.num_classes is {cfg.model.num_classes}", source
@@ -415,3 +419,13 @@ def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConf
 def load_experiment(path: str | Path) -> ExperimentConfig:
     """Load and validate an experiment YAML (``configs/models/*.yaml``); bad keys/types/values → InputError."""
     return experiment_from_dict(load_yaml(path), source=str(path))
+
+
+def load_run_config(path: str | Path) -> ExperimentConfig:
+    """The experiment a run was trained with (``RUN/config.yaml``, as
+    :func:`detector.train.run_folder.write_run_files` writes it), for a reader of the run (a report, a status line):
+    the schema and checks of :func:`load_experiment` but this machine's memory, since the run may come from another
+    machine."""
+    cfg = from_dict(ExperimentConfig, load_yaml(path), source=str(path))
+    check_experiment(cfg, str(path), this_machine=False)
+    return cfg

@@ -7,7 +7,10 @@ import math
 import os
 import platform
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -81,20 +84,54 @@ def allocator_setting() -> str:
     return "default" if not any(os.environ.get(k) for k in MALLOC_ENV) else "custom"
 
 
-def machine_info(device: torch.device) -> dict:
-    """What the timings depend on: CPU, threads, torch, GPU, load, allocator env (a JSON-ready dict)."""
-    return {
-        "cpu": cpu_model(),
-        "logical_cpus": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "device": str(device),
-        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
-        "loadavg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-        "malloc_env": {k: os.environ.get(k) for k in MALLOC_ENV},
-        "allocator": allocator_setting(),
-    }
+@dataclass(frozen=True)
+class Machine:
+    """What timings depend on, recorded with every one (the ``machine`` of ``detector bench --json``, of ``detector
+    stream-eval``'s latency log, of the tools' JSON): the CPU's name and logical CPUs, torch's CPU threads, the torch
+    and Python versions, the torch device and its GPU's name (None on the CPU), the 1-minute load average when it was
+    taken, the glibc allocator variables (:data:`MALLOC_ENV`, None: unset) and :func:`allocator_setting`.
+
+    The one definition of that record: :meth:`to_json` writes it, :meth:`from_json` reads it back (a key a file lacks
+    reads as None / empty)."""
+
+    cpu: str
+    logical_cpus: int | None
+    torch_threads: int | None
+    torch: str | None
+    python: str | None = None
+    device: str | None = None
+    gpu: str | None = None
+    loadavg_1m: float | None = None
+    malloc_env: Mapping[str, str | None] = field(default_factory=dict)
+    allocator: str | None = None
+
+    @classmethod
+    def here(cls, device: torch.device) -> Machine:
+        """This machine now, running on ``device``."""
+        return cls(cpu=cpu_model(), logical_cpus=os.cpu_count(), torch_threads=torch.get_num_threads(),
+                   torch=torch.__version__, python=platform.python_version(), device=str(device),
+                   gpu=torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+                   loadavg_1m=os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+                   malloc_env={k: os.environ.get(k) for k in MALLOC_ENV}, allocator=allocator_setting())
+
+    def to_json(self) -> dict[str, Any]:
+        """The record as JSON data, in field order."""
+        return {f.name: dict(self.malloc_env) if f.name == "malloc_env" else getattr(self, f.name)
+                for f in fields(self)}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Machine:
+        """The record of :meth:`to_json`'s data (other keys, such as a bench's additions, are ignored)."""
+        known = {f.name: d.get(f.name) for f in fields(cls) if f.name not in ("cpu", "malloc_env")}
+        return cls(cpu=d.get("cpu") or "", malloc_env=dict(d.get("malloc_env") or {}), **known)
+
+
+MACHINE_KEYS: tuple[str, ...] = tuple(f.name for f in fields(Machine))
+
+
+def machine_info(device: torch.device) -> dict[str, Any]:
+    """:meth:`Machine.here` as JSON data (the ``machine`` entry a timing's JSON embeds)."""
+    return Machine.here(device).to_json()
 
 
 # --- what the CUDA path needs beyond the CPU path (issue 32) ------------------------------------------------------

@@ -44,6 +44,12 @@ from detector.models import build_model
 from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d
 from detector.sparse.conv import GEMM_MIN_FILL
 from detector.sparse.indices import down_table, up_table, wide_down_table
+from mpchair.paper import (
+    KITTI_DENSITY,
+    KITTI_FEWER_CONVOLUTIONS,
+    MATTERPORT_CHAIR_DENSITY,
+    MATTERPORT_CHAIR_FEWER_CONVOLUTIONS,
+)
 
 #: Table I's rows, in its order.
 TABLE1_TYPES: tuple[str, ...] = ("3x3 conv", "2x2 conv", "1x1 convT", "2x2 convT", "4x4 convT")
@@ -471,7 +477,9 @@ def format_counts(result: dict, markdown: bool = False) -> str:
     if "table1_fewer_convolutions_at_least" in s:
         lines.append(f"{pre}Table I at the median D: sparse performs at least "
                      f"{100 * s['table1_fewer_convolutions_at_least']:.1f}% fewer convolutions than dense "
-                     "(paper: >= 79% at Matterport-Chair's D = 0.00750, >= 50% at KITTI's 0.02459)")
+                     f"(paper: >= {MATTERPORT_CHAIR_FEWER_CONVOLUTIONS:.0%} at Matterport-Chair's D = "
+                     f"{MATTERPORT_CHAIR_DENSITY.median:.5f}, >= {KITTI_FEWER_CONVOLUTIONS:.0%} at KITTI's "
+                     f"{KITTI_DENSITY.median:.5f})")
     head = result["frames"][0]["head"]
     lines.append(f"{pre}head (1x1 convs, not in Table I): dense {_g(head['dense'])} MACs/frame"
                  + (f"; exact sparse head {_g(head['sparse'])} (frame {result['frames'][0]['frame_id']})"

@@ -161,6 +161,47 @@ def write_test_config(path: str | Path, *, model: dict | None = None, data: dict
     return path
 
 
+RUN_BASE_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "models" / "mpchair_dense_cpu.yaml"
+
+
+def write_run_config(run: str | Path, *, model: dict | None = None, train: dict | None = None) -> Path:
+    """``RUN/config.yaml`` of a run folder as ``detector train`` writes it (every key; the CPU dense config, 288 x 144,
+    with the given per-section overrides), checked by reading it back (:func:`detector.config.load_run_config`)."""
+    import yaml
+
+    from detector.config import load_run_config
+
+    cfg = yaml.safe_load(RUN_BASE_CONFIG.read_text())
+    for section, values in (("model", model), ("train", train)):
+        cfg[section].update(values or {})
+    path = Path(run) / "config.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    load_run_config(path)
+    return path
+
+
+def write_manifest(dataset: str | Path, houses: dict[str, tuple[int, int, dict[str, str]]], *, height: float = 1.0,
+                   robot_radius: float = 0.25) -> Path:
+    """``dataset/manifest.json`` as ``mpchair generate`` writes it, less its frame records (as a run record keeps it):
+    ``houses`` id -> (first frame, last frame, files_sha256), the viewpoint settings ``height`` / ``robot_radius``
+    (metres); the other fields are placeholders."""
+    from mpchair.dataset.manifest import MANIFEST_FORMAT, Manifest, ManifestHouse, ManifestTotals
+
+    manifest = Manifest(
+        format=MANIFEST_FORMAT, command=("mpchair", "generate", "--height", repr(height), "--robot-radius",
+                                         repr(robot_radius)),
+        config={"viewpoints": {"height": height, "robot_radius": robot_radius}}, versions={}, seed=0,
+        houses={h: ManifestHouse(files_sha256=files, objects_of_class=1, frames=(a, b))
+                for h, (a, b, files) in houses.items()},
+        conventions={}, splits={}, totals=ManifestTotals(frames=0, boxes_kept=0, boxes_rejected={}, points=0),
+        frames=())
+    path = Path(dataset) / "manifest.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(manifest.to_json() + "\n")
+    return path
+
+
 def onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10.0, final: float = 1e4,
                     beta1: tuple[float, float] = (0.95, 0.85)) -> list[tuple[float, float]]:
     """(lr, beta1) of steps 0..total-1 of OpenPCDet's adam_onecycle in closed form, with OneCycleLR's phase ends

@@ -13,7 +13,7 @@ import pytest
 import torch
 from helpers_detector import make_tiny_dataset, write_test_config
 
-from detector.bench import COMPONENTS, SHARED, format_table, ratio_rows, time_shared
+from detector.bench import COMPONENTS, SHARED, BenchResult, format_table, ratio_rows, time_shared
 from detector.checkpoint import Checkpoint, load_model, save_checkpoint
 from detector.cli import cli, main
 from detector.config import load_experiment, pseudoimage_geometry
@@ -63,22 +63,24 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     assert result["density"]["min"] == pytest.approx(ds[0]) and result["density"]["max"] == pytest.approx(ds[-1])
     assert 0 < ds[0] < 1 and result["density"]["geometry"]["output_shape"] == [96, 64]
     # ratio row: dense / sparse of the means, printed
-    (name, ratios), = ratio_rows(result)
+    typed = BenchResult.from_json(result)
+    assert json.dumps(typed.to_json(), indent=2) + "\n" == out.read_text()  # the one definition reads what it wrote
+    (name, ratios), = ratio_rows(typed)
     assert name == "dense / sparse"
     d, s = (m["components"]["backbone"]["mean_ms"] for m in result["models"])
     assert ratios["backbone"] == pytest.approx(d / s)
     assert "dense / sparse" in res.output and "Feature Extract" in res.output
-    md = format_table(result, markdown=True)
+    md = format_table(typed, markdown=True)
     assert md.splitlines()[0].startswith("| model | To Device |") and md.count("\n| ") >= 3
     # the shared components, timed back to back too: their own rows and ratio row, after the per-frame table
     assert result["protocol"]["back_to_back"] == list(SHARED) == ["head", "bbox_extract"]
     for m in result["models"]:
         assert set(m["back_to_back"]) == set(SHARED)
         assert all(v["mean_ms"] > 0 and v["std_ms"] >= 0 for v in m["back_to_back"].values())
-    (name, ratios), = ratio_rows(result, "back_to_back")
+    (name, ratios), = ratio_rows(typed, "back_to_back")
     d, s = (m["back_to_back"]["bbox_extract"]["mean_ms"] for m in result["models"])
     assert name == "dense / sparse" and set(ratios) == set(SHARED) and ratios["bbox_extract"] == pytest.approx(d / s)
-    text = format_table(result)
+    text = format_table(typed)
     back = text[text.index("timed back to back"):].splitlines()
     assert back[2].split() == ["model", "Head", "BBox", "Extract"] and back[5].startswith("dense / sparse")
     assert f"{ratios['head']:.2f}x" in back[5] and "| model | Head | BBox Extract |" in md
@@ -246,3 +248,25 @@ def test_bench_and_ops_show_progress_on_a_terminal_unless_told_not_to(data, caps
             assert heads[0] == heads[1] == heads[2] and shown.split()[:3] == ["model", "To", "Device"]
     code, out, err = _run([*ops, "--json"], capsys, monkeypatch, terminal=True)
     assert code == 0 and err == "" and json.loads(out)["data"]["split"] == "test"
+
+
+def test_detector_gemm_is_read_once_by_the_cli(data, tmp_path, capsys, monkeypatch) -> None:
+    """``DETECTOR_GEMM``: the CLI reads it and runs the command under that library (the bench's machine record names
+    it), the choice ends with the command; a bad value is one error line, exit 2, before any work."""
+    from detector.ops import gemm
+
+    monkeypatch.setenv("DETECTOR_GEMM", "fast")
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "--config", DENSE, "--data", str(data), "--json", str(tmp_path / "no.json")])
+    assert e.value.code == 2 and not (tmp_path / "no.json").exists()
+    assert capsys.readouterr().err == "error: DETECTOR_GEMM must be one of auto, mkl, got 'fast'\n"
+    monkeypatch.setenv("DETECTOR_GEMM", "mkl")
+    try:
+        with pytest.raises(SystemExit) as e:
+            main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
+                  "--threads", "1", "--json", str(tmp_path / "b.json")])
+    finally:
+        torch.set_num_threads(1)
+    assert e.value.code == 0
+    assert json.loads((tmp_path / "b.json").read_text())["machine"]["gemm"] == "mkl"
+    assert gemm.current_backend() == "auto"

@@ -4,6 +4,7 @@ fixed-rate schedule's arithmetic on a simulated clock and the fields of a real r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -12,6 +13,7 @@ from helpers_detector import make_tiny_dataset, write_test_config
 
 from detector.bench.budget import fixed_rate
 from detector.bench.report import format_table, headline_line, ratio_rows
+from detector.bench.result import BenchResult, ModelResult, Stat
 from detector.bench.run import headline_record
 from detector.bench.timing import COMPONENTS
 from detector.deploy.cpu import cpu_flags, precision_flags, skip_reason
@@ -65,8 +67,10 @@ def test_every_model_runtime_precision_is_a_row_interleaved(setup, tmp_path, cap
     mach = result["machine"]
     assert mach["precision_flags"] == precision_flags(flags) and mach["onnxruntime"] and mach["openvino"]
     # ratio rows stay within one runtime x precision; the headline spans them
-    assert ("dense / sparse+sparse_head", ) == tuple(n for n, _ in ratio_rows(result) if "(" not in n)
-    assert "dense (onnxruntime fp32) / sparse+sparse_head (onnxruntime fp32)" in [n for n, _ in ratio_rows(result)]
+    typed = BenchResult.from_json(result)
+    assert ("dense / sparse+sparse_head", ) == tuple(n for n, _ in ratio_rows(typed) if "(" not in n)
+    assert "dense (onnxruntime fp32) / sparse+sparse_head (onnxruntime fp32)" in [n for n, _ in ratio_rows(typed)]
+    assert json.dumps(typed.to_json(), indent=2) + "\n" == out.read_text()  # the one definition reads what it wrote
     h = result["headline"]
     ours = result["models"]
     dense_best = min((m for m in ours if m["backbone"] == "dense"), key=lambda m: m["components"]["total"]["mean_ms"])
@@ -110,10 +114,10 @@ def test_only_skipped_combinations_is_one_error_line(setup, tmp_path, capsys):
     assert not (tmp_path / "b.json").exists()
 
 
-def _result(rows: list[tuple[str, str, str, str, float]]) -> dict:
+def _result(rows: list[tuple[str, str, str, str, float]]) -> BenchResult:
     """A bench result holding only what the headline reads: (name, backbone, runtime, precision, total ms)."""
-    return {"models": [{"name": n, "backbone": b, "runtime": r, "precision": p, "peer": None,
-                        "components": {"total": {"mean_ms": t, "std_ms": 0.0}}} for n, b, r, p, t in rows]}
+    return BenchResult(models=tuple(ModelResult(name=n, backbone=b, runtime=r, precision=p,
+                                                components={"total": Stat(t, 0.0)}) for n, b, r, p, t in rows))
 
 
 def test_the_headline_compares_the_fastest_rows_of_each_kind():
@@ -122,18 +126,16 @@ def test_the_headline_compares_the_fastest_rows_of_each_kind():
                    ("dense (openvino bf16)", "dense", "openvino", "bf16", 90.0),
                    ("sparse", "sparse", "torch", "fp32", 45.0), ("sparse (openvino int8)", "sparse", "openvino",
                                                                  "int8", 15.0)])
-    h = headline_record(res["models"])
-    assert (h["fastest_dense"], h["fastest_sparse"], h["fastest_fp32_dense"]) == (
+    h = headline_record(res.models)
+    assert (h.fastest_dense, h.fastest_sparse, h.fastest_fp32_dense) == (
         "dense (openvino bf16)", "sparse (openvino int8)", "dense (openvino fp32)")
-    assert h["speedup"] == pytest.approx(6.0) and h["speedup_vs_fp32_dense"] == pytest.approx(440 / 15)
-    res["headline"] = h
-    line = headline_line(res)
+    assert h.speedup == pytest.approx(6.0) and h.speedup_vs_fp32_dense == pytest.approx(440 / 15)
+    line = headline_line(dataclasses.replace(res, headline=h))
     assert "6.00x" in line and "29.33x" in line
     # eager fp32 only (the tables as before runtimes existed): no headline line; one kind only: no headline
     eager = _result([("dense", "dense", "torch", "fp32", 450.0), ("sparse", "sparse", "torch", "fp32", 45.0)])
-    eager["headline"] = headline_record(eager["models"])
-    assert headline_line(eager) is None
-    assert headline_record(_result([("dense", "dense", "torch", "fp32", 1.0)])["models"]) is None
+    assert headline_line(dataclasses.replace(eager, headline=headline_record(eager.models))) is None
+    assert headline_record(_result([("dense", "dense", "torch", "fp32", 1.0)]).models) is None
 
 
 class SimClock:
@@ -210,4 +212,4 @@ def test_format_table_keeps_eager_only_results_as_before(setup, tmp_path, capsys
     assert code == 0
     result = json.loads(out.read_text())
     assert [(m["runtime"], m["precision"]) for m in result["models"]] == [("torch", "fp32")] * 2
-    assert result["skipped"] == [] and "headline" not in format_table(result)
+    assert result["skipped"] == [] and "headline" not in format_table(BenchResult.from_json(result))

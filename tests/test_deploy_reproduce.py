@@ -9,8 +9,10 @@ from pathlib import Path
 import pytest
 from helpers_detector import make_tiny_dataset, write_test_config
 
+from detector.bench.result import BenchDensity, BenchMachine, BenchResult, DensityGrid, ModelResult, Stat
 from detector.cli import main as detector_main
 from detector.deploy.cpu import cpu_flags, skip_reason
+from detector.device import Machine
 from detector.reproduce.cli import main
 from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
 
@@ -162,12 +164,14 @@ def test_like_for_like_pairs_the_fastest_of_each_side_at_fp32_and_at_any_precisi
             ("dense (openvino int8)", "openvino", "int8", 86.0), ("sparse", "torch", "fp32", 40.0),
             ("sparse+sparse_head (onnxruntime fp32)", "onnxruntime", "fp32", 19.5),
             ("sparse+sparse_head (onnxruntime int8)", "onnxruntime", "int8", 13.9))
-    models = [{"name": n, "runtime": r, "precision": p, "components": {"total": {"mean_ms": ms}}}
-              for n, r, p, ms in rows]
-    mach = {"cpu": "AMD EPYC", "torch_threads": 2, "logical_cpus": 2,
-            "precision_flags": {"bf16": ["avx512_bf16"], "int8": ["avx512_vnni"]}}
-    (res / "deploy_bench.json").write_text(json.dumps({"models": models, "machine": mach,
-                                                       "density": {"median": 0.0079}}))
+    models = tuple(ModelResult(name=n, runtime=r, precision=p, components={"total": Stat(ms, 0.0)})
+                   for n, r, p, ms in rows)
+    mach = BenchMachine(Machine(cpu="AMD EPYC", logical_cpus=2, torch_threads=2, torch="2.13"),
+                        precision_flags={"bf16": ("avx512_bf16",), "int8": ("avx512_vnni",)}, gemm="onednn")
+    density = BenchDensity(frames=3, median=0.0079, mean=0.008, min=0.007, max=0.009,
+                           geometry=DensityGrid((0.0, -12.8, -2.0, 38.4, 12.8, 2.0), (0.05, 0.05, 4.0), (512, 768)))
+    bench = BenchResult(models=models, machine=mach, density=density)
+    (res / "deploy_bench.json").write_text(json.dumps(bench.to_json(), indent=2) + "\n")
     assert like_for_like(tmp_path / "none") == []
     table = like_for_like(res)
     fp32, anyp = table[2], table[3]

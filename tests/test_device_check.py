@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 from helpers_tools import load_tool
 
+from detector.bench.result import BenchResult
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "tools" / "device_check.sh"
 MODELS = ["dense", "sparse", "sparse+sparse_head"]
@@ -127,7 +129,7 @@ def test_paper_rows_put_ours_beside_the_desktop_column():
     comps = {k: {"mean_ms": 1.0 + i, "std_ms": 0.0} for i, k in enumerate(dc.COMPONENT_TITLES)}
     bench = {"models": [{"name": "dense", "components": comps}, {"name": "sparse", "components": comps},
                         {"name": "open3d-ml", "peer": "open3d-ml", "components": comps}]}
-    rows = dc.paper_rows(bench, "mpchair")
+    rows = dc.paper_rows(BenchResult.from_json(bench), "mpchair")
     assert [r[0] for r in rows] == list(dc.COMPONENT_TITLES.values())
     assert rows[-1] == ["Total", "20.154 ± 0.143", "7.000", "13.655 ± 0.060", "7.000", "-"]
     assert rows[3][1:3] == ["2.512 ± 0.017", "4.000"]  # Backbone

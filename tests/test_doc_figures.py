@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from detector.reproduce.report import PAPER, half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
+from detector.reproduce.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
 from detector.reproduce.results import EvalOutputs, Open3dMlMetrics
+from mpchair.paper import MATTERPORT_CHAIR_AP
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = {name: ROOT / path for name, path in (("results", "docs/results.md"), ("benchmarks", "docs/benchmarks.md"),
@@ -204,7 +205,7 @@ def check_open3d_ml_notes(d: Docs) -> list[str]:
             if re.search(r"\d\d\.\d\d?\b", para) and "recall-blind" not in para:
                 problems.append(f"{name}: a paragraph quotes Open3D-ML's mAP without 'recall-blind': {para[:80]!r}")
             for sentence in re.split(r"(?<=[.;:])\s", flat(para)):
-                if str(PAPER["sparse_3d_delta"]) in sentence and re.search(r"(?<!not )reproduced", sentence):
+                if str(MATTERPORT_CHAIR_AP.sparse_3d_delta) in sentence and re.search(r"(?<!not )reproduced", sentence):
                     problems.append(f"{name}: calls the paper's gap reproduced: {sentence!r}")
     return problems
 

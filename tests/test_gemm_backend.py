@@ -1,4 +1,4 @@
-"""The inference GEMM (``detector.sparse.gemm``): oneDNN for float32 CPU inference, ``torch.mm`` (MKL) elsewhere; the
+"""The inference GEMM (``detector.ops.gemm``): oneDNN for float32 CPU inference, ``torch.mm`` (MKL) elsewhere; the
 same values up to float rounding, for the op and for whole models (the sparse convs, the exact head, the dense neck)."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import torch
 from torch import nn
 
 from detector.models.neck import SecondFPN
-from detector.sparse import gemm
+from detector.ops import gemm
 from detector.sparse.workspace import Workspace
 from tests.test_sparse_backbone import randomise_norms
 
-pytestmark = pytest.mark.skipif(not gemm._HAVE_ONEDNN, reason="this torch build has no oneDNN")
+pytestmark = pytest.mark.skipif(not gemm.HAVE_ONEDNN, reason="this torch build has no oneDNN")
 
 
 @pytest.mark.parametrize(("m", "k", "o"), [(0, 8, 4), (1, 5, 3), (37, 64, 17), (300, 576, 64), (64, 256, 512)])
@@ -48,9 +48,10 @@ def test_only_float32_cpu_inference_takes_onednn(monkeypatch: pytest.MonkeyPatch
     torch.testing.assert_close(wg.grad, x.sum(0).expand(2, 3))
     with torch.autocast("cpu", dtype=torch.bfloat16), torch.no_grad():
         assert not gemm.uses_onednn(x, w)
-    monkeypatch.setattr(gemm, "BACKEND", "mkl")
-    assert not gemm.uses_onednn(x, w)
-    assert gemm.library() == "mkl"
+    with gemm.gemm_backend("mkl"):
+        assert not gemm.uses_onednn(x, w)
+        assert gemm.library() == "mkl" and gemm.current_backend() == "mkl"
+    assert gemm.current_backend() == "auto" and gemm.library() == "onednn"  # the block's choice ends with it
 
 
 def test_bucket_rows_rounds_up_to_a_few_sizes_per_octave() -> None:
@@ -79,11 +80,11 @@ def test_models_give_the_mkl_maps_in_onednn(monkeypatch: pytest.MonkeyPatch, bac
     pts = _scene(1)[0]
     maps = {}
     for backend in ("mkl", "auto"):
-        monkeypatch.setattr(gemm, "BACKEND", backend)
-        model.workspace = Workspace() if workspace else None
-        with torch.no_grad():
-            for _ in range(2):  # the workspace's second frame reuses its buffers
-                maps[backend] = [m.clone() for m in model([pts])]
+        with gemm.gemm_backend(backend):
+            model.workspace = Workspace() if workspace else None
+            with torch.no_grad():
+                for _ in range(2):  # the workspace's second frame reuses its buffers
+                    maps[backend] = [m.clone() for m in model([pts])]
     for a, b in zip(maps["mkl"], maps["auto"]):
         scale = max(1.0, float(a.abs().max()))
         torch.testing.assert_close(b, a, atol=1e-5 * scale, rtol=1e-5)
@@ -132,11 +133,11 @@ def test_subm_training_in_onednn_gives_the_mkl_values_and_gradients(monkeypatch:
     monkeypatch.setattr(autograd, "linear", onednn_calls)
     results = {}
     for backend in ("mkl", "auto"):
-        monkeypatch.setattr(gemm, "BACKEND", backend)
-        f = feats.clone().requires_grad_(True)
-        out = conv(SparseTensor(f, coords, (23, 17), 2)).features
-        grads = torch.autograd.grad((out * r).sum(), (f, conv.weight))
-        results[backend] = (out.detach(), *grads)
+        with gemm.gemm_backend(backend):
+            f = feats.clone().requires_grad_(True)
+            out = conv(SparseTensor(f, coords, (23, 17), 2)).features
+            grads = torch.autograd.grad((out * r).sum(), (f, conv.weight))
+            results[backend] = (out.detach(), *grads)
     assert calls == [True, True, True]  # forward, input gradient, weight gradient: oneDNN (and only under auto)
     assert coords.shape[0] % 64  # the oneDNN path pads its rows
     for a, b in zip(results["mkl"], results["auto"]):
@@ -158,11 +159,11 @@ def test_sparse_model_training_step_in_onednn_equals_mkl(monkeypatch: pytest.Mon
     real = gemm._BucketedLinear.apply
     monkeypatch.setattr(gemm._BucketedLinear, "apply", lambda *a: bucketed.append(a[0].shape) or real(*a))
     for backend in ("mkl", "auto"):
-        monkeypatch.setattr(gemm, "BACKEND", backend)
-        model.zero_grad()
-        out = model([pts])
-        sum((o.float() * (i + 1)).sum() for i, o in enumerate(out)).backward()
-        grads[backend] = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+        with gemm.gemm_backend(backend):
+            model.zero_grad()
+            out = model([pts])
+            sum((o.float() * (i + 1)).sum() for i, o in enumerate(out)).backward()
+            grads[backend] = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
     # under auto only: the three blocks' 2x2 down-convs, the three neck levels (transposed, or 1x1 on the same sites)
     # and the head's three products on the neck's rows (the SubM convs count in SubMGemm, tested above)
     assert [tuple(s) for s in bucketed] == [(194, 64), (64, 64), (16, 128), (194, 16), (64, 32), (16, 64),
@@ -193,14 +194,14 @@ def test_train_linear_gives_the_float64_values_and_gradients(monkeypatch: pytest
         return (out.detach(), *torch.autograd.grad((out * r.to(dtype)).sum(), leaves)), out.grad_fn
 
     for backend, node in (("auto", "_BucketedLinear"), ("mkl", "")):
-        monkeypatch.setattr(gemm, "BACKEND", backend)
-        assert gemm.trains_in_onednn(x0, w0) == (backend == "auto")
-        got, fn = run(torch.float32)
-        assert (node in type(fn).__name__) if node else "Bucketed" not in type(fn).__name__
-        ref, _ = run(torch.float64)
-        for a, b in zip(ref, got):
-            assert b.shape == a.shape and b.dtype == torch.float32
-            scale = float(a.abs().max()) if a.numel() else 0.0
-            torch.testing.assert_close(b.double(), a, atol=1e-5 * max(1.0, scale), rtol=1e-5)
+        with gemm.gemm_backend(backend):
+            assert gemm.trains_in_onednn(x0, w0) == (backend == "auto")
+            got, fn = run(torch.float32)
+            assert (node in type(fn).__name__) if node else "Bucketed" not in type(fn).__name__
+            ref, _ = run(torch.float64)
+            for a, b in zip(ref, got):
+                assert b.shape == a.shape and b.dtype == torch.float32
+                scale = float(a.abs().max()) if a.numel() else 0.0
+                torch.testing.assert_close(b.double(), a, atol=1e-5 * max(1.0, scale), rtol=1e-5)
     with torch.autocast("cpu", dtype=torch.bfloat16):  # bf16 autocast keeps its own (oneDNN bf16) matmul
         assert not gemm.trains_in_onednn(x0, w0)

@@ -3,6 +3,7 @@ construction, determinism across worker counts, SIGKILL + resume, splits, and th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -427,6 +428,24 @@ def test_manifest_holds_the_frame_records_whatever_the_root_is_named(dataset, ho
     generate(_req(odd, house, tmp_path / "odd", workers=1))
     again = json.loads((tmp_path / "odd" / "manifest.json").read_text())
     assert again["frames"] == records and "@@frame records@@" in again["command"]
+
+
+def test_the_manifest_names_its_viewpoint_settings_and_reads_without_its_frames(dataset, tmp_path):
+    """The sensor height and robot radius come from the run's settings (what the report quotes; they agree with the
+    command line the manifest records), and a copy without its per-frame list (a run record's) reads with
+    ``frames=False`` as the same manifest less its frames; the full reader still requires them."""
+    out, _ = dataset
+    manifest = read_manifest(out)
+    command = list(manifest.command)
+    assert manifest.sensor_height == float(command[command.index("--height") + 1]) == GenerateRequest.height
+    assert manifest.robot_radius == float(command[command.index("--robot-radius") + 1])
+    data = json.loads((out / "manifest.json").read_text())
+    data["frames_left_out_of_the_record"] = len(data.pop("frames"))
+    (tmp_path / "manifest.json").write_text(json.dumps(data))
+    head = read_manifest(tmp_path, frames=False)
+    assert head == dataclasses.replace(manifest, frames=()) and manifest.frames
+    with pytest.raises(InputError, match="manifest.json: not an mpchair manifest: missing key 'frames'"):
+        read_manifest(tmp_path)
 
 
 def test_records_read_back_to_the_bytes_written(dataset, tmp_path):

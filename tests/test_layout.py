@@ -23,6 +23,7 @@ FLOORS: dict[str, int] = {
     "detector": -1,
     # the shared floor, imported by both stacks
     "mpchair.core": 0,
+    "mpchair.paper": 0,  # the paper's published figures (data only, imports nothing)
     "mpchair.kitti": 1,
     "mpchair.geometry": 2,  # camera conversions read kitti's Calib / Labels
     "mpchair.recording": 3,
@@ -40,8 +41,8 @@ FLOORS: dict[str, int] = {
     # the detector stack (on top of the shared floor)
     "detector.config": 4,
     "detector.device": 4,
-    "detector.sparse": 4,
-    "detector.ops": 4,
+    "detector.ops": 4,  # rotated IoU / NMS, and the GEMM of both models (ops.gemm: the sparse convs call it too)
+    "detector.sparse": 5,
     "detector.data": 5,
     "detector.eval": 5,
     "detector.models": 6,
@@ -58,7 +59,7 @@ FLOORS: dict[str, int] = {
     "detector.cli": 12,
     "detector.__main__": 13,
 }
-SHARED_FLOOR = ("mpchair.core", "mpchair.geometry", "mpchair.kitti", "mpchair.recording")
+SHARED_FLOOR = ("mpchair.core", "mpchair.geometry", "mpchair.kitti", "mpchair.paper", "mpchair.recording")
 
 
 def module_files() -> dict[str, Path]:
@@ -124,9 +125,17 @@ def test_mpchair_never_imports_detector():
     assert not bad, bad
 
 
+#: The one arrow from the detector into the mpchair stack above the shared floor: the reproduction (the experiment,
+#: which drives both command lines) reads a dataset's manifest through its one definition,
+#: ``mpchair.dataset.manifest`` (a module that loads no generator code). It stays the only one until the experiment
+#: becomes a package of its own above both stacks (issue 45).
+EXPERIMENT_READS = (("detector.reproduce", "mpchair.dataset.manifest"),)
+
+
 def test_detector_imports_only_the_shared_floor_of_mpchair():
     bad = sorted((a, b) for a, targets in GRAPH.items() if a.startswith("detector") for b in targets
-                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR))
+                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR)
+                 and not any(a.startswith(src) and b == dst for src, dst in EXPERIMENT_READS))
     assert not bad, bad
 
 

@@ -18,7 +18,7 @@ from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
 
 import detector.bench.peer as peer_mod
-from detector.bench import COMPONENTS, ratio_rows
+from detector.bench import COMPONENTS, BenchResult, ratio_rows
 from detector.checkpoint import load_model
 from detector.config import load_experiment
 from detector.data.experiment import load_eval_frames
@@ -108,7 +108,8 @@ def test_bench_peer_row_same_frames_json_and_table(setup, tmp_path, capsys, monk
     frames = load_eval_frames(load_experiment(dense), data, "test", 2)
     expected = [frames[0].points] + [f.points for f in frames] * 2
     assert len(seen) == len(expected) and all(np.array_equal(a, b) for a, b in zip(seen, expected))
-    assert [name for name, _ in ratio_rows(result)] == ["dense / sparse", "open3d-ml / dense", "open3d-ml / sparse"]
+    assert [name for name, _ in ratio_rows(BenchResult.from_json(result))] == [
+        "dense / sparse", "open3d-ml / dense", "open3d-ml / sparse"]
     assert "open3d-ml / dense" in stdout and "Open3D-ML" in stdout
 
 

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
+from helpers_detector import write_manifest, write_run_config
 
 from detector.reproduce.cli import main
 from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
@@ -37,10 +38,8 @@ def _work_folder(out: Path) -> Path:
         "results/viz/panel.png": "PNG",
         "runs/dense/last.pt": "weights",
         "runs/dense/metrics.jsonl": '{"kind": "epoch", "epoch": 1, "time_s": 60.0}\n',
-        "runs/dense/config.yaml": "model: {}\n",
         "runs/dense/done": "trained\n",
         "runs/sparse_wide/metrics.jsonl": '{"kind": "step", "step": 1, "time_s": 0.1}\n',  # training, not done
-        "dataset/manifest.json": json.dumps({"houses": ["A"]}),
         "dataset/ImageSets/val.txt": "000001\n",
         "dataset/training/velodyne/000001.bin": "points",
         "dataset/training/label_2/000001.txt": "Chair ...\n",
@@ -49,6 +48,8 @@ def _work_folder(out: Path) -> Path:
     for rel, text in files.items():
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         (out / rel).write_text(text)
+    write_run_config(out / "runs" / "dense")
+    write_manifest(out / "dataset", {"A": (0, 0, {"A.house": "0" * 64})})
     return out
 
 

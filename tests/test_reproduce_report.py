@@ -12,8 +12,9 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_detector import make_tiny_dataset, write_manifest, write_run_config, write_test_config
 
+from detector.bench.result import BenchResult
 from detector.reproduce import steps
 from detector.reproduce.cli import main
 from detector.reproduce.report import targets_section, write_report
@@ -54,8 +55,7 @@ def _started_run(out: Path, model: str, steps: int, precision: str = "fp32") -> 
     """A work folder's run of ``model`` stopped after ``steps`` steps of 1.5 s (2 epochs of 10 frames, batch 2)."""
     run = out / "runs" / model
     run.mkdir(parents=True)
-    (run / "config.yaml").write_text(json.dumps({"train": {"epochs": 2, "batch_size": 2, "samples_per_epoch": None,
-                                                           "precision": precision}}))
+    write_run_config(run, train={"epochs": 2, "batch_size": 2, "samples_per_epoch": None, "precision": precision})
     records = [{"kind": "step", "epoch": 1 + (i - 1) // 5, "step": i, "time_s": 1.5} for i in range(1, steps + 1)]
     # the last line torn, as kill -9 may leave it
     (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records) + '{"kind": "st')
@@ -71,7 +71,7 @@ def test_status_shows_each_step_and_where_training_stands(tmp_path: Path, capsys
     out = tmp_path / "w"
     (out / "dataset" / "ImageSets").mkdir(parents=True)
     (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
-    (out / "dataset" / "manifest.json").write_text("{}")
+    write_manifest(out / "dataset", {"h0": (0, 9, {})})
     run = _started_run(out, "dense", steps=6)
     assert main(["--status", "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -312,17 +312,13 @@ def test_a_full_scale_run_cut_short_says_so(tmp_path: Path) -> None:
     """A full-scale report of fewer training samples than the recipe says that it is short, gives each model's epochs x
     samples and the sparse/dense ratio it actually trained, and carries the operator's notes; the recipe's own
     schedule keeps the plain wording."""
-    import yaml
-
     out = tmp_path / "reproduce-full"
     (out / "dataset" / "ImageSets").mkdir(parents=True)
     (out / "dataset" / "ImageSets" / "train.txt").write_text("".join(f"{i:06d}\n" for i in range(10)))
 
     def runs(*schedules: tuple[int, int | None]) -> str:
         for m, (epochs, spe) in zip(("dense", "sparse"), schedules):
-            (out / "runs" / m).mkdir(parents=True, exist_ok=True)
-            (out / "runs" / m / "config.yaml").write_text(yaml.safe_dump(
-                {"train": {"epochs": epochs, "samples_per_epoch": spe, "batch_size": 2}}))
+            write_run_config(out / "runs" / m, train={"epochs": epochs, "samples_per_epoch": spe, "batch_size": 2})
         sc = dataclasses.replace(SCALES["full"], epochs=1)
         write_report(tmp_path / "results.md", out, out / "results", "full", sc,
                      notes=["The two trainings ran one after the other."])
@@ -406,9 +402,8 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         "--out", res / "viz", "--json", stdout=res / "viz.json")
 
     sc = Scale(houses=1, frames_per_house=4, epochs=2, bench_frames=1, bench_trials=1, ops_frames=2)
-    # the released code's sensor height and the navmesh agent's radius, as `mpchair generate` records its options
-    (data / "manifest.json").write_text(json.dumps({"houses": ["h0"], "command": [
-        "mpchair", "generate", "--height", "1.25", "--robot-radius", "0.1", "--seed", "1"]}))
+    # the released code's sensor height and the navmesh agent's radius, as `mpchair generate` records its settings
+    write_manifest(data, {"h0": (0, 3, {"h0.ply": "0" * 64})}, height=1.25, robot_radius=0.1)
     report_path = tmp_path / "docs" / "results.md"
     write_report(report_path, out, res, "small", sc)
     report = report_path.read_text()
@@ -568,14 +563,19 @@ def test_readers_tolerate_missing_files_and_keys(tmp_path: Path) -> None:
     assert sparse.levels("nope", "R40") is None and sparse.overall("3d", "R20") is None
     assert results.KittiMetrics.from_json({}).num_gt is None
     assert results.read_bench(res / "bench_default.json") is None and results.read_density(res / "x.json") is None
-    assert results.read_manifest(tmp_path / "dataset").houses == ()
-    bench = results.BenchOutput.from_json({"models": [_bench_row("dense", 10.0, 2.0),
+    assert results.read_manifest(tmp_path / "dataset") is None  # not generated
+    write_manifest(tmp_path / "dataset", {"h0": (0, 9, {}), "h1": (10, 19, {})}, height=1.25, robot_radius=0.1)
+    manifest = results.read_manifest(tmp_path / "dataset")
+    assert list(manifest.houses) == ["h0", "h1"] and (manifest.sensor_height, manifest.robot_radius) == (1.25, 0.1)
+    assert manifest.frames == ()
+    bench = BenchResult.from_json({"models": [_bench_row("dense", 10.0, 2.0),
                                                       _bench_row("o3d", 12.0, 3.0, peer="open3d-ml")]})
     assert list(bench.ours()) == ["dense"] and list(bench.peers()) == ["o3d"]
     assert bench.ours()["dense"].mean_ms["total"] == 10.0 and not bench.ours()["dense"].back_to_back_ms
     run = _started_run(tmp_path / "w", "dense", steps=3)
     cfg = results.read_run_config(run)
-    assert cfg is not None and (cfg.epochs, cfg.batch_size, cfg.precision, cfg.output_shape) == (2, 2, "fp32", None)
+    assert cfg is not None and (cfg.train.epochs, cfg.train.batch_size, cfg.train.precision) == (2, 2, "fp32")
+    assert tuple(cfg.model.output_shape) == (288, 144)
     assert results.read_run_config(tmp_path / "w" / "runs" / "sparse") is None
     assert [r.step for r in results.step_records(run)] == [1, 2, 3] and results.eval_records(run) == []
 

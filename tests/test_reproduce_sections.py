@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_detector import make_tiny_dataset, write_run_config, write_test_config
 
 from detector.bench.density import crossings
 from detector.models import build_model
@@ -43,8 +43,7 @@ def test_every_new_section_says_not_run_without_its_outputs(tmp_path: Path) -> N
 def _run(out: Path, model: str, epochs: list[float], steps: list[float], grid=(288, 144), precision="bf16") -> None:
     run = out / "runs" / model
     run.mkdir(parents=True)
-    (run / "config.yaml").write_text(json.dumps({"model": {"output_shape": list(grid)},
-                                                 "train": {"epochs": len(epochs), "precision": precision}}))
+    write_run_config(run, model={"output_shape": list(grid)}, train={"epochs": len(epochs), "precision": precision})
     records = [{"kind": "step", "step": i + 1, "epoch": 1, "time_s": t} for i, t in enumerate(steps)]
     records += [{"kind": "epoch", "epoch": i + 1, "time_s": t} for i, t in enumerate(epochs)]
     (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))

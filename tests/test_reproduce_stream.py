@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from helpers_detector import write_manifest
 
 from detector.reproduce.stream.cli import main
 from detector.reproduce.stream.report import (
@@ -220,9 +221,7 @@ def test_runs_are_read_from_the_work_folder_with_the_machine_of_their_measuring_
 
 def _dataset(root, houses: dict[str, tuple[int, int, str]], train: list[int], val: list[int]):
     """A dataset folder's manifest.json (house id -> frame range and one file's checksum) and its train / val lists."""
-    root.mkdir(parents=True)
-    (root / "manifest.json").write_text(json.dumps({"houses": {
-        h: {"frames": [a, b], "files_sha256": {f"{h}.ply": s}} for h, (a, b, s) in houses.items()}}))
+    write_manifest(root, {h: (a, b, {f"{h}.ply": s}) for h, (a, b, s) in houses.items()})
     (root / "ImageSets").mkdir()
     for name, ids in (("train", train), ("val", val), ("test", [])):
         (root / "ImageSets" / f"{name}.txt").write_text("".join(f"{i:06d}\n" for i in ids))

@@ -1,4 +1,4 @@
-"""What routing the inference GEMMs through oneDNN buys (``detector.sparse.gemm``): MKL against oneDNN, side by side in
+"""What routing the inference GEMMs through oneDNN buys (``detector.ops.gemm``): MKL against oneDNN, side by side in
 one process, on the models' own GEMM shapes and on whole models.
 
     PYTHONPATH=. .venv/bin/python tools/bench_gemm.py --config configs/models/mpchair_dense.yaml \\
@@ -9,7 +9,7 @@ one process, on the models' own GEMM shapes and on whole models.
    dense neck), each in MKL (``torch.mm``) and in oneDNN (``torch.ops.mkldnn._linear_pointwise``), alternating;
    the minimum wall time and the CPU time of ``--repeats`` calls.
 2. **models**: every ``--config`` (with its ``--checkpoint``, ``-`` = random weights) on the first ``--frames``
-   frames of ``--split``, each frame through every model once with ``detector.sparse.gemm.BACKEND = "mkl"`` and once
+   frames of ``--split``, each frame through every model once with ``detector.ops.gemm.gemm_backend("mkl")`` and once
    with ``"auto"`` (oneDNN), the order alternating per frame; the stages of ``detector bench``
    (:func:`detector.bench.timing.time_frame`) with each model's inference workspace, mean ms per frame, and the
    first model / each other ratios of Backbone and Total under each library.
@@ -32,7 +32,7 @@ from detector.checkpoint import load_model
 from detector.config import load_experiment, pseudoimage_geometry
 from detector.data.experiment import load_eval_frames
 from detector.device import machine_info, use_device
-from detector.sparse import gemm
+from detector.ops import gemm
 from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
@@ -111,17 +111,16 @@ def time_models(configs: list[str], checkpoints: list[str | None], data: Path, s
     ms = np.zeros((len(runs), trials, len(clouds[0]), len(COMPONENTS)))
     for i in range(min(2, len(clouds[0]))):  # warm-up: kernels, caches, workspaces
         for j, b in runs:
-            gemm.BACKEND = b
-            time_frame(nets[j], clouds[j][i], device)
+            with gemm.gemm_backend(b):
+                time_frame(nets[j], clouds[j][i], device)
     for t in range(trials):
         for i in range(len(clouds[0])):
             order = list(range(len(runs))) if (t + i) % 2 == 0 else list(reversed(range(len(runs))))
             for r in order:
                 j, b = runs[r]
-                gemm.BACKEND = b
-                stages, _ = time_frame(nets[j], clouds[j][i], device)
+                with gemm.gemm_backend(b):
+                    stages, _ = time_frame(nets[j], clouds[j][i], device)
                 ms[r, t, i] = [stages[k] for k in COMPONENTS]
-    gemm.BACKEND = "auto"
     means = ms.mean(axis=(1, 2))
     return [{"config": configs[j], "weights": checkpoints[j] or "random", "gemm": "mkl" if b == "mkl" else "onednn",
              "mean_ms": dict(zip(COMPONENTS, map(float, means[r])))} for r, (j, b) in enumerate(runs)], density
@@ -183,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     try:
-        if not gemm._HAVE_ONEDNN:
+        if not gemm.HAVE_ONEDNN:
             raise InputError("this torch build has no oneDNN (torch.backends.mkldnn): nothing to compare")
         if args.config and args.data is None:
             raise InputError("--config needs --data")

@@ -14,7 +14,7 @@ The GT-sampling database is built once per config and shared by its runs.
 
 With several configs the rounds interleave them too (round 1: every config at every precision, then round 2, ...),
 so load drift hits every config alike; the table's last rows are ``first / other`` step-time ratios per precision.
-``--gemm auto --gemm mkl`` times every config under both fp32 GEMM settings (``detector.sparse.gemm.BACKEND``: oneDNN
+``--gemm auto --gemm mkl`` times every config under both fp32 GEMM settings (``detector.ops.gemm.gemm_backend``: oneDNN
 or MKL) in the same interleaved rounds, with the ratios per setting.
 
 Set ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736`` as for training (docs/training.md, "Speed on CPU").
@@ -43,8 +43,9 @@ os.environ.setdefault("ONEDNN_PRIMITIVE_CACHE_CAPACITY", "8192")
 import torch  # noqa: E402
 
 from detector.config import Precision
-from detector.sparse import gemm
+from detector.ops import gemm
 from detector.train import train
+from mpchair.core.errors import InputError
 
 PRECISIONS = get_args(Precision)  # ("fp32", "bf16"): the ratio is fp32 / bf16
 
@@ -76,21 +77,26 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     precisions = tuple(args.precision) if args.precision else PRECISIONS
-    libraries = tuple(dict.fromkeys(args.gemm)) if args.gemm else (gemm.BACKEND,)
+    try:  # the environment's choice, read once here (detector.ops.gemm reads no environment)
+        libraries = tuple(dict.fromkeys(args.gemm)) if args.gemm else (
+            gemm.parse_backend(os.environ.get("DETECTOR_GEMM", "auto")),)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     variants = [(c, lib) for lib in libraries for c in args.config]
     times: dict[tuple[str, str], dict[str, list[float]]] = {v: {pr: [] for pr in precisions} for v in variants}
     with tempfile.TemporaryDirectory(prefix="bench_train_step_") as tmp:
         database: dict[str, Path] = {}  # built once per config, then shared by its runs
         for rnd in range(args.rounds):
             for config, lib in variants:
-                gemm.BACKEND = lib  # read at every product (detector.sparse.gemm), so one process times both
                 for pr in precisions:
                     run = Path(tmp) / f"{Path(config).stem}-{lib}-{pr}-{rnd}"
                     run.mkdir()
                     if config in database:
                         shutil.copyfile(database[config], run / "gt_database.npz")
-                    train(config, args.data, run, max_steps=args.warmup + args.steps, threads=args.threads,
-                          split=args.split, precision=pr, progress=False)
+                    with gemm.gemm_backend(lib):  # read at every product, so one process times both
+                        train(config, args.data, run, max_steps=args.warmup + args.steps, threads=args.threads,
+                              split=args.split, precision=pr, progress=False)
                     database.setdefault(config, run / "gt_database.npz")
                     times[(config, lib)][pr] += step_seconds(run, args.warmup)
     rows = []

@@ -33,10 +33,15 @@ import time
 import traceback
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 
 from mpchair.core.atomic import write_text
+from mpchair.paper import TABLE_II, TABLE_IV, ComponentTimes
+
+if TYPE_CHECKING:  # imported where the summary is written: the step runner itself does not load torch
+    from detector.bench.result import BenchResult
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "models"
@@ -64,25 +69,11 @@ TINY_GRID: dict[str, dict] = {
 }
 #: Untimed first steps of a training throughput run (the first allocates every buffer and picks kernels).
 WARMUP_STEPS = 2
-#: The paper's runtimes (ms per frame, mean and std over trials, batch 1) on its Desktop: an NVIDIA 2080 Ti with an
-#: AMD Ryzen 7 3700X. Table II's Desktop rows (Matterport-Chair, 768 x 512) and Table IV (KITTI, 504 x 440).
-PAPER_DESKTOP: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
-    "mpchair": {
-        "dense": {"to_device": (0.072, 0.001), "feature_extract": (1.783, 0.010), "feature_net": (0.390, 0.005),
-                  "backbone": (2.512, 0.017), "head": (0.199, 0.001), "bbox_extract": (15.198, 0.145),
-                  "total": (20.154, 0.143)},
-        "sparse": {"to_device": (0.073, 0.001), "feature_extract": (1.747, 0.015), "feature_net": (0.130, 0.002),
-                   "backbone": (6.633, 0.038), "head": (0.218, 0.002), "bbox_extract": (4.854, 0.010),
-                   "total": (13.655, 0.060)},
-    },
-    "kitti": {
-        "dense": {"to_device": (0.064, 0.000), "feature_extract": (2.375, 0.010), "feature_net": (0.303, 0.004),
-                  "backbone": (2.358, 0.027), "head": (0.204, 0.002), "bbox_extract": (9.105, 0.030),
-                  "total": (14.410, 0.033)},
-        "sparse": {"to_device": (0.064, 0.000), "feature_extract": (2.330, 0.009), "feature_net": (0.133, 0.002),
-                   "backbone": (7.578, 0.038), "head": (0.244, 0.004), "bbox_extract": (3.877, 0.010),
-                   "total": (14.226, 0.056)},
-    },
+#: The paper's runtimes on its Desktop (an NVIDIA 2080 Ti with an AMD Ryzen 7 3700X): Table II's Desktop rows
+#: (Matterport-Chair, 768 x 512) and Table IV's dense / sparse rows (KITTI, 504 x 440), from ``mpchair.paper``.
+PAPER_DESKTOP: dict[str, dict[str, ComponentTimes]] = {
+    "mpchair": dict(TABLE_II["desktop"]),
+    "kitti": {m: TABLE_IV[m] for m in ("dense", "sparse")},
 }
 COMPONENT_TITLES: dict[str, str] = {"to_device": "To Device", "feature_extract": "Feature Extract",
                                     "feature_net": "Feature Net", "backbone": "Backbone", "head": "Head",
@@ -343,31 +334,31 @@ def _ms(x: float | None) -> str:
     return "-" if x is None else f"{x:,.3f}" if x < 100 else f"{x:,.1f}"
 
 
-def paper_rows(bench: dict, geometry: str) -> list[list[str]]:
+def paper_rows(bench: BenchResult, geometry: str) -> list[list[str]]:
     """Per component: the paper's Desktop dense / sparse (ms) beside ours (dense, sparse, sparse+sparse_head)."""
-    ours = {m["name"]: m["components"] for m in bench["models"] if not m.get("peer")}
+    ours = {name: m.mean_ms for name, m in bench.ours().items()}
     paper = PAPER_DESKTOP[geometry]
     rows = []
     for key, title in COMPONENT_TITLES.items():
         row = [title]
         for model in ("dense", "sparse"):
-            mean, std = paper[model][key]
-            row += [f"{mean:.3f} ± {std:.3f}", _ms(ours.get(model, {}).get(key, {}).get("mean_ms"))]
-        row.append(_ms(ours.get("sparse+sparse_head", {}).get(key, {}).get("mean_ms")))
+            cell = getattr(paper[model], key)
+            row += [f"{cell.mean_ms:.3f} ± {cell.std_ms:.3f}", _ms(ours.get(model, {}).get(key))]
+        row.append(_ms(ours.get("sparse+sparse_head", {}).get(key)))
         rows.append(row)
     return rows
 
 
-def _machine_lines(machine: dict | None, bench: dict | None) -> list[str]:
+def _machine_lines(machine: dict | None, bench: BenchResult | None) -> list[str]:
     lines = []
     if machine:
         gpus = ", ".join(f"{g['name']} ({g['memory_gib']} GiB, sm {g['capability']})" for g in machine["gpus"])
         lines.append(f"- device {machine['device']}: {gpus or 'no GPU'}; torch {machine['torch']}, CUDA "
                      f"{machine['cuda']}, autocast dtype {machine['autocast_dtype']}"
                      + (f"; nvidia-smi: {machine['nvidia_smi']}" if machine.get("nvidia_smi") else ""))
-    if bench:
-        m = bench["machine"]
-        lines.append(f"- host: {m['cpu']}, {m['logical_cpus']} logical CPUs, {m['torch_threads']} torch threads")
+    if bench and bench.machine:
+        m = bench.machine.machine
+        lines.append(f"- host: {m.cpu}, {m.logical_cpus} logical CPUs, {m.torch_threads} torch threads")
     return lines
 
 
@@ -388,15 +379,15 @@ def _tests_section(tests: dict | None) -> list[str]:
     return lines + [""]
 
 
-def _bench_section(geometry: str, bench: dict | None, table_md: str | None) -> list[str]:
+def _bench_section(geometry: str, bench: BenchResult | None, table_md: str | None) -> list[str]:
     if not bench:
         return [f"## Runtime, {GEOMETRY[geometry]}", "", "not run", ""]
-    grid = bench["density"]["geometry"]
-    cm = round(grid["voxel_size"][0] * 100)
-    lines = [f"## Runtime, {GEOMETRY[geometry]}: {grid['output_shape'][0]} x {grid['output_shape'][1]}, {cm} cm "
+    grid = bench.density.geometry
+    cm = round(grid.voxel_size[0] * 100)
+    lines = [f"## Runtime, {GEOMETRY[geometry]}: {grid.output_shape[0]} x {grid.output_shape[1]}, {cm} cm "
              "pillars", ""]
-    p = bench["protocol"]
-    lines += [f"`detector bench`, {p['frames']} frames of the {p['split']} split x {p['trials']} trials, {p['warmup']} "
+    p = bench.protocol
+    lines += [f"`detector bench`, {p.frames} frames of the {p.split} split x {p.trials} trials, {p.warmup} "
               "warm-up frames, batch 1, random weights (timing only), ms per frame:", "", (table_md or "").strip(), ""]
     title = "Table II's Desktop rows" if geometry == "mpchair" else "Table IV"
     lines += [f"Beside the paper's {title} (NVIDIA 2080 Ti, AMD Ryzen 7 3700X; ms, mean ± std):", ""]
@@ -452,18 +443,22 @@ def cmd_report(args: argparse.Namespace) -> int:
     train = [r for p in (res / "train").glob("*.json") if (r := _load(p))]
     train.sort(key=lambda r: (MODEL_ORDER.index(r["model"]) if r["model"] in MODEL_ORDER else len(MODEL_ORDER),
                               r["model"], PRECISION_ORDER.index(r["precision"])))
+    paper = {g: {m: t.to_json() for m, t in rows.items()} for g, rows in PAPER_DESKTOP.items()}
     summary = {"dry_run": bool(machine and machine.get("dry_run")), "machine": machine, "steps": steps,
-               "tests": _load(res / "tests.json"), "bench": bench, "paper_desktop": PAPER_DESKTOP, "train": train,
+               "tests": _load(res / "tests.json"), "bench": bench, "paper_desktop": paper, "train": train,
                "eval": _load(res / "eval.json"), "ddp": _load(res / "ddp.json"),
                "failed": [s["name"] for s in steps if s["status"] == "failed"]}
     _json(out / "summary.json", summary)
     title = "# GPU check (tools/device_check.sh" + (" --dry-run: CPU, tiny grids and layers)" if summary["dry_run"]
                                                     else ")")
-    any_bench = next((b for b in bench.values() if b), None)
+    from detector.bench.result import BenchResult
+
+    results = {g: BenchResult.from_json(b) if b else None for g, b in bench.items()}  # its one reader
+    any_bench = next((b for b in results.values() if b), None)
     md = [title, "", *_machine_lines(machine, any_bench), "", *_steps_section(steps), *_tests_section(summary["tests"])]
     for g in GEOMETRY:
         table = res / f"bench_{g}.md"
-        md += _bench_section(g, bench[g], table.read_text(encoding="utf-8") if table.is_file() else None)
+        md += _bench_section(g, results[g], table.read_text(encoding="utf-8") if table.is_file() else None)
     md += _train_section(train) + _eval_ddp_section(summary["eval"], summary["ddp"])
     write_text(out / "summary.md", "\n".join(md))
     print(f"wrote {out / 'summary.json'} and {out / 'summary.md'}" + (f"; failed: {', '.join(summary['failed'])}"

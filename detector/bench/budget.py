@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.bench.result import Skipped
 from detector.bench.run import (
     BenchModel,
-    Skipped,
     Variant,
     build_rows,
     check_variant,
@@ -43,6 +43,7 @@ from detector.bench.run import (
 from detector.config import load_experiment
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.device import peak_memory_bytes, reset_peak_memory, usable_cores, use_device
+from detector.ops.gemm import current_backend, gemm_backend
 from mpchair.core.errors import InputError
 
 #: The CPU share the docs' "highest rate within budget" column allows (the paper's "more than 75 % left").
@@ -96,8 +97,17 @@ def fixed_rate(run: Callable[[np.ndarray], object], frames: Sequence[np.ndarray]
 
 
 def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
-                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
-    """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
+                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int,
+                gemm: str = "auto") -> dict:
+    """One row in this (fresh) process, under the parent's GEMM library ``gemm`` (a spawned process starts outside
+    its :func:`detector.ops.gemm.gemm_backend` block): build it, warm up, run :func:`fixed_rate`; its record."""
+    with gemm_backend(gemm):
+        return _budget_row_here(model, runtime, precision, data_dir, split, frames, threads, seed, variant, rate,
+                                duration, warmup)
+
+
+def _budget_row_here(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
+                     threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
     with tempfile.TemporaryDirectory(prefix="detector-budget-") as work:
@@ -119,7 +129,7 @@ def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, 
     return {"name": row.name, "runtime": runtime, "precision": precision, "config": str(model.config),
             "weights": row.weights, "backbone": row.cfg.model.backbone, "head": row.cfg.model.head,
             "threads": threads, **record, "peak_rss_mb": None if peak is None else peak / 2**20,
-            "density": density_record(row)}
+            "density": density_record(row).to_json()}
 
 
 def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: float, duration: float,
@@ -148,7 +158,8 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
                     continue
                 with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
                     rec = pool.submit(_budget_row, replace(model, name=name), runtime, precision, str(data_dir),
-                                      split, frames, threads, seed, variant, rate, duration, warmup).result()
+                                      split, frames, threads, seed, variant, rate, duration, warmup,
+                                      current_backend()).result()
                 rows.append(rec)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
@@ -160,7 +171,7 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
         "budget": rows,
         "skipped": skipped,
         "density": density,
-        "machine": machine_record(use_device("cpu", threads), None, variant),
+        "machine": machine_record(use_device("cpu", threads), None, variant).to_json(),
         "protocol": {"data": str(data_dir), "split": split, "frames": frames, "warmup": warmup, "rate_hz": rate,
                      "duration_s": duration, "threads": threads, "budget_share": BUDGET_SHARE,
                      "process": "one fresh process per row (spawn)", "policy": "newest released frame; "

@@ -1,13 +1,13 @@
 """The dense / sparse backbone runtime ratio against pseudo-image density D, with the op-count ratio beside it.
 
-The paper's speed-up rests on low density (Matterport-Chair D = 0.0075 against KITTI's 0.0246); this curve lets a
-reader place any sensor on it. Per density D of :data:`DENSITIES`, ``frames`` pseudo-images of clustered sites
-(:func:`detector.sparse.synthetic.clustered_sites`: blobs and wall segments with about 4 active 8-neighbours per
-site, like real scans; ``round(D * H * W)`` sites on the model's canvas, one seed per frame) with random non-negative
-pillar features (a ReLU's range). Each frame goes through both models' Backbone (``backbone_neck``, the paper's
-Backbone timer: backbone + neck, the sparse model's todense included; the scatter / SparseTensor wrap before it is
-untimed), the two models interleaved per frame with the order alternating, ``trials`` times. Weights are random
-(seeded): the backbone's runtime does not depend on them.
+The paper's speed-up rests on low density (Matterport-Chair's median D against KITTI's, ``mpchair.paper``); the curve
+lets a reader place any sensor on it. Per density D of :data:`DENSITIES`, ``frames`` pseudo-images of clustered sites
+(:func:`detector.sparse.synthetic.clustered_sites`: blobs and wall segments with about 4 active 8-neighbours per site,
+like real scans; ``round(D * H * W)`` sites on the model's canvas, one seed per frame) with random non-negative pillar
+features (a ReLU's range). Each frame goes through both models' Backbone (``backbone_neck``, the paper's Backbone timer:
+backbone + neck, the sparse model's todense included; the scatter / SparseTensor wrap before it is untimed), the two
+models interleaved per frame with the order alternating, ``trials`` times. Weights are random (seeded): the backbone's
+runtime does not depend on them.
 
 Beside it, the op-count ratio of the same sites (:mod:`detector.opcount`): the dense backbone + neck's MACs over the
 sparse one's exact (rulebook) MACs. The runtime ratio is the ratio of the per-frame medians. Two densities are read off
@@ -34,11 +34,12 @@ from detector.models import PointPillars
 from detector.opcount import dense_counts, sparse_counts
 from detector.sparse.synthetic import clustered_sites
 from mpchair.core.errors import InputError
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY
 
-#: Densities of the curve: from below Matterport-Chair's to KITTI's median (the paper's 0.0075 and 0.02459 included).
+#: Densities of the curve: from below Matterport-Chair's to KITTI's median (the paper's two medians, KITTI's rounded).
 DENSITIES: tuple[float, ...] = (0.002, 0.003, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.0246)
 #: The paper's median densities (pillars / canvas), marked on the plot.
-PAPER_DENSITY = {"Matterport-Chair (paper)": 0.0075, "KITTI": 0.02459}
+PAPER_DENSITY = {"Matterport-Chair (paper)": MATTERPORT_CHAIR_DENSITY.median, "KITTI": KITTI_DENSITY.median}
 
 
 @torch.no_grad()

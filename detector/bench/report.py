@@ -1,7 +1,7 @@
 """The benchmark result as the paper's runtime tables: mean ± std ms per model, ratio rows, notes (text or Markdown).
 
-Reads only the JSON-ready result of :func:`detector.bench.run.run_bench` (a dict, or the same loaded back from
-``detector bench --json``), so a saved result can be re-printed.
+Reads only the result of :func:`detector.bench.run.run_bench` (a :class:`detector.bench.result.BenchResult`, or the
+same read back from ``detector bench --json`` with ``BenchResult.from_json``), so a saved result can be re-printed.
 """
 
 from __future__ import annotations
@@ -9,55 +9,58 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from detector.bench.result import BenchResult, ModelResult
 from detector.bench.timing import COMPONENTS, SHARED, TITLES
+from detector.device import Machine
 
 
 def _fmt(x: float) -> str:
     return f"{x:,.3f}" if x < 100 else f"{x:,.1f}"
 
 
-def ratio_rows(result: dict, section: str = "components") -> list[tuple[str, dict[str, float]]]:
+def ratio_rows(result: BenchResult, section: str = "components") -> list[tuple[str, dict[str, float]]]:
     """Per-component speed-ups: within each runtime x precision, ``first / other`` for every one of our models after
     the first of that group (dense / sparse: > 1 means sparse faster; one group without ``--runtime`` /
     ``--precision``), then ``peer / ours`` for every one of our models (> 1 means ours is faster than the peer).
     ``section="back_to_back"``: the same for the :data:`SHARED` components timed back to back (ours only). Across
     runtimes and precisions the result's ``headline`` compares the fastest rows (:func:`headline_line`)."""
-    ours = [m for m in result["models"] if not m.get("peer")]
-    peers = [m for m in result["models"] if m.get("peer")]
-    groups: dict[tuple[str, str], list[dict]] = {}
+    ours = [m for m in result.models if not m.peer]
+    peers = [m for m in result.models if m.peer]
+    groups: dict[tuple[str, str], list[ModelResult]] = {}
     for m in ours:
-        groups.setdefault((m.get("runtime", "torch"), m.get("precision", "fp32")), []).append(m)
+        groups.setdefault((m.runtime, m.precision), []).append(m)
     pairs = [(g[0], m) for g in groups.values() for m in g[1:]]
     if section == "components":
         pairs += [(p, m) for p in peers for m in ours]
     rows = []
     for a, b in pairs:
-        if not a.get(section) or not b.get(section):
+        sa, sb = getattr(a, section), getattr(b, section)
+        if not sa or not sb:
             continue
         r = {}
-        for key in a[section]:
-            ta, tb = a[section][key]["mean_ms"], b[section][key]["mean_ms"]
+        for key in sa:
+            ta, tb = sa[key].mean_ms, sb[key].mean_ms
             r[key] = ta / tb if tb > 0 else math.inf
-        rows.append((f"{a['name']} / {b['name']}", r))
+        rows.append((f"{a.name} / {b.name}", r))
     return rows
 
 
-def machine_line(mach: dict) -> str:
-    """One line describing the machine of a result (its ``"machine"``, :func:`detector.device.machine_info`)."""
-    line = (f"machine: {mach['cpu']}, {mach['torch_threads']} torch threads of {mach['logical_cpus']} CPUs, "
-            f"torch {mach['torch']}, device {mach['device']}")
-    if mach.get("gpu"):
-        line += f" ({mach['gpu']})"
-    if mach.get("loadavg_1m") is not None:
-        line += f", load average {mach['loadavg_1m']:.2f} when it ended"
+def machine_line(mach: Machine) -> str:
+    """One line describing the machine of a result (its :class:`detector.device.Machine` record)."""
+    line = (f"machine: {mach.cpu}, {mach.torch_threads} torch threads of {mach.logical_cpus} CPUs, "
+            f"torch {mach.torch}, device {mach.device}")
+    if mach.gpu:
+        line += f" ({mach.gpu})"
+    if mach.loadavg_1m is not None:
+        line += f", load average {mach.loadavg_1m:.2f} when it ended"
     return line
 
 
-def format_table(result: dict, markdown: bool = False) -> str:
+def format_table(result: BenchResult, markdown: bool = False) -> str:
     """The paper-shaped table: one row per model (mean ± std ms), one ratio row per further model; then the shared
     components timed back to back (same shape), then notes."""
     lines = _table(result, "components", COMPONENTS, markdown)
-    if any(m.get("back_to_back") for m in result["models"]):
+    if any(m.back_to_back for m in result.models):
         title = (f"{' and '.join(TITLES[k] for k in SHARED)} timed back to back (every model's, on its own maps, order "
                  "rotated per frame; the components' own cost, to compare between models):")
         lines += ["", title, ""] + _table(result, "back_to_back", SHARED, markdown)
@@ -68,62 +71,64 @@ def format_table(result: dict, markdown: bool = False) -> str:
     return "\n".join(lines) + "\n\n" + "\n".join(prefix + n for n in _notes(result))
 
 
-def headline_line(result: dict) -> str | None:
+def headline_line(result: BenchResult) -> str | None:
     """The like-for-like headline of a result with several runtimes or precisions: fastest sparse row vs fastest
     dense row (and vs the fastest fp32 dense row); None for a result without it (eager fp32 only, or one kind)."""
-    h = result.get("headline")
-    runs = {(m.get("runtime", "torch"), m.get("precision", "fp32")) for m in result["models"] if not m.get("peer")}
+    h = result.headline
+    runs = {(m.runtime, m.precision) for m in result.models if not m.peer}
     if not h or runs == {("torch", "fp32")}:
         return None
-    line = (f"headline: fastest sparse {h['fastest_sparse']} ({_fmt(h['sparse_total_ms'])} ms) vs fastest dense "
-            f"{h['fastest_dense']} ({_fmt(h['dense_total_ms'])} ms): {h['speedup']:.2f}x")
-    if h["fastest_fp32_dense"] != h["fastest_dense"]:
-        line += (f"; vs the fastest fp32 dense {h['fastest_fp32_dense']} ({_fmt(h['fp32_dense_total_ms'])} ms): "
-                 f"{h['speedup_vs_fp32_dense']:.2f}x")
+    line = (f"headline: fastest sparse {h.fastest_sparse} ({_fmt(h.sparse_total_ms)} ms) vs fastest dense "
+            f"{h.fastest_dense} ({_fmt(h.dense_total_ms)} ms): {h.speedup:.2f}x")
+    if h.fastest_fp32_dense != h.fastest_dense:
+        line += (f"; vs the fastest fp32 dense {h.fastest_fp32_dense} ({_fmt(h.fp32_dense_total_ms)} ms): "
+                 f"{h.speedup_vs_fp32_dense:.2f}x")
     return line + " (total ms per frame; > 1: sparse faster)"
 
 
-def _notes(result: dict) -> list[str]:
+def _notes(result: BenchResult) -> list[str]:
     """The lines under the tables: protocol, machine, allocator, density, then each model's weights and counts."""
-    mach, dens, prot = result["machine"], result["density"], result["protocol"]
-    env = ", ".join(f"{k}={v}" for k, v in mach["malloc_env"].items() if v is not None) or "unset"
+    bench, dens, prot = result.machine, result.density, result.protocol
+    mach = bench.machine
+    env = ", ".join(f"{k}={v}" for k, v in mach.malloc_env.items() if v is not None) or "unset"
+    grid = dens.geometry.output_shape
     notes = [
-        f"ms per frame, mean ± std over {prot['trials']} trials of {prot['frames']} frames ({prot['split']} split), "
-        f"{prot['warmup']} warm-up frames, batch 1, models interleaved per frame, precision "
-        f"{prot.get('precision', 'fp32')}",
+        f"ms per frame, mean ± std over {prot.trials} trials of {prot.frames} frames ({prot.split} split), "
+        f"{prot.warmup} warm-up frames, batch 1, models interleaved per frame, precision "
+        f"{prot.precision or 'fp32'}",
         machine_line(mach),
-        f"allocator: {mach['allocator']} ({env})",
-        # runs before the key existed had every eager fp32 GEMM in MKL (torch.mm)
-        f"eager fp32 GEMMs: {mach.get('gemm', 'mkl')} (convolutions: oneDNN; detector.sparse.gemm)",
-        f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
-        f"{dens['median']:.5f}, min {dens['min']:.5f}, max {dens['max']:.5f} over {dens['frames']} frames",
+        f"allocator: {mach.allocator} ({env})",
+        # runs before the key existed had every eager fp32 GEMM in MKL (torch.mm): BenchMachine's default
+        f"eager fp32 GEMMs: {bench.gemm} (convolutions: oneDNN; detector.ops.gemm)",
+        f"density D (pillars / {grid[0]}x{grid[1]}): median "
+        f"{dens.median:.5f}, min {dens.min:.5f}, max {dens.max:.5f} over {dens.frames} frames",
     ]
-    flags = mach.get("precision_flags")
-    if flags is not None:
-        have = ", ".join(f"{p}: {' / '.join(f) if f else 'none'}" for p, f in flags.items())
+    if bench.precision_flags is not None:
+        have = ", ".join(f"{p}: {' / '.join(f) if f else 'none'}" for p, f in bench.precision_flags.items())
         notes.append(f"native precisions (CPU flags): {have}")
-    if any(m.get("runtime", "torch") != "torch" for m in result["models"]):
+    if any(m.runtime != "torch" for m in result.models):
         notes.append("deployed rows (onnxruntime / openvino): Feature Net = the graph's inputs (the NCHW canvas, or "
                      "the sparse rulebook tables), Backbone = the graph (backbone + neck + head in one call), Head = "
                      "the head maps from its output (docs/deployment.md)")
-    for m in result["models"]:
-        what = (f"Open3D-ML {mach.get('open3d', '')}'s own PointPillars, the architecture and grid of "
-                f"{result['models'][0]['name']} (detector/bench/peer.py); " if m.get("peer") else "")
-        by = m.get("page_faults_per_frame_by_component")
+    for m in result.models:
+        what = (f"Open3D-ML {bench.versions.get('open3d', '')}'s own PointPillars, the architecture and grid of "
+                f"{result.models[0].name} (detector/bench/peer.py); " if m.peer else "")
+        by = m.page_faults_per_frame_by_component
         split = "" if not by else " (" + ", ".join(
             f"{TITLES[k]} {by[k]:.0f}" for k in ("feature_extract", "feature_net", "backbone", "head") if k in by) + ")"
-        notes.append(f"{m['name']}: {what}weights {m['weights']}; {m['page_faults_per_frame']:.0f} page faults/frame"
-                     f"{split}; {m['detections_per_frame']:.1f} detections/frame")
-    for sk in result.get("skipped", []):
-        notes.append(f"skipped {sk['name']} ({sk['runtime']} {sk['precision']}): {sk['reason']}")
+        notes.append(f"{m.name}: {what}weights {m.weights}; {m.page_faults_per_frame:.0f} page faults/frame"
+                     f"{split}; {m.detections_per_frame:.1f} detections/frame")
+    for sk in result.skipped:
+        notes.append(f"skipped {sk.name} ({sk.runtime} {sk.precision}): {sk.reason}")
     return notes
 
 
-def _table(result: dict, section: str, keys: Sequence[str], markdown: bool) -> list[str]:
+def _table(result: BenchResult, section: str, keys: Sequence[str], markdown: bool) -> list[str]:
     """Rows of one section (mean ± std ms per model that has it, then its ratio rows), as text or Markdown lines."""
     header = ["model", *(TITLES[k] for k in keys)]
-    rows = [[m["name"], *(f"{_fmt(m[section][k]['mean_ms'])} ± {_fmt(m[section][k]['std_ms'])}" for k in keys)]
-            for m in result["models"] if m.get(section)]
+    rows = [[m.name, *(f"{_fmt(getattr(m, section)[k].mean_ms)} ± {_fmt(getattr(m, section)[k].std_ms)}"
+                       for k in keys)]
+            for m in result.models if getattr(m, section)]
     rows += [[name, *(f"{r[k]:.2f}x" for k in keys)] for name, r in ratio_rows(result, section)]
     if markdown:
         cells = ["| " + " | ".join(r) + " |" for r in [header, *rows]]
@@ -158,7 +163,7 @@ def format_budget(result: dict, markdown: bool = False) -> str:
         "newest released frame is processed, older unstarted ones dropped",
         "CPU share = process CPU time (all threads) / wall / usable cores; latency = frame release to detections; "
         "max Hz at 25 % CPU = 0.25 x cores / CPU s per frame, capped at 1 / service p95",
-        machine_line(mach),
+        machine_line(Machine.from_json(mach)),
         f"density D (pillars / {dens['geometry']['output_shape'][0]}x{dens['geometry']['output_shape'][1]}): median "
         f"{dens['median']:.5f} over {dens['frames']} frames",
     ]

@@ -40,7 +40,7 @@ from __future__ import annotations
 import copy
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -49,14 +49,25 @@ import torch
 from tqdm import tqdm
 
 from detector.bench import peer as open3d_peer
+from detector.bench.result import (
+    BenchDensity,
+    BenchMachine,
+    BenchProtocol,
+    BenchResult,
+    DensityGrid,
+    Headline,
+    ModelResult,
+    Skipped,
+    Stat,
+)
 from detector.bench.timing import COMPONENTS, SHARED, page_faults, time_frame, time_shared
 from detector.checkpoint import load_model
 from detector.config import ExperimentConfig, load_experiment, pseudoimage_geometry
 from detector.data.experiment import EvalFrame, load_eval_frames
 from detector.deploy.cpu import PRECISIONS, RUNTIMES, cpu_flags, precision_flags, skip_reason
-from detector.device import machine_info, use_device
+from detector.device import Machine, use_device
 from detector.models import PointPillars
-from detector.sparse.gemm import library as gemm_library
+from detector.ops.gemm import library as gemm_library
 from detector.sparse.workspace import Workspace
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
@@ -116,16 +127,6 @@ class Variant:
 
 
 @dataclass(frozen=True)
-class Skipped:
-    """A model x runtime x precision not timed, and why."""
-
-    name: str
-    runtime: str
-    precision: str
-    reason: str
-
-
-@dataclass(frozen=True)
 class Timings:
     """The timed passes of every row: ``per_frame`` (rows, trials, frames, components) ms, ``trial_means`` (rows,
     trials, components) ms (a trial's mean over its frames), ``faults`` and ``detections`` (rows,) summed over every
@@ -177,16 +178,11 @@ def run_bench(
     peer: str | None = None,
     progress: bool = False,
     variant: Variant = Variant(),
-) -> dict:
-    """Time every model on the first ``frames`` frames of ``split``; returns the JSON-ready result. ``progress``:
-    bars on stderr (loading, warm-up and timed frames) when it is a terminal. ``variant``: the runtimes and
-    precisions of every model (default: eager torch fp32), one row each, all interleaved per frame.
-
-    ``{"models": [{"name", "config", "weights", "components": {key: {"mean_ms", "std_ms"}}, "back_to_back": {shared
-    key: {"mean_ms", "std_ms"}} (None for the peer and for a single model), "median_frame_ms",
-    "min_frame_ms", "detections_per_frame", "page_faults_per_frame", "density_median", "peer", "runtime",
-    "precision"}], "skipped": [{"name", "runtime", "precision", "reason"}], "headline": {...} or None, "density":
-    {...}, "machine": {...}, "protocol": {...}}``. ``headline``: :func:`headline_record`.
+) -> BenchResult:
+    """Time every model on the first ``frames`` frames of ``split``: a :class:`detector.bench.result.BenchResult`
+    (its ``to_json()`` is ``detector bench --json``'s file). ``progress``: bars on stderr (loading, warm-up and timed
+    frames) when it is a terminal. ``variant``: the runtimes and precisions of every model (default: eager torch
+    fp32), one row each, all interleaved per frame. ``headline``: :func:`headline_record`.
 
     ``peer="open3d-ml"`` adds Open3D-ML's own PointPillars as the last row (``"peer": "open3d-ml"``; ours have
     ``"peer": None``): built with the first model's architecture and grid and its weights (:mod:`detector.bench.peer`;
@@ -216,16 +212,15 @@ def run_bench(
         if len(nets) > 1:  # the shared components back to back (ours only: the peer's stages are not ours to split)
             timings = replace(timings, back_to_back=time_back_to_back(nets, rows[: len(nets)], trials, dev, bar))
         bar.close()
-    records = [model_record(row, j, timings) for j, row in enumerate(rows)]
-    return {
-        "models": records,
-        "skipped": [asdict(s) for s in skipped],
-        "headline": headline_record(records),
-        "density": density_record(rows[0]),
-        "machine": machine_record(dev, peer, variant),
-        "protocol": protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1,
-                                    variant),
-    }
+    records = tuple(model_record(row, j, timings) for j, row in enumerate(rows))
+    return BenchResult(
+        models=records,
+        skipped=tuple(skipped),
+        headline=headline_record(records),
+        density=density_record(rows[0]),
+        machine=machine_record(dev, peer, variant),
+        protocol=protocol_record(rows[0], data_dir, split, peer, trials, min(warmup, n), len(nets) > 1, variant),
+    )
 
 
 def check_variant(variant: Variant, device: str) -> None:
@@ -315,23 +310,23 @@ def variant_name(name: str, runtime: str, precision: str) -> str:
     return name if (runtime, precision) == ("torch", "fp32") else f"{name} ({runtime} {precision})"
 
 
-def headline_record(models: Sequence[dict]) -> dict | None:
+def headline_record(models: Sequence[ModelResult]) -> Headline | None:
     """The like-for-like headline: the fastest sparse row against the fastest dense row (mean total ms, our rows of
     any runtime and precision), and against the fastest fp32 dense row; None without both kinds."""
 
-    def fastest(rows: list[dict]) -> dict | None:
-        return min(rows, key=lambda m: m["components"]["total"]["mean_ms"], default=None)
+    def fastest(rows: list[ModelResult]) -> ModelResult | None:
+        return min(rows, key=lambda m: m.components["total"].mean_ms, default=None)
 
-    ours = [m for m in models if not m.get("peer")]
-    dense = fastest([m for m in ours if m["backbone"] == "dense"])
-    sparse = fastest([m for m in ours if m["backbone"] != "dense"])
+    ours = [m for m in models if not m.peer]
+    dense = fastest([m for m in ours if m.backbone == "dense"])
+    sparse = fastest([m for m in ours if m.backbone != "dense"])
     if dense is None or sparse is None:
         return None
-    fp32 = fastest([m for m in ours if m["backbone"] == "dense" and m["precision"] == "fp32"])
-    ms = {k: m["components"]["total"]["mean_ms"] for k, m in (("dense", dense), ("sparse", sparse), ("fp32", fp32))}
-    return {"fastest_dense": dense["name"], "fastest_sparse": sparse["name"], "fastest_fp32_dense": fp32["name"],
-            "dense_total_ms": ms["dense"], "sparse_total_ms": ms["sparse"], "fp32_dense_total_ms": ms["fp32"],
-            "speedup": ms["dense"] / ms["sparse"], "speedup_vs_fp32_dense": ms["fp32"] / ms["sparse"]}
+    fp32 = fastest([m for m in ours if m.backbone == "dense" and m.precision == "fp32"])
+    ms = {k: m.components["total"].mean_ms for k, m in (("dense", dense), ("sparse", sparse), ("fp32", fp32))}
+    return Headline(fastest_dense=dense.name, fastest_sparse=sparse.name, fastest_fp32_dense=fp32.name,
+                    dense_total_ms=ms["dense"], sparse_total_ms=ms["sparse"], fp32_dense_total_ms=ms["fp32"],
+                    speedup=ms["dense"] / ms["sparse"], speedup_vs_fp32_dense=ms["fp32"] / ms["sparse"])
 
 
 def _check_peer(peer: str | None, device: str) -> None:
@@ -416,76 +411,73 @@ def time_back_to_back(nets: Sequence[PointPillars], rows: Sequence[TimedRow], tr
     return back
 
 
-def model_record(row: TimedRow, j: int, timings: Timings) -> dict:
-    """The JSON record of row ``j``: mean ± std over trials per component, back to back (ours, two or more models),
+def model_record(row: TimedRow, j: int, timings: Timings) -> ModelResult:
+    """The record of row ``j``: mean ± std over trials per component, back to back (ours, two or more models),
     median / min single-frame ms, detections, page faults and the median density per frame."""
     means, frames = timings.trial_means[j], timings.per_frame[j]
     count = frames.shape[0] * frames.shape[1]  # trials x frames
     back = None if row.peer is not None or timings.back_to_back is None else timings.back_to_back[j]
-    return {
-        "name": row.name,
-        "peer": row.peer,
-        "runtime": row.runtime,
-        "precision": row.precision,
-        "config": str(row.model.config),
-        "weights": row.weights,
-        "backbone": row.cfg.model.backbone,
-        "head": row.cfg.model.head,
-        "output_shape": list(row.cfg.model.output_shape),
-        "components": {key: {"mean_ms": float(means[:, ci].mean()), "std_ms": float(means[:, ci].std())}
-                       for ci, key in enumerate(COMPONENTS)},
-        "back_to_back": None if back is None else {
-            key: {"mean_ms": float(back[:, si].mean()), "std_ms": float(back[:, si].std())}
-            for si, key in enumerate(SHARED)
-        },
-        "median_frame_ms": {key: float(np.median(frames[:, :, ci])) for ci, key in enumerate(COMPONENTS)},
-        "min_frame_ms": {key: float(frames[:, :, ci].min()) for ci, key in enumerate(COMPONENTS)},
-        "detections_per_frame": float(timings.detections[j]) / count,
-        "page_faults_per_frame": float(timings.faults[j]) / count,
-        "page_faults_per_frame_by_component": None if not row.faults else {
+    return ModelResult(
+        name=row.name,
+        peer=row.peer,
+        runtime=row.runtime,
+        precision=row.precision,
+        config=str(row.model.config),
+        weights=row.weights,
+        backbone=row.cfg.model.backbone,
+        head=row.cfg.model.head,
+        output_shape=tuple(row.cfg.model.output_shape),
+        components={key: Stat(float(means[:, ci].mean()), float(means[:, ci].std()))
+                    for ci, key in enumerate(COMPONENTS)},
+        back_to_back=None if back is None else {
+            key: Stat(float(back[:, si].mean()), float(back[:, si].std())) for si, key in enumerate(SHARED)},
+        median_frame_ms={key: float(np.median(frames[:, :, ci])) for ci, key in enumerate(COMPONENTS)},
+        min_frame_ms={key: float(frames[:, :, ci].min()) for ci, key in enumerate(COMPONENTS)},
+        detections_per_frame=float(timings.detections[j]) / count,
+        page_faults_per_frame=float(timings.faults[j]) / count,
+        page_faults_per_frame_by_component=None if not row.faults else {
             key: row.faults.get(key, 0) / count for key in COMPONENTS},
-        "density_median": float(np.median(row.densities)),
-    }
+        density_median=float(np.median(row.densities)),
+    )
 
 
-def density_record(row: TimedRow) -> dict:
+def density_record(row: TimedRow) -> BenchDensity:
     """:func:`density_summary` of a row's frames plus the grid they were counted on (range, pillar size in m, canvas
     cells)."""
-    density = density_summary(row.densities)
     m = row.cfg.model
-    density["geometry"] = {"point_cloud_range": list(m.point_cloud_range), "voxel_size": list(m.voxel_size),
-                           "output_shape": list(m.output_shape)}
-    return density
+    return BenchDensity(**density_summary(row.densities), geometry=DensityGrid(
+        tuple(m.point_cloud_range), tuple(m.voxel_size), tuple(m.output_shape)))
 
 
 def protocol_record(first: TimedRow, data_dir: str | Path, split: str, peer: str | None, trials: int, warmup: int,
-                    back_to_back: bool, variant: Variant = Variant()) -> dict:
+                    back_to_back: bool, variant: Variant = Variant()) -> BenchProtocol:
     """How the result was measured: data, split, the ``first`` row's frames, peer, trials, warm-up frames, batch,
     interleaving, the components timed back to back (none with a single model), what the std is over, the runtimes
     and precisions asked for and the int8 calibration frames."""
-    return {"data": str(data_dir), "split": split, "frames": len(first.frames),
-            "frame_ids": [f.frame_id for f in first.frames], "peer": peer, "trials": trials, "warmup": warmup,
-            "batch_size": 1, "interleaved": True, "back_to_back": list(SHARED) if back_to_back else [],
-            "workspace": "every eager model of ours reuses its inference buffers (PointPillars.workspace)",
-            "std": "population std over trials of the per-trial mean over frames",
-            "runtimes": list(variant.runtimes), "precisions": list(variant.precisions),
-            "calibration": ({"split": variant.calibration_split, "frames": variant.calibration_frames}
-                            if "int8" in variant.precisions else None)}
+    return BenchProtocol(
+        data=str(data_dir), split=split, frames=len(first.frames), frame_ids=tuple(f.frame_id for f in first.frames),
+        peer=peer, trials=trials, warmup=warmup, batch_size=1, interleaved=True,
+        back_to_back=tuple(SHARED) if back_to_back else (),
+        workspace="every eager model of ours reuses its inference buffers (PointPillars.workspace)",
+        std="population std over trials of the per-trial mean over frames",
+        runtimes=tuple(variant.runtimes), precisions=tuple(variant.precisions),
+        calibration=({"split": variant.calibration_split, "frames": variant.calibration_frames}
+                     if "int8" in variant.precisions else None))
 
 
-def machine_record(device: torch.device, peer: str | None, variant: Variant = Variant()) -> dict:
-    """:func:`detector.device.machine_info`, the CPU's native bf16 / int8 flags, the library of the eager fp32 GEMMs
-    (:func:`detector.sparse.gemm.library`), and the versions of Open3D (when a peer ran) and of the deployed runtimes
+def machine_record(device: torch.device, peer: str | None, variant: Variant = Variant()) -> BenchMachine:
+    """:meth:`detector.device.Machine.here`, the CPU's native bf16 / int8 flags, the library of the eager fp32 GEMMs
+    (:func:`detector.ops.gemm.library`), and the versions of Open3D (when a peer ran) and of the deployed runtimes
     asked for."""
-    mach = machine_info(device)
-    mach["precision_flags"] = precision_flags(cpu_flags())
-    mach["gemm"] = gemm_library()
+    versions = {}
     if peer is not None:
         import open3d
 
-        mach["open3d"] = open3d.__version__
+        versions["open3d"] = open3d.__version__
     for runtime in set(variant.runtimes) - {"torch"}:
         from detector.deploy.extra import require
 
-        mach[runtime] = require(runtime, f"--runtime {runtime}").__version__
-    return mach
+        versions[runtime] = require(runtime, f"--runtime {runtime}").__version__
+    flags = {p: tuple(f) for p, f in precision_flags(cpu_flags()).items()}
+    return BenchMachine(machine=Machine.here(device), precision_flags=flags,
+                        gemm=gemm_library(), versions=versions)

@@ -100,11 +100,13 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         result = run_budget(models, data_dir, rate=rate, duration=duration, split=split, frames=frames,
                             warmup=warmup, threads=threads, seed=seed, variant=variant)
         text = format_budget(result, markdown=markdown)
+        data = result
     else:
         result = run_bench(models, data_dir, split=split, frames=frames, trials=trials, warmup=warmup,
                            device=device, threads=threads, seed=seed, peer=peer, progress=not no_progress,
                            variant=variant)
         text = format_table(result, markdown=markdown)
+        data = result.to_json()
     if json_out:
-        write_text(json_out, json.dumps(result, indent=2) + "\n")
+        write_text(json_out, json.dumps(data, indent=2) + "\n")
     click.echo(text)

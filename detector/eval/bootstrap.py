@@ -43,7 +43,7 @@ class GapEstimate:
                 "frames": self.frames}
 
     def verdict(self, reference: float) -> str:
-        """What the interval supports about the gap against ``reference`` (e.g. the paper's -4.61)."""
+        """What the interval supports about the gap against ``reference`` (e.g. the paper's sparse - dense gap)."""
         lo, hi = self.ci95
         if lo <= reference <= hi and lo <= 0.0 <= hi:
             return (f"inconclusive: the interval holds both no gap and the paper's {reference:+.2f}")

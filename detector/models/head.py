@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from detector.models.grad_layout import conv2d
-from detector.sparse.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
+from detector.ops.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace
 
@@ -75,7 +75,7 @@ class AnchorHead(nn.Module):
         Without autograd (inference) the three convs run as one 1x1 conv of the :meth:`fused` weight: the 384-channel
         map is read once instead of three times (measured 2x faster on a channels-last Matterport map). With autograd
         (training) they stay three convs, so training computes exactly what it computed before the fused path existed.
-        In fp32 on the CPU that product is oneDNN's GEMM (``detector.sparse.gemm``) with the map's pixels as rows.
+        In fp32 on the CPU that product is oneDNN's GEMM (``detector.ops.gemm``) with the map's pixels as rows.
 
         The inference output is channel-planar: (B, H, W, C) views of one (B, O, H, W) tensor, so the class logits
         are one contiguous 0.8 MB block on the Matterport map, which post-processing scans; the interleaved
@@ -96,7 +96,7 @@ class AnchorHead(nn.Module):
         low = x.dtype in (torch.bfloat16, torch.float16) or torch.is_autocast_enabled(x.device.type)
         rows = x.permute(0, 2, 3, 1)  # (B, H, W, C): contiguous for a channels-last map
         if not low and rows.is_contiguous() and uses_onednn(x, weight):
-            # oneDNN (detector.sparse.gemm), the pixels as its "weight" operand: weight (O, C) @ rows (H*W, C).t() is
+            # oneDNN (detector.ops.gemm), the pixels as its "weight" operand: weight (O, C) @ rows (H*W, C).t() is
             # the planar (O, H*W) map straight away (Matterport map, trained weights, 2 threads: Head 8.9 ms against
             # 20.6 ms in MKL's baddbmm; tools/bench_gemm.py, docs/sparse.md "GEMM library")
             planes = [linear(weight, rows[i].reshape(h * w, -1)).add_(bias[:, None]) for i in range(b)]
@@ -160,7 +160,7 @@ class SparseExactHead(AnchorHead):
         if workspace is not None:
             return self._reused(x, bi, yi, xi, weight.to(x.dtype), bias.to(x.dtype), workspace)
         feats = x[bi, :, yi, xi]
-        if uses_onednn(feats, weight):  # oneDNN (detector.sparse.gemm), at a bucketed row count
+        if uses_onednn(feats, weight):  # oneDNN (detector.ops.gemm), at a bucketed row count
             vals = linear_rows(feats, weight, bias)
         else:
             vals = F.linear(feats, weight, bias)  # (N_active, O); bfloat16 under autocast, like the dense head's
@@ -178,7 +178,7 @@ class SparseExactHead(AnchorHead):
         rows = x.permute(0, 2, 3, 1)  # (B, H, W, C): a view; a plain reshape for the channels-last map
         n = bi.numel()
         onednn = uses_onednn(x, weight)
-        # oneDNN (detector.sparse.gemm) runs at a bucketed row count: the gather fills the first n rows of the buffer
+        # oneDNN (detector.ops.gemm) runs at a bucketed row count: the gather fills the first n rows of the buffer
         if onednn:
             buf = row_buffer(n, c, x, workspace, self, "feats")
         else:

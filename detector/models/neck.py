@@ -14,7 +14,7 @@ from torch import nn
 
 from detector.models.grad_layout import ConvTranspose2dStandardGrad
 from detector.models.pillar_net import BN_EPS, BN_MOMENTUM
-from detector.sparse.gemm import linear, uses_onednn
+from detector.ops.gemm import linear, uses_onednn
 from detector.sparse.norm import batch_norm_into
 from detector.sparse.workspace import Workspace
 
@@ -84,7 +84,7 @@ class SecondFPN(nn.Module):
             wmat = deconv.weight.permute(0, 2, 3, 1).reshape(cin, u * u * o).to(x0.dtype)
             dst = out[..., col : col + o]  # (B, H, W, O) slice of the map
             if uses_onednn(rows, wmat):
-                # oneDNN's GEMM (detector.sparse.gemm) a chunk of coarse rows at a time, each chunk's (rows, u*u*O)
+                # oneDNN's GEMM (detector.ops.gemm) a chunk of coarse rows at a time, each chunk's (rows, u*u*O)
                 # product copied into its u fine rows of the slice
                 fine = dst.view(b * h, u, w, u, o)
                 step = max(1, CHUNK_BYTES // (w * u * u * o * rows.element_size()))

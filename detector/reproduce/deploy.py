@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.deploy.cpu import cpu_flags, skip_reason
-from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_text
+from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
 from detector.reproduce.runner import BIN, REUSE_ENV, Runner
 
 #: (runtime, precision) of the deployed evaluations and bench rows, eager fp32 first.
@@ -135,10 +135,10 @@ class DeployRow:
 
 def read_deploy(res: Path) -> list[DeployRow]:
     """The deploy step's outputs under ``res`` as table rows (empty when the step has not run)."""
-    bench = _read_json(res / "deploy_bench.json") or {}
+    bench = read_bench(res / "deploy_bench.json")
     budget = _read_json(res / "deploy_budget.json") or {}
-    totals = {(m["name"].split(" (")[0], m["runtime"], m["precision"]): m["components"]["total"]["mean_ms"]
-              for m in bench.get("models", []) if not m.get("peer")}
+    totals = {(m.name.split(" (")[0], m.runtime, m.precision): m.components["total"].mean_ms
+              for m in (bench.models if bench else ()) if not m.peer}
     shares = {(b["name"].split(" (")[0], b["runtime"], b["precision"]): b for b in budget.get("budget", [])}
     keys = list(dict.fromkeys([*totals, *shares]))
     rows = []
@@ -173,32 +173,28 @@ def _row_text(r: DeployRow) -> str:
     return f"{r.model}, {r.runtime} {r.precision}: {r.total_ms:.1f} ms, 3D AP {_cell(ap, '.2f')}"
 
 
-def native_flags(mach: dict) -> set[str]:
-    """The native bf16 / int8 CPU flags a bench JSON's ``machine`` record names (its ``precision_flags``)."""
-    return {f for names in (mach.get("precision_flags") or {}).values() for f in names}
-
-
 def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     """The like-for-like table: the fastest dense deployment against the fastest sparse one (either head), at fp32 (the
     fair comparison on a CPU without native bf16 / int8, such as the paper's AVX2 robot CPU) and at any precision
     this CPU computes natively, with what both sides ran under; no lines before the deploy step has run. ``rows``:
     :func:`read_deploy`'s, when the caller has them."""
     rows = read_deploy(res) if rows is None else rows
-    bench = _read_json(res / "deploy_bench.json") or {}
+    bench = read_bench(res / "deploy_bench.json")
     pairs = [(label, _fastest(rows, ("dense",), fp32), _fastest(rows, ("sparse", "sparse+sparse_head"), fp32))
              for label, fp32 in (("fp32 (the fair pair on a CPU without native bf16 / int8, e.g. the paper's AVX2 "
                                   "robot)", True), ("any precision this CPU computes natively", False))]
     if not all(d and sp for _, d, sp in pairs):
         return []
-    mach = bench.get("machine") or {}
-    flags = sorted(native_flags(mach))
-    dens = bench.get("density") or {}
-    median = dens.get("median")
+    mach = bench.machine if bench else None
+    flags = sorted(mach.native_flags()) if mach else []
+    median = bench.density.median if bench and bench.density else None
+    cpu, threads, cpus = (mach.machine.cpu, mach.machine.torch_threads, mach.machine.logical_cpus) if mach else (
+        None, None, None)
     lines = ["| fastest of each side | dense | sparse | dense / sparse |", "|---|---|---|---|"]
     for label, d, sp in pairs:
         lines.append(f"| {label} | {_row_text(d)} | {_row_text(sp)} | {d.total_ms / sp.total_ms:.2f}x |")
-    lines += ["", f"Both sides: {mach.get('cpu', 'this CPU')}, {mach.get('torch_threads', '?')} threads of "
-              f"{mach.get('logical_cpus', '?')} CPUs, allocator reuse, 768 x 512 test frames"
+    lines += ["", f"Both sides: {cpu or 'this CPU'}, {threads or '?'} threads of {cpus or '?'} CPUs, allocator reuse, "
+              "768 x 512 test frames"
               + (f" of density D median {median:.5f}" if median is not None else "")
               + ", trained weights, every row interleaved per frame in one process (`detector bench --runtime "
               "--precision`); 3D AP Overall R40 on val. Native bf16 / int8 flags of this CPU: "

@@ -11,16 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.bench.result import BenchResult
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
-from detector.reproduce.deploy import deploy_section, native_flags
+from detector.reproduce.deploy import deploy_section
 from detector.reproduce.report_ablations import ablations_section
 from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
 from detector.reproduce.results import (
     MODELS,
-    BenchOutput,
     EvalOutputs,
     KittiMetrics,
-    _read_json,
     eval_records,
     read_bench,
     read_density,
@@ -44,13 +43,9 @@ from detector.reproduce.training import (
     trained_schedules,
 )
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, TABLE_II
+from mpchair.paper import MATTERPORT_CHAIR_AP as PAPER_AP
 
-#: The paper's numbers the report compares with (AP percent, ms, D as a fraction of the pillars).
-PAPER = {
-    "dense_3d": 80.66, "dense_bev": 84.09, "sparse_3d_delta": -4.61, "sparse_bev_delta": -6.04,
-    "robot_backbone_ms": (879.225, 66.045), "robot_total_ms": (1082.135, 236.737),
-    "density_median": {"matterport_chair": 0.00750, "kitti": 0.02459},
-}
 #: The reference's setup where the paper's numbers came from its released code rather than its text (metres): the
 #: generator's sensor height (the text says 1.0) and the radius of the agent habitat's navmesh was built for.
 REFERENCE = {"sensor_height_m": 1.25, "text_sensor_height_m": 1.0, "navmesh_agent_radius_m": 0.1}
@@ -74,8 +69,8 @@ def _ap_targets(ev: EvalOutputs) -> list[str]:
     """Target-table rows for AP: the paper's numbers (one level, every chair) beside our Overall AP (R40) and the
     reference's own metric (Open3D-ML mAP) on the same detections."""
     rows = []
-    paper = {"3d": PAPER["dense_3d"], "bev": PAPER["dense_bev"]}
-    delta = {"3d": PAPER["sparse_3d_delta"], "bev": PAPER["sparse_bev_delta"]}
+    paper = {"3d": PAPER_AP.dense_3d, "bev": PAPER_AP.dense_bev}
+    delta = {"3d": PAPER_AP.sparse_3d_delta, "bev": PAPER_AP.sparse_bev_delta}
     for kind, name in (("3d", "3D"), ("bev", "BEV")):
         target = f">= 80 (paper {paper[kind]})" if kind == "3d" else f"paper {paper[kind]}"
         d, sp = (ev.kitti[m].overall(kind, "R40") if m in ev.kitti else None for m in MODELS)
@@ -98,7 +93,7 @@ def _ratio(a: float, b: float) -> float:
     return a / max(b, 1e-9)
 
 
-def _shared_component_rows(bench: BenchOutput, name: str, alloc: str) -> list[str]:
+def _shared_component_rows(bench: BenchResult, name: str, alloc: str) -> list[str]:
     """Rows of the components the paper calls identical in both models (Table II): model ``name`` / dense.
 
     Beside the ratio of means, the ratio of per-frame medians, which one VM hiccup in a few-ms component cannot move.
@@ -123,7 +118,7 @@ def _shared_component_rows(bench: BenchOutput, name: str, alloc: str) -> list[st
     return rows
 
 
-def _bench_targets(bench: BenchOutput, alloc: str) -> list[str]:
+def _bench_targets(bench: BenchResult, alloc: str) -> list[str]:
     """Target-table rows of one allocator's bench: dense / sparse speed-ups, the shared components, the peer."""
     rows = []
     ours = bench.ours()
@@ -200,7 +195,7 @@ def paper_gap_verdict(ev: EvalOutputs) -> str:
     d, sp = (ev.open3d_ml[m].get("3d") if m in ev.open3d_ml else None for m in MODELS)
     if d is None or sp is None:
         return ""
-    gap, paper = sp - d, PAPER["sparse_3d_delta"]
+    gap, paper = sp - d, PAPER_AP.sparse_3d_delta
     verdict = ("close to it" if abs(gap - paper) <= 1.0 else "apart from it") + (
         ", but one seed per model on validation frames of the training houses, with no interval, cannot tell a "
         "real difference from training noise (retraining one config moved its AP by 1.4): inconclusive")
@@ -288,11 +283,11 @@ def detection_section(res: Path) -> list[str]:
              "", *_overall_table(ev)]
     if ev.open3d_ml:
         lines += ["", recall_blind_note(ev)]
-    paper_s3 = PAPER["dense_3d"] + PAPER["sparse_3d_delta"]
-    paper_sb = PAPER["dense_bev"] + PAPER["sparse_bev_delta"]
+    paper_s3 = PAPER_AP.dense_3d + PAPER_AP.sparse_3d_delta
+    paper_sb = PAPER_AP.dense_bev + PAPER_AP.sparse_bev_delta
     lines += ["", "Paper (real Matterport-Chair, Open3D-ML mAP, recall-blind, one level): dense BEV AP "
-              f"{PAPER['dense_bev']}, 3D AP {PAPER['dense_3d']}; sparse {paper_sb:.2f} / {paper_s3:.2f} "
-              f"({PAPER['sparse_bev_delta']} / {PAPER['sparse_3d_delta']} points).", ""]
+              f"{PAPER_AP.dense_bev}, 3D AP {PAPER_AP.dense_3d}; sparse {paper_sb:.2f} / {paper_s3:.2f} "
+              f"({PAPER_AP.sparse_bev_delta} / {PAPER_AP.sparse_3d_delta} points).", ""]
     return lines + _levels_table(ev) + [""]
 
 
@@ -344,15 +339,16 @@ def _difference_rows(out: Path, trained: Schedules) -> list[tuple[str, str, str,
     data = out / "dataset"
     splits = {k: len(read_imageset(imageset_path(data, k))) for k in ("train", "val", "test")
               if imageset_path(data, k).is_file()}
-    n_houses = len(read_manifest(data).houses) or "n/a"
+    manifest = read_manifest(data)
+    n_houses = len(manifest.houses) if manifest and manifest.houses else "n/a"
     dense, sparse = (read_run_config(out / "runs" / m) for m in MODELS)
-    grid, rng = dense.output_shape if dense else None, dense.point_cloud_range if dense else None
-    ep = {m: cfg.epochs if cfg else None for m, cfg in zip(MODELS, (dense, sparse))}
-    sched = dense.schedule if dense else None
-    sched_text = (f"{sched}, peak lr {dense.lr}" if sched == "onecycle" else f"{sched}, lr {dense.lr}") if sched \
-        else "n/a"
-    batch = dense.batch_size if dense and dense.batch_size is not None else "n/a"
-    precision = {m: (cfg.precision if cfg else None) or "fp32" for m, cfg in zip(MODELS, (dense, sparse))}
+    grid, rng = (dense.model.output_shape, dense.model.point_cloud_range) if dense else (None, None)
+    ep = {m: cfg.train.epochs if cfg else None for m, cfg in zip(MODELS, (dense, sparse))}
+    sched = dense.train.schedule if dense else None
+    lr = dense.train.lr if dense else None
+    sched_text = (f"{sched}, peak lr {lr}" if sched == "onecycle" else f"{sched}, lr {lr}") if sched else "n/a"
+    batch = dense.train.batch_size if dense else "n/a"
+    precision = {m: cfg.train.precision if cfg else "fp32" for m, cfg in zip(MODELS, (dense, sparse))}
     return [
         ("data", "4 real Matterport3D houses (VLzqgDo317F, e9zR4mvMWw7, uNb9QFRL6hY, i5noydFURQK), habitat navmesh "
          "viewpoints; train 5,000 / val 2,500 (training index split, mostly house-disjoint val) / test 7,500",
@@ -425,10 +421,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
     """(aspect, paper, this run, why) of the ways the models, the data and the measurements differ from those the
     paper's numbers came from (its released code, its KITTI figures), from this run's manifest, configs and outputs."""
     manifest = read_manifest(out / "dataset")
+    height, radius = (manifest.sensor_height, manifest.robot_radius) if manifest else (None, None)
     dense, sparse = (read_run_config(out / "runs" / m) for m in MODELS)
-    down = sparse.downsample if sparse else None
-    clip = dense.grad_clip_norm if dense else None
-    grid = dense.output_shape if dense else None
+    down = sparse.model.downsample if sparse else None
+    clip = dense.train.grad_clip_norm if dense else None
+    grid = dense.model.output_shape if dense else None
     density = read_density(res / "density.json")
     median = density.values.get("median") if density else None
     frame = read_sparsity_frame(res / "viz.json")
@@ -445,11 +442,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          "`grad_clip_norm: null` is the reference's"),
         ("sensor height", f"{_metres(REFERENCE['text_sensor_height_m'])} in the text; the released generator, which "
          f"made the paper's data, {_metres(REFERENCE['sensor_height_m'])}",
-         f"{_metres(manifest.height)} (`mpchair generate --height`)",
+         f"{_metres(height)} (`mpchair generate --height`)",
          f"the text's; `--height {REFERENCE['sensor_height_m']!r}` is the released code's"),
         ("robot radius", "viewpoints on habitat's navmesh, built for an agent of radius "
          f"{_metres(REFERENCE['navmesh_agent_radius_m'])}",
-         f"{_metres(manifest.robot_radius)}: horizontal rays at three heights must travel that far "
+         f"{_metres(radius)}: horizontal rays at three heights must travel that far "
          "(`mpchair generate --robot-radius`, docs/generate.md)",
          f"a robot's footprint; `--robot-radius {REFERENCE['navmesh_agent_radius_m']!r}` is the navmesh's agent"),
         ("head at inference", "the reference's three 1x1 convs (class, box, direction), NCHW",
@@ -462,11 +459,11 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          "do not depend on the grid; cell-centred anchors on both, so the boxes land where they do on the crop)"
          if grid else "n/a",
          "CPU budget; the times depend on the weights only through the boxes BBox Extract suppresses"),
-        ("density D (test split)", f"Matterport-Chair median {PAPER['density_median']['matterport_chair']} (KITTI "
-         f"{PAPER['density_median']['kitti']})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
+        ("density D (test split)", f"Matterport-Chair median {MATTERPORT_CHAIR_DENSITY.median} (KITTI "
+         f"{KITTI_DENSITY.median})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
          "synthetic houses and sensor; the sparse model's work grows with D and the dense model's does not, so the "
          "ratios here are not the paper's at its D"),
-        ("sparsity figures (Figs. 3-4)", f"a KITTI frame (median D {PAPER['density_median']['kitti']})",
+        ("sparsity figures (Figs. 3-4)", f"a KITTI frame (median D {KITTI_DENSITY.median})",
          f"test frame {frame.frame_id}, a Matterport-Chair frame of D = {frame.density:.5f}" if frame else "n/a",
          "no KITTI training set here; at this D the figures look sparser than the paper's"),
     ]
@@ -491,8 +488,8 @@ def _density_section(res: Path, figure: Figure) -> list[str]:
         lines.append(f"`mpchair stats` summary: `{json.dumps(dict(density.values))}`")
     else:
         lines.append("not run")
-    lines += [f"Paper medians: Matterport-Chair {PAPER['density_median']['matterport_chair']}, KITTI "
-              f"{PAPER['density_median']['kitti']}.", ""]
+    lines += [f"Paper medians: Matterport-Chair {MATTERPORT_CHAIR_DENSITY.median}, KITTI "
+              f"{KITTI_DENSITY.median}.", ""]
     if (res / "density.png").exists():
         lines += [f"![density]({figure(res / 'density.png', 'density.png')})", ""]
     return lines
@@ -504,7 +501,9 @@ def _runtime_sections(res: Path) -> list[str]:
     for alloc in ALLOCATORS:
         lines += [f"## Runtime at 768 x 512, allocator {alloc} (ms per frame)", ""]
         lines += [read_text(res / f"bench_{alloc}.md") or "not run", ""]
-    (bd, bs), (td, ts) = PAPER["robot_backbone_ms"], PAPER["robot_total_ms"]
+    robot = TABLE_II["robot"]
+    (bd, bs), (td, ts) = ((robot["dense"].backbone.mean_ms, robot["sparse"].backbone.mean_ms),
+                          (robot["dense"].total.mean_ms, robot["sparse"].total.mean_ms))
     lines += [f"Paper, robot CPU (i5-4590S, 4 cores): backbone {bd} -> {bs} ms ({bd / bs:.1f}x), total {td} -> {ts} ms "
               f"({td / ts:.1f}x).", ""]
     lines += ["## Operation counts (Table I)", "", read_text(res / "ops.md") or "not run", ""]
@@ -561,15 +560,16 @@ def _opening(out: Path, scale: str, sc: Scale, trained: Schedules, log: str, not
 def _machine_text(res: Path) -> str:
     """"a 2-CPU AMD EPYC (AVX512-BF16, AVX512-VNNI; no AMX)": the machine the bench step timed on, from its JSON (the
     report may be written again elsewhere, from the run record); "" without it."""
-    mach = (_read_json(res / "bench_default.json") or {}).get("machine") or {}
-    if not mach.get("cpu"):
+    bench = read_bench(res / "bench_default.json")
+    mach = bench.machine if bench else None
+    if mach is None or not mach.machine.cpu:
         return ""
-    flags = native_flags(mach)
+    flags = mach.native_flags()
     named = [n for f, n in (("avx512_bf16", "AVX512-BF16"), ("avx512_vnni", "AVX512-VNNI"), ("avx_vnni", "AVX-VNNI"))
              if f in flags]
     amx = any(f.startswith("amx") for f in flags)
     feats = ", ".join((["AMX"] if amx else []) + named) or "no native bf16 / int8"
-    return f"a {mach.get('logical_cpus')}-CPU {mach['cpu']} ({feats}{'' if amx else '; no AMX'})"
+    return f"a {mach.machine.logical_cpus}-CPU {mach.machine.cpu} ({feats}{'' if amx else '; no AMX'})"
 
 
 def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
@@ -593,18 +593,19 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
     head = ref.ratio("dense", "sparse", "total_reference_head")
     ap3d = ev.kitti["dense"].overall("3d", "R40")
     o3d = ev.open3d_ml["dense"].get("3d") if "dense" in ev.open3d_ml else None
-    paper_ratio = PAPER["robot_backbone_ms"][0] / PAPER["robot_backbone_ms"][1]
-    paper_total = PAPER["robot_total_ms"][0] / PAPER["robot_total_ms"][1]
+    robot = TABLE_II["robot"]
+    paper_ratio = robot["dense"].backbone.mean_ms / robot["sparse"].backbone.mean_ms
+    paper_total = robot["dense"].total.mean_ms / robot["sparse"].total.mean_ms
     machine = _machine_text(res)
     text = (f"This run is on the synthetic houses of `mpchair synth --realism {realism}`"
             + (" (calibrated to the original dataset: docs/matterport.md, \"Calibration\")" if realism == "default"
                else "") + f": the test split's density D has median {median:.5f} against the paper's "
-            f"{PAPER['density_median']['matterport_chair']}." + (f" Machine: {machine}." if machine else ""))
+            f"{MATTERPORT_CHAIR_DENSITY.median}." + (f" Machine: {machine}." if machine else ""))
     text += " Where this run differs from the paper, and why:"
     if ap3d is not None:
-        side = "below" if ap3d < PAPER["dense_3d"] else "above"
+        side = "below" if ap3d < PAPER_AP.dense_3d else "above"
         o3d_text = f", {o3d:.2f} on the paper's recall-blind Open3D-ML mAP" if o3d is not None else ""
-        text += (f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER['dense_3d']}"
+        text += (f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER_AP.dense_3d}"
                  + (f" because the models trained {schedules_text(trained)}, not 200 / 250 epochs of 5,000 (they "
                     "are far from converged);" if side == "below" and all(trained.values()) else ";"))
     text += (f" the backbone ratio ({ratios['default']:.1f}x default / {ratios['reuse']:.1f}x reuse allocator) is "

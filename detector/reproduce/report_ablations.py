@@ -15,18 +15,12 @@ from detector.reproduce.results import (
     read_bench,
     read_eval_outputs,
 )
+from mpchair.paper import TABLE_III, TABLE_IV
 
 #: Their names in the paper (both Sparse+WideConv variants: its text's and its released code's).
 PAPER_NAMES = {"dense": "PointPillars", "sparse": "Sparse PointPillars", "sparse1_dense23": "Sparse1+Dense23",
                "sparse12_dense3": "Sparse12+Dense3", "sparse_wide": "Sparse+WideConv (text: 9x9 first SubM)",
                "sparse_wide_down": "Sparse+WideConv (released code: 9x9 down-conv)"}
-#: The paper's Table III (KITTI Car, 16 cm pillars): PointPillars' AP and every other model's delta to it, Moderate
-#: level, (BEV, 3D). Its one Sparse+WideConv row came from the released code (kitti_car_sparse_wide_down.yaml).
-PAPER_TABLE3_MODERATE = {"dense": (89.79, 80.34), "sparse": (-6.53, -7.83), "sparse1_dense23": (-5.44, -7.36),
-                         "sparse12_dense3": (-5.89, -7.71), "sparse_wide_down": (-7.24, -11.57)}
-#: The paper's Table IV (KITTI, its desktop GPU): Backbone and Total ms per frame.
-PAPER_TABLE4_MS = {"dense": (2.358, 14.410), "sparse": (7.578, 14.226), "sparse1_dense23": (7.394, 14.602),
-                   "sparse12_dense3": (7.803, 15.001), "sparse_wide_down": (17.286, 26.270)}
 GEOMETRIES = {"kitti": "KITTI geometry (504 x 440, 16 cm pillars; the six vendored KITTI frames of tests/data/kitti)",
               "mpchair": "Matterport geometry (768 x 512, 5 cm pillars; this run's test split)"}
 
@@ -59,8 +53,8 @@ def _runtime_table(res: Path, geometry: str) -> list[str]:
         else:
             row += "n/a | n/a |"
         if paper:
-            p = PAPER_TABLE4_MS.get(name)
-            row += f" {p[0]:.3f} / {p[1]:.3f} |" if p else " - |"
+            p = TABLE_IV.get(name)  # the paper's Table IV: KITTI, its desktop GPU
+            row += f" {p.backbone.mean_ms:.3f} / {p.total.mean_ms:.3f} |" if p else " - |"
         lines.append(row)
     return lines + [""]
 
@@ -88,7 +82,8 @@ def _ap_table(res: Path) -> list[str]:
              "paper, KITTI Car Moderate BEV / 3D |", "|---|---|---|---|---|---|"]
     for m in models:
         v = values[m]
-        p = PAPER_TABLE3_MODERATE.get(m)
+        p = TABLE_III.get(m)  # the paper's KITTI Car AP (dense) and deltas (the rest), Moderate level
+        p = None if p is None else (p.bev.moderate, p.ap_3d.moderate)
         paper = "-" if p is None else f"{p[0]:.2f} / {p[1]:.2f}" if m == "dense" else f"{p[0]:+.2f} / {p[1]:+.2f}"
         if m not in ev.kitti and m not in ev.open3d_ml:
             lines.append(f"| {PAPER_NAMES[m]} | not run | | | | {paper} |")

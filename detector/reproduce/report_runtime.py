@@ -17,11 +17,8 @@ from detector.reproduce.results import (
     read_run_config,
 )
 from detector.reproduce.training import TrainingTime, training_time
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, SPARSE_EPOCH_RATIO, SPARSE_TRAIN_SPEEDUP, TABLE_II
 
-#: The paper's statements these sections compare with: sparse trains 1.8x faster (whole run) with 25 % more epochs,
-#: and the robot CPU's dense / sparse total time (ms, Table II).
-PAPER_TRAIN_SPEEDUP, PAPER_EPOCH_RATIO = 1.8, 1.25
-PAPER_ROBOT_TOTAL_MS = (1082.135, 236.737)
 #: Copies a figure (source, file name) next to the report and gives its Markdown path relative to the report.
 Figure = Callable[[Path, str], str]
 
@@ -46,8 +43,8 @@ def training_time_section(out: Path) -> list[str]:
     dense, sparse = times.get("dense"), times.get("sparse")
     if dense is not None and sparse is not None:
         cfg = read_run_config(out / "runs" / "dense")
-        grid = cfg.output_shape if cfg else None
-        lines += [_speedup_text(dense, sparse, grid, cfg.precision if cfg else None), ""]
+        grid = cfg.model.output_shape if cfg else None
+        lines += [_speedup_text(dense, sparse, grid, cfg.train.precision if cfg else None), ""]
     return lines
 
 
@@ -61,8 +58,8 @@ def _speedup_text(dense: TrainingTime, sparse: TrainingTime, grid: tuple[int, ..
     smaller = (f" (the paper's 768 x 512 has {768 * 512 / (grid[0] * grid[1]):.1f}x its cells, and the sparse "
                "model's advantage grows with the empty area)" if grid and tuple(grid) != (768, 512) else "")
     return (f"Sparse / dense: an epoch is {per_epoch:.2f}x as fast, the whole run {whole:.2f}x with "
-            f"{sparse.epochs / dense.epochs:.2f}x the epochs (paper: sparse trains {PAPER_TRAIN_SPEEDUP}x faster "
-            f"despite {PAPER_EPOCH_RATIO - 1:.0%} more epochs, on a GPU at 768 x 512). These trainings ran on this "
+            f"{sparse.epochs / dense.epochs:.2f}x the epochs (paper: sparse trains {SPARSE_TRAIN_SPEEDUP}x faster "
+            f"despite {SPARSE_EPOCH_RATIO - 1:.0%} more epochs, on a GPU at 768 x 512). These trainings ran on this "
             f"machine's CPU in {precision or 'fp32'} on {where}{smaller}.")
 
 
@@ -74,7 +71,7 @@ def reference_head_section(res: Path) -> list[str]:
     table = res / "bench_reference_head.md"
     if bench is None or not table.exists():
         return lines + ["not run", ""]
-    td, ts = PAPER_ROBOT_TOTAL_MS
+    td, ts = (TABLE_II["robot"][m].total.mean_ms for m in ("dense", "sparse"))
     ours, ref = (bench.ratio("dense", "sparse", k) for k in ("total", "total_reference_head"))
     lines += ["Our head runs the class, box and direction 1x1 convs as one fused GEMM on a channels-last map; the "
               "reference (Open3D-ML, and SPP after its todense) runs three separate convs on an NCHW map. "
@@ -102,7 +99,8 @@ def density_curve_section(res: Path, figure: Figure) -> list[str]:
               "both backbones (backbone + neck, the paper's Backbone timer) on the same pseudo-images, interleaved "
               "per frame; the op-count ratio is the dense backbone + neck's MACs over the sparse one's exact MACs on "
               "the same sites (`detector/opcount.py`). Rows marked *real frame* are test frames at their own D. "
-              f"The paper's Matterport-Chair median D is 0.0075, KITTI's 0.02459{here}.", "",
+              f"The paper's Matterport-Chair median D is {MATTERPORT_CHAIR_DENSITY.median}, KITTI's "
+              f"{KITTI_DENSITY.median}{here}.", "",
               table.read_text().strip(), ""]
     if (res / "density_curve.png").exists():
         lines += [f"![dense / sparse against D]({figure(res / 'density_curve.png', 'density_curve.png')})", ""]

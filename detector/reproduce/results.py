@@ -1,9 +1,12 @@
 """Typed readers of the files the reproduction's steps write and its report reads back.
 
-Each record is a small frozen dataclass with an explicit ``from_json`` (or ``from_yaml``); a ``read_*`` function
-returns ``None`` (or an empty list) for a file that does not exist, and a key a file lacks reads as ``None`` (or an
-empty mapping), so a report of a partial run names what is missing instead of failing. APs are percent, times
-milliseconds unless a name says seconds.
+A file format with a definition of its own is read through it: ``detector bench --json`` through
+:class:`detector.bench.result.BenchResult`, ``manifest.json`` through :mod:`mpchair.dataset.manifest`, a run's
+``config.yaml`` through :func:`detector.config.load_run_config`, a machine record through
+:class:`detector.device.Machine`. The other records here are small frozen dataclasses with an explicit
+``from_json``. A ``read_*`` function returns ``None`` (or an empty list) for a file that does not exist, and a key a
+file lacks reads as ``None`` (or an empty mapping), so a report of a partial run names what is missing instead of
+failing. APs are percent, times milliseconds unless a name says seconds.
 """
 
 from __future__ import annotations
@@ -13,6 +16,12 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from detector.bench.result import BenchResult
+from detector.config import ExperimentConfig, load_run_config
+from detector.device import Machine
+from mpchair.dataset.manifest import Manifest
+from mpchair.dataset.manifest import read_manifest as read_dataset_manifest
 
 #: The eval step's second output per model (``results/eval_<model>/``): ``detector eval --protocol open3d-ml --json``.
 OPEN3D_ML_JSON = "open3d_ml.json"
@@ -109,55 +118,17 @@ def read_eval_outputs(res: Path, models: tuple[str, ...] = MODELS) -> EvalOutput
 
 
 # --- detector bench --json (bench_<allocator>.json) -------------------------------------------------------------------
-@dataclass(frozen=True)
-class BenchTiming:
-    """One timed model of a bench JSON: mean ms per frame by component (``feature_extract``, ..., ``total``); the
-    per-frame medians and the back-to-back means of the shared components where the bench recorded them (else
-    empty); ``peer``: the peer implementation's name for a peer row (Open3D-ML's), None for ours."""
-
-    name: str
-    peer: str | None
-    mean_ms: Mapping[str, float]
-    median_frame_ms: Mapping[str, float] = field(default_factory=dict)
-    back_to_back_ms: Mapping[str, float] = field(default_factory=dict)
-
-    @classmethod
-    def from_json(cls, d: dict) -> BenchTiming:
-        return cls(name=d["name"], peer=d.get("peer") or None,
-                   mean_ms={k: v["mean_ms"] for k, v in d["components"].items()},
-                   median_frame_ms=dict(d.get("median_frame_ms") or {}),
-                   back_to_back_ms={k: v["mean_ms"] for k, v in (d.get("back_to_back") or {}).items()})
-
-
-@dataclass(frozen=True)
-class BenchOutput:
-    """The models of one ``detector bench --json`` output, in its order."""
-
-    models: tuple[BenchTiming, ...]
-
-    @classmethod
-    def from_json(cls, d: dict) -> BenchOutput:
-        return cls(models=tuple(BenchTiming.from_json(m) for m in d["models"]))
-
-    def ours(self) -> dict[str, BenchTiming]:
-        """Our models (not the peer rows), by name."""
-        return {m.name: m for m in self.models if not m.peer}
-
-    def peers(self) -> dict[str, BenchTiming]:
-        """The peer rows, by name."""
-        return {m.name: m for m in self.models if m.peer}
-
-
-def read_bench(path: Path) -> BenchOutput | None:
-    """A bench JSON (None when the bench step did not write it)."""
+def read_bench(path: Path) -> BenchResult | None:
+    """A bench JSON, read by its one definition (:class:`detector.bench.result.BenchResult`); None when the bench
+    step did not write it."""
     d = _read_json(path)
-    return None if d is None else BenchOutput.from_json(d)
+    return None if d is None else BenchResult.from_json(d)
 
 
 def bench_weights(path: Path) -> tuple[str, ...]:
     """The ``weights`` line of each model of a bench JSON, in its order (empty when there is no file)."""
-    d = _read_json(path)
-    return tuple(m["weights"] for m in d["models"]) if d else ()
+    bench = read_bench(path)
+    return tuple(m.weights for m in bench.models) if bench else ()
 
 
 # --- tools/bench_reference_head.py --json (bench_reference_head.json) -------------------------------------------------
@@ -172,9 +143,9 @@ class ReferenceHeadBench:
 
     @classmethod
     def from_json(cls, d: dict) -> ReferenceHeadBench:
-        mach = d.get("machine") or {}
-        return cls(mean_ms={m["name"]: dict(m["mean_ms"]) for m in d["models"]}, cpu=mach.get("cpu", ""),
-                   threads=mach.get("torch_threads"))
+        mach = Machine.from_json(d.get("machine") or {})
+        return cls(mean_ms={m["name"]: dict(m["mean_ms"]) for m in d["models"]}, cpu=mach.cpu,
+                   threads=mach.torch_threads)
 
     def ratio(self, numerator: str, denominator: str, key: str) -> float | None:
         """``numerator``'s ``key`` ms over ``denominator``'s (None when either model is absent)."""
@@ -225,12 +196,12 @@ class DensityCurve:
 
     @classmethod
     def from_json(cls, d: dict) -> DensityCurve:
-        mach = d.get("machine") or {}
+        mach = Machine.from_json(d.get("machine") or {})
         return cls(points=tuple(CurvePoint.from_json(p) for p in d["points"]),
                    real=tuple(CurvePoint.from_json(p) for p in d.get("real") or ()),
                    crossings=dict(d.get("crossings") or {}), output_shape=tuple(d["geometry"]["output_shape"]),
                    sites=d.get("sites", ""), weights=(d.get("protocol") or {}).get("weights", ""),
-                   cpu=mach.get("cpu", ""), threads=mach.get("torch_threads"))
+                   cpu=mach.cpu, threads=mach.torch_threads)
 
 
 def read_density_curve(path: Path) -> DensityCurve | None:
@@ -260,30 +231,10 @@ def read_density(path: Path) -> DensitySummary | None:
 
 
 # --- mpchair generate (dataset/manifest.json) -------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Manifest:
-    """What the report quotes of a dataset's manifest: its house ids, and the sensor height and robot radius
-    (metres) its ``command`` passed to ``mpchair generate`` (None: not in the command)."""
-
-    houses: tuple[str, ...]
-    height: float | None = None
-    robot_radius: float | None = None
-
-    @classmethod
-    def from_json(cls, d: dict) -> Manifest:
-        command = [str(a) for a in d.get("command") or ()]
-
-        def option(name: str) -> float | None:
-            i = command.index(name) if name in command else -1
-            return float(command[i + 1]) if 0 <= i < len(command) - 1 else None
-
-        return cls(houses=tuple(d.get("houses") or ()), height=option("--height"),
-                   robot_radius=option("--robot-radius"))
-
-
-def read_manifest(dataset: Path) -> Manifest:
-    """``dataset/manifest.json`` (no houses when absent)."""
-    return Manifest.from_json(_read_json(dataset / "manifest.json") or {})
+def read_manifest(dataset: Path) -> Manifest | None:
+    """``dataset/manifest.json`` without its per-frame list (:func:`mpchair.dataset.manifest.read_manifest`; a run
+    record's copy has none), None when the dataset has no manifest (not generated yet)."""
+    return read_dataset_manifest(dataset, frames=False)
 
 
 # --- detector viz-sparsity --json (viz.json) --------------------------------------------------------------------------
@@ -303,39 +254,11 @@ def read_sparsity_frame(path: Path) -> SparsityFrame | None:
 
 
 # --- detector train (RUN/config.yaml, RUN/metrics.jsonl) --------------------------------------------------------------
-@dataclass(frozen=True)
-class RunConfig:
-    """What the report and ``--status`` quote of the experiment a run was trained with (``RUN/config.yaml`` as
-    ``detector train`` wrote it): its ``train`` schedule and the ``model`` grid (None: not in the file)."""
-
-    epochs: int | None = None
-    samples_per_epoch: int | None = None
-    batch_size: int | None = None
-    precision: str | None = None
-    schedule: str | None = None
-    lr: float | None = None
-    output_shape: tuple[int, ...] | None = None  # (nx, ny) pillars
-    point_cloud_range: tuple[float, ...] | None = None  # x, y, z min, then max, metres, sensor frame
-    grad_clip_norm: float | None = None  # None: no clipping (or not in the file)
-    downsample: str | None = None  # the sparse down-conv's output set (``floor`` / ``reference_quirk``); dense: None
-
-    @classmethod
-    def from_yaml(cls, d: dict) -> RunConfig:
-        t, m = d.get("train") or {}, d.get("model") or {}
-        grid, rng = m.get("output_shape"), m.get("point_cloud_range")
-        return cls(epochs=t.get("epochs"), samples_per_epoch=t.get("samples_per_epoch"),
-                   batch_size=t.get("batch_size"), precision=t.get("precision"), schedule=t.get("schedule"),
-                   lr=t.get("lr"), output_shape=None if grid is None else tuple(grid),
-                   point_cloud_range=None if rng is None else tuple(rng), grad_clip_norm=t.get("grad_clip_norm"),
-                   downsample=m.get("downsample"))
-
-
-def read_run_config(run: Path) -> RunConfig | None:
-    """The config a run folder was trained with, None when it has none (not trained yet)."""
-    import yaml
-
-    text = read_text(run / "config.yaml")
-    return RunConfig.from_yaml(yaml.safe_load(text) or {}) if text else None
+def read_run_config(run: Path) -> ExperimentConfig | None:
+    """The experiment a run folder was trained with (``RUN/config.yaml``, read by
+    :func:`detector.config.load_run_config`), None when it has none (not trained yet)."""
+    path = run / "config.yaml"
+    return load_run_config(path) if path.exists() else None
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ def train_status(out: Path, model: str) -> str:
     if schedule is None or not steps:
         return f"{model}: not started"
     epochs, samples = schedule
-    total = epochs * (samples // read_run_config(run).batch_size)
+    total = epochs * (samples // read_run_config(run).train.batch_size)
     pace = statistics.median(r.time_s for r in steps[-200:])
     now = steps[-1]
     running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"

@@ -175,7 +175,7 @@ def train_command(plan: Plan, model: str, config: Path | None = None, epochs: in
     if (plan.runs / model / "last.pt").exists() and not plan.force:
         cmd.append("--resume")
         cfg = read_run_config(plan.runs / model)
-        started = cfg.precision if cfg else None
+        started = cfg.train.precision if cfg else None
         if started and precision and started != precision:
             print(f"[train] {model}: resuming in {started}, the precision this run started with (not {precision})")
             precision = started

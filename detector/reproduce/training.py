@@ -30,8 +30,8 @@ def trained_schedules(out: Path, models: tuple[str, ...] = MODELS) -> Schedules:
     found: Schedules = {}
     for m in models:
         cfg = read_run_config(out / "runs" / m)
-        spe = (cfg and cfg.samples_per_epoch) or n_train
-        found[m] = (cfg.epochs, spe) if cfg and cfg.epochs and spe else None
+        spe = (cfg and cfg.train.samples_per_epoch) or n_train
+        found[m] = (cfg.train.epochs, spe) if cfg and spe else None
     return found
 
 
@@ -68,7 +68,7 @@ def schedule_why(trained: Schedules, n_train: int | None) -> str:
 def precision_text(out: Path) -> str:
     """The ``train.precision`` each model of work folder ``out`` was trained with ("fp32" if not recorded): one value
     when both agree, else "dense fp32, sparse bf16"; "n/a" before any training."""
-    found = {m: cfg.precision or "fp32" for m in MODELS if (cfg := read_run_config(out / "runs" / m)) is not None}
+    found = {m: cfg.train.precision for m in MODELS if (cfg := read_run_config(out / "runs" / m)) is not None}
     values = set(found.values())
     if len(values) == 1:
         return values.pop()

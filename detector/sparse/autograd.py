@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from detector.sparse.gemm import bucket_rows, linear, uses_onednn
+from detector.ops.gemm import bucket_rows, linear, uses_onednn
 
 
 def _taps_matrix(weight: Tensor) -> Tensor:
@@ -45,7 +45,7 @@ class SubMGemm(torch.autograd.Function):
         ctx.features_dtype = features.dtype
         ctx.onednn = uses_onednn(features, matrix)  # fp32 on the CPU outside autocast (autograd is off in here)
         if ctx.onednn:
-            # oneDNN's GEMMs (detector.sparse.gemm) at a bucketed row count: the gather fills the first n rows, the
+            # oneDNN's GEMMs (detector.ops.gemm) at a bucketed row count: the gather fills the first n rows, the
             # rest are zero (the weight gradient sums over every row)
             cols = features.new_empty((bucket_rows(n), matrix.shape[1]))
             torch.index_select(_padded(features), 0, index, out=cols.view(-1, features.shape[1])[: index.numel()])
@@ -75,7 +75,7 @@ class SubMGemm(torch.autograd.Function):
             stacked = weight.permute(2, 3, 0, 1).reshape(k * o, c)
             g = grad_out.new_empty((rows, k * o))
             torch.index_select(_padded(grad_out), 0, reversed_index, out=g.view(-1, o)[: index.numel()])
-            if onednn:  # at the forward's row count (detector.sparse.gemm); output rows past n are ignored
+            if onednn:  # at the forward's row count (detector.ops.gemm); output rows past n are ignored
                 grad_features = linear(g, stacked.t())[:n]
             else:
                 grad_features = (g @ stacked.to(dt)).to(ctx.features_dtype)

@@ -24,8 +24,8 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from detector.ops.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
 from detector.sparse.autograd import GatherUnique, SubMGemm
-from detector.sparse.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
 from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
 from detector.sparse.modules import SparseModule
 from detector.sparse.tensor import SparseTensor
@@ -147,13 +147,13 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     m = index.numel() * c // kc
     w = matrix if workspace is None else matrix.to(padded.dtype)
     if uses_onednn(padded, w):
-        # inference in oneDNN (detector.sparse.gemm): the gather fills the first m rows of a bucket-sized matrix, the
+        # inference in oneDNN (detector.ops.gemm): the gather fills the first m rows of a bucket-sized matrix, the
         # rows past them are ignored (each output row depends on its own input row only)
         cols = row_buffer(m, kc, padded, workspace, owner, "cols")
         torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
         return linear(cols, w)[:m]
     if workspace is None:
-        # training's product in oneDNN at a bucketed row count where it applies (detector.sparse.gemm.train_linear)
+        # training's product in oneDNN at a bucketed row count where it applies (detector.ops.gemm.train_linear)
         if unique and _training(padded):
             return train_linear(GatherUnique.apply(padded, index).view(m, kc), matrix)
         return train_linear(padded.index_select(0, index).view(m, kc), matrix)
@@ -172,7 +172,7 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     o = out_channels
     s = matrix.shape[1] // o
     if uses_onednn(features, matrix):
-        # inference in oneDNN (detector.sparse.gemm): the features and a zero row (whose s products are zero: the
+        # inference in oneDNN (detector.ops.gemm): the features and a zero row (whose s products are zero: the
         # sentinel row m * s) in a bucket-sized matrix; rows past them give products no index names
         rows = row_buffer(m + 1, features.shape[1], features, workspace, owner, "padded")
         rows[:m].copy_(features)
@@ -450,7 +450,7 @@ class SparseConvTranspose2d(SparseModule):
             # same site set: a plain 1x1 matmul
             dt = compute_dtype(x.features)
             if uses_onednn(x.features, w):
-                out = linear_rows(x.features, w.t(), workspace=ws, owner=self)  # oneDNN (detector.sparse.gemm)
+                out = linear_rows(x.features, w.t(), workspace=ws, owner=self)  # oneDNN (detector.ops.gemm)
             else:
                 out = train_linear(x.features, w.t()) if ws is None else torch.mm(
                     x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))

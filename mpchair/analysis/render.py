@@ -72,7 +72,7 @@ def _save_rgb(image: np.ndarray, out: str | Path) -> None:
 
 def plot_density_histogram(stats: dict, out: str | Path, size: tuple[int, int] = (900, 500)) -> None:
     """Histogram of per-frame density ``D`` (from :func:`mpchair.analysis.stats.density_stats`) with this dataset's
-    median and the paper's medians (Matterport-Chair 0.00750, KITTI 0.02459) marked; PNG of ``size = (W, H)`` pixels.
+    median and the paper's medians (Matterport-Chair, KITTI: ``mpchair.paper``) marked; PNG of ``size = (W, H)`` pixels.
     """
     d = np.asarray([f["density"] for f in stats["frames"]], dtype=np.float64)
     paper = stats["paper"]

@@ -47,11 +47,12 @@ from mpchair.kitti import (
     read_labels,
     read_velodyne,
 )
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY
 
-#: The paper's reported densities (section IV; "test data"): median, min, max.
+#: The paper's reported densities (``mpchair.paper``, section IV; "test data"): median, min, max.
 PAPER_DENSITY: dict[str, dict[str, float]] = {
-    "matterport_chair": {"median": 0.00750, "min": 0.00029, "max": 0.01679},
-    "kitti": {"median": 0.02459, "min": 0.013321, "max": 0.03899},
+    "matterport_chair": MATTERPORT_CHAIR_DENSITY.to_json(),
+    "kitti": KITTI_DENSITY.to_json(),
 }
 
 #: Percentiles reported by :func:`summarize` (besides min / median / max).

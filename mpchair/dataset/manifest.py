@@ -225,18 +225,38 @@ class Manifest:
         lines = [f.to_json() for f in self.frames]
         return text.replace(slot, "[\n  " + ",\n  ".join(lines) + "\n ]" if lines else "[]")
 
+    def _viewpoint_setting(self, name: str) -> float | None:
+        viewpoints = self.config.get("viewpoints")
+        value = viewpoints.get(name) if isinstance(viewpoints, dict) else None
+        return None if value is None else float(value)
+
+    @property
+    def sensor_height(self) -> float | None:
+        """The sensor's height above the floor (metres; ``mpchair generate --height``), from the run's settings
+        (``config.viewpoints.height``); None in a manifest whose settings lack it."""
+        return self._viewpoint_setting("height")
+
+    @property
+    def robot_radius(self) -> float | None:
+        """The robot's radius (metres; ``mpchair generate --robot-radius``), from the run's settings
+        (``config.viewpoints.robot_radius``); None in a manifest whose settings lack it."""
+        return self._viewpoint_setting("robot_radius")
+
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> Manifest:
-        """The manifest of :meth:`to_dict`'s data (a missing key is a ``KeyError``, a wrong type a ``TypeError``)."""
+    def from_dict(cls, data: Mapping[str, Any], frames: bool = True) -> Manifest:
+        """The manifest of :meth:`to_dict`'s data (a missing key is a ``KeyError``, a wrong type a ``TypeError``);
+        ``frames=False``: without its per-frame list (``frames`` empty; the list may be absent, as in the run record
+        of ``detector.reproduce.record``)."""
         if not isinstance(data["config"], dict):
             raise TypeError("config: expected an object")
+        records = data["frames"] if frames else ()
         return cls(format=data["format"], command=tuple(data["command"]), config=data["config"],
                    versions=dict(data["versions"]), seed=data["seed"],
                    houses={hid: ManifestHouse.from_dict(h) for hid, h in data["houses"].items()},
                    conventions=dict(data["conventions"]), splits=dict(data["splits"]),
                    totals=ManifestTotals.from_dict(data["totals"]),
                    split_houses=_split_houses(data.get("split_houses")),
-                   frames=tuple(_frame_at(data["frames"], i) for i in range(len(data["frames"]))))  # fmt: skip
+                   frames=tuple(_frame_at(records, i) for i in range(len(records))))  # fmt: skip
 
 
 #: Placeholder of the manifest's frame list while the rest is encoded (see :meth:`Manifest.to_json`).
@@ -321,10 +341,11 @@ def read_frame_record(path: str | Path) -> FrameRecord:
         raise InputError(f"not an mpchair frame record: {_why(e)}", path) from None
 
 
-def read_manifest(root: str | Path) -> Manifest | None:
+def read_manifest(root: str | Path, frames: bool = True) -> Manifest | None:
     """The :class:`Manifest` of the dataset folder ``root`` (``<root>/manifest.json``), or ``None`` when the folder
     has none (real KITTI). A file that is not valid JSON, or not an mpchair manifest (a key missing, a wrong type), is
-    an :class:`InputError` naming it (and the line, or the frame)."""
+    an :class:`InputError` naming it (and the line, or the frame). ``frames=False``: the manifest without its
+    per-frame list (not parsed, and not required: a run record's copy leaves it out)."""
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():
         return None
@@ -332,6 +353,6 @@ def read_manifest(root: str | Path) -> Manifest | None:
     if not isinstance(data, dict):
         raise InputError("expected a JSON object", path)
     try:
-        return Manifest.from_dict(data)
+        return Manifest.from_dict(data, frames=frames)
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"not an mpchair manifest: {_why(e)}", path) from None

@@ -9,26 +9,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from detector.device import Machine
 from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting, eval_dir, stream_dir, stream_name
+from mpchair.dataset.manifest import read_manifest
 
 #: (model or ``oracle@<model>``, speed m/s, rate Hz, setting name, mode ``raw`` / ``ego``) of one scored run.
 RunKey = tuple[str, float, float, str, str]
-
-
-@dataclass(frozen=True)
-class Machine:
-    """The machine the latencies were measured on (``detector.bench.machine_info``'s fields the report quotes)."""
-
-    cpu: str
-    torch_threads: int
-    torch: str
-    allocator: str
-    logical_cpus: int | None = None
-
-    @classmethod
-    def from_json(cls, d: dict) -> Machine:
-        return cls(cpu=d["cpu"], torch_threads=d["torch_threads"], torch=d["torch"], allocator=d["allocator"],
-                   logical_cpus=d.get("logical_cpus"))
 
 
 @dataclass(frozen=True)
@@ -150,16 +136,16 @@ def trained_houses(dataset: Path) -> dict[str, dict[str, str]] | None:
     train or val split (from manifest.json's per-house frame ranges and ImageSets); None without a manifest."""
     from mpchair.kitti import imageset_path, read_imageset
 
-    manifest = _read_json(dataset / "manifest.json")
+    manifest = read_manifest(dataset, frames=False)
     if manifest is None:
         return None
     used = {int(i) for split in ("train", "val") if imageset_path(dataset, split).is_file()
             for i in read_imageset(imageset_path(dataset, split))}
     found = {}
-    for hid, h in (manifest.get("houses") or {}).items():
-        first, last = h["frames"]
+    for hid, h in manifest.houses.items():
+        first, last = h.frames
         if any(first <= i <= last for i in used):
-            found[hid] = dict(h.get("files_sha256") or {})
+            found[hid] = dict(h.files_sha256)
     return found
 
 

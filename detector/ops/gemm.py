@@ -22,39 +22,92 @@ weight gradient's sum over rows is unchanged, and the backward's two products at
 float32: oneDNN has no float64 GEMM (the exactness tests run float64) and bf16's ``mm`` is oneDNN already. Results
 differ from MKL's by float rounding only (another summation order; tested to 1e-5 relative).
 
-``BACKEND`` picks the library: ``"auto"`` (oneDNN where it applies, the default), ``"mkl"`` (always ``torch.mm``;
-``tools/bench_gemm.py`` flips it between frames to time both in one process). The environment variable
-``DETECTOR_GEMM`` sets it at import.
+The library is an explicit choice, :func:`gemm_backend`: ``with gemm_backend("mkl"):`` runs the block's products in
+``torch.mm`` (MKL), ``"auto"`` (the default outside any block) in oneDNN where it applies. The choice is a context
+variable, so it is scoped to the block (and its thread); ``tools/bench_gemm.py`` switches it between frames to time
+both in one process. The ``detector`` CLI reads the environment variable ``DETECTOR_GEMM`` once
+(:func:`parse_backend`) and runs the command inside the block; nothing here reads the environment. It lives in
+``detector/ops`` because the dense neck and head call it as much as the sparse convs do.
 """
 
 from __future__ import annotations
 
-import os
-from typing import Any
+from collections.abc import Hashable, Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Any, Literal, Protocol, get_args
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from detector.sparse.workspace import Workspace
+from mpchair.core.errors import InputError
 
 #: ``"auto"`` (oneDNN for float32 CPU GEMMs) or ``"mkl"`` (``torch.mm`` always); see the module docstring.
-BACKEND: str = os.environ.get("DETECTOR_GEMM", "auto")
-if BACKEND not in ("auto", "mkl"):
-    raise ValueError(f"DETECTOR_GEMM must be 'auto' or 'mkl', got {BACKEND!r}")
+Backend = Literal["auto", "mkl"]
+BACKENDS: tuple[str, ...] = get_args(Backend)
+#: The choice of the enclosing :func:`gemm_backend` block ("auto" outside any).
+_BACKEND: ContextVar[str] = ContextVar("detector_gemm_backend", default="auto")
 
-_HAVE_ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+def _onednn_linear_available() -> bool:
+    """Whether this torch build has the private oneDNN linear op :func:`_onednn_linear` calls (else every product
+    falls back to ``torch.mm``)."""
+    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+HAVE_ONEDNN: bool = _onednn_linear_available()
+
+
+def _onednn_linear(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    """``x @ weight.t() (+ bias)`` in oneDNN: the one call of a private PyTorch op in the project.
+
+    ``torch.ops.mkldnn._linear_pointwise`` is the op PyTorch's inductor emits for CPU linears; no public API reaches
+    oneDNN's GEMM for float32 (``torch.mm`` goes to MKL; see the module docstring for why that matters). Being
+    private it may change or go with a torch release (the version is pinned): :data:`HAVE_ONEDNN` checks it exists,
+    and without it :func:`uses_onednn` is False everywhere, so every caller takes ``torch.mm`` instead."""
+    return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
+
+
+def parse_backend(value: str, source: str = "DETECTOR_GEMM") -> Backend:
+    """``value`` as a :data:`Backend`; anything else is an :class:`InputError` naming ``source`` (one line)."""
+    if value not in BACKENDS:
+        raise InputError(f"{source} must be one of {', '.join(BACKENDS)}, got {value!r}")
+    return value  # type: ignore[return-value]
+
+
+@contextmanager
+def gemm_backend(backend: str) -> Iterator[None]:
+    """Run the block's float32 CPU GEMMs under ``backend`` (``"auto"``: oneDNN where it applies; ``"mkl"``:
+    ``torch.mm`` always); the previous choice returns when the block ends."""
+    token = _BACKEND.set(parse_backend(backend, "the GEMM backend"))
+    try:
+        yield
+    finally:
+        _BACKEND.reset(token)
+
+
+def current_backend() -> Backend:
+    """The backend of the enclosing :func:`gemm_backend` block (``"auto"`` outside any)."""
+    return _BACKEND.get()  # type: ignore[return-value]
 
 
 def library(backend: str | None = None) -> str:
-    """The library of eager float32 CPU GEMMs under ``backend`` (default: the current ``BACKEND``): ``"onednn"`` or
+    """The library of eager float32 CPU GEMMs under ``backend`` (default: :func:`current_backend`): ``"onednn"`` or
     ``"mkl"`` (``detector bench`` records it, :func:`detector.bench.run.machine_record`)."""
-    return "onednn" if (BACKEND if backend is None else backend) == "auto" and _HAVE_ONEDNN else "mkl"
+    return "onednn" if (current_backend() if backend is None else backend) == "auto" and HAVE_ONEDNN else "mkl"
+
+
+class BufferPool(Protocol):
+    """What :func:`row_buffer` needs of a workspace (``detector.sparse.Workspace``): a reusable buffer per key."""
+
+    def take(self, owner: Hashable, name: str, shape: Sequence[int], dtype: torch.dtype,
+             device: torch.device | str) -> Tensor: ...
 
 
 def trains_in_onednn(x: Tensor, weight: Tensor) -> bool:
     """Whether a product of these operands runs in oneDNN when autograd may record it (:func:`train_linear`,
-    ``SubMGemm``): ``BACKEND`` auto, float32 CPU tensors, outside autocast (bf16 autocast's ``mm`` is oneDNN
+    ``SubMGemm``): the backend ``"auto"``, float32 CPU tensors, outside autocast (bf16 autocast's ``mm`` is oneDNN
     already)."""
     return (
         library() == "onednn"
@@ -84,11 +137,11 @@ def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     tensor, in oneDNN where :func:`uses_onednn` says so, else ``torch.mm`` / ``addmm`` (MKL). Callers whose ``M``
     varies from call to call pass :func:`bucket_rows` rows (see the module docstring)."""
     if uses_onednn(x, weight) and (bias is None or bias.dtype == torch.float32):
-        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
+        return _onednn_linear(x, weight, bias)
     return x @ weight.t() if bias is None else torch.addmm(bias, x, weight.t())
 
 
-def row_buffer(m: int, cols: int, like: Tensor, workspace: Workspace | None = None, owner: object | None = None,
+def row_buffer(m: int, cols: int, like: Tensor, workspace: BufferPool | None = None, owner: object | None = None,
                name: str = "rows") -> Tensor:
     """A ``(bucket_rows(m), cols)`` buffer of ``like``'s dtype and device (contents unspecified) for an ``m``-row
     oneDNN GEMM: ``owner``'s buffer ``name`` of ``workspace`` (reused from frame to frame), or a new tensor."""
@@ -98,7 +151,7 @@ def row_buffer(m: int, cols: int, like: Tensor, workspace: Workspace | None = No
     return workspace.take(owner, name, shape, like.dtype, like.device)
 
 
-def linear_rows(x: Tensor, weight: Tensor, bias: Tensor | None = None, workspace: Workspace | None = None,
+def linear_rows(x: Tensor, weight: Tensor, bias: Tensor | None = None, workspace: BufferPool | None = None,
                 owner: object | None = None) -> Tensor:
     """:func:`linear` of rows whose count varies from call to call, in oneDNN: ``x`` copied into a :func:`row_buffer`
     (``owner``'s ``"rows"`` in ``workspace``, if given), the first ``len(x)`` output rows returned. Callers check
