@@ -372,22 +372,22 @@ def test_train_and_eval_say_how_long_where_and_what_zero_ap_means(data, tmp_path
     assert lines[0] == ("training 6 step(s): 2 epochs x 4 steps (global batch 2), stopping at --max-steps 6; "
                         "timing the first steps...")
     # steps 3-5 timed (steps 1-2 are the slow first ones): the wall time between step ends holds each step's own
-    # time; the estimate is the 5 steps' time spent plus the 1 left
-    estimate = re.fullmatch(r"6 steps, ~(\d+\.\d\d) s/step measured -> ~(.+)", lines[1])
-    assert estimate, lines[1]
+    # time; the estimate, after step 5 (in epoch 2), is the 5 steps' time spent plus the 1 left
+    estimate = re.fullmatch(r"6 steps, ~(\d+\.\d\d) s/step measured -> ~(.+)", lines[2])
+    assert estimate, lines[2]
     per_step = float(estimate.group(1))
     steps = _steps(run)
     assert per_step >= np.median([s["time_s"] for s in steps[2:5]]) - 0.006
     spent = sum(s["time_s"] for s in steps[:5])
     assert spent + per_step - 1.0 <= _seconds(estimate.group(2)) <= max(1.0, 1.5 * (spent + per_step) + 1.0)
     (epoch,) = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if r["kind"] == "epoch"]
-    # the epoch line's estimate is the rolling mean of the steps after the first, for the 2 steps still to run
+    # the epoch line's estimate is the rolling mean of the steps after the warm-up, for the 2 steps still to run
     line = re.fullmatch(rf"epoch 1/2: loss {epoch['loss_total']:.4f} \(cls {epoch['loss_cls']:.4f}, reg "
                         rf"{epoch['loss_reg']:.4f}, dir {epoch['loss_dir']:.4f}\), 4 steps in \d+ s, step 4/8, "
-                        r"~(\d+\.\d\d) s/step now -> ~(.+) left", lines[2])
-    assert line, lines[2]
+                        r"~(\d+\.\d\d) s/step now -> ~(.+) left", lines[1])
+    assert line, lines[1]
     rolling = float(line.group(1))
-    assert rolling >= np.mean([s["time_s"] for s in steps[1:4]]) - 0.006
+    assert rolling >= np.mean([s["time_s"] for s in steps[2:4]]) - 0.006
     assert abs(_seconds(line.group(2)) - 2 * rolling) <= 1.0
     assert lines[3:] == [f"trained 1 epoch(s), 6 step(s), last loss {steps[-1]['loss_total']:.4f}; checkpoint "
                          f"{run / 'last.pt'}"]
@@ -512,13 +512,14 @@ def test_periodic_validation_logs_the_eval_of_that_epochs_weights(data, smoke_ru
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     evals = [r for r in records if r["kind"] == "eval"]
     assert reported[0] == "training 64 step(s): 16 epochs x 4 steps (global batch 2); timing the first steps..."
+    # the estimate comes after step 5, in epoch 2: after epoch 1's line
     assert re.fullmatch(r"64 steps, ~\d+\.\d\d s/step measured -> ~.+ \(\+ validation on val every 8 epochs\)",
-                        reported[1]), reported[1]
-    epoch_lines = [ln for ln in reported[2:] if " validation on " not in ln]
+                        reported[2]), reported[2]
+    epoch_lines = [ln for i, ln in enumerate(reported[1:], 1) if i != 2 and " validation on " not in ln]
     epochs = [r for r in records if r["kind"] == "epoch"]
     assert [ln.split(":")[0] for ln in epoch_lines] == [f"epoch {e}/16" for e in range(1, 17)]
     assert all(f"loss {r['loss_total']:.4f} " in ln for ln, r in zip(epoch_lines, epochs))
-    validation = [ln for ln in reported[2:] if " validation on " in ln]
+    validation = [ln for ln in reported[3:] if " validation on " in ln]
     assert [ln.split(" validation")[0] for ln in validation] == ["epoch 8/16", "epoch 16/16"]
     for ln, rec in zip(validation, evals):
         ap = rec["Chair"]
