@@ -395,7 +395,7 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         run("detector", "eval", "--config", cfg[m], "--data", data, "--checkpoint", runs / m / "last.pt", "--split",
             "val", "--out", res / f"eval_{m}", "--threads", "1")
     run("detector", "bench", "--config", cfg["dense"], "--config", cfg["sparse"], "--data", data, "--split", "test",
-        "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", res / "bench_default.json",
+        "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out", res / "bench_default.json",
         "--markdown", "--checkpoint", runs / "dense" / "last.pt", "--checkpoint", runs / "sparse" / "last.pt",
         stdout=res / "bench_default.md")
     run("detector", "ops", "--config", cfg["sparse"], "--data", data, "--split", "test", "--frames", "2", "--out",

@@ -24,6 +24,7 @@ import concurrent.futures
 import multiprocessing
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -97,6 +98,18 @@ def fixed_rate(run: Callable[[np.ndarray], object], frames: Sequence[np.ndarray]
 
 def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
                 threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
+    """One row in this (fresh) process: its record (:func:`_row_record`) and, under ``"warnings"``, the text of each
+    Python warning it raised: the parent raises them again, so that the command prints them as its own one-line
+    ``warning:`` lines instead of the fresh interpreter printing each with its source line."""
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("always")
+        record = _row_record(model, runtime, precision, data_dir, split, frames, threads, seed, variant, rate,
+                             duration, warmup)
+    return {**record, "warnings": list(dict.fromkeys(str(w.message) for w in held))}
+
+
+def _row_record(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
+                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
     """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
@@ -149,6 +162,8 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
                 with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
                     rec = pool.submit(_budget_row, replace(model, name=name), runtime, precision, str(data_dir),
                                       split, frames, threads, seed, variant, rate, duration, warmup).result()
+                for text in rec.pop("warnings"):
+                    warnings.warn(text, stacklevel=2)
                 rows.append(rec)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "
