@@ -293,3 +293,24 @@ def test_a_runtime_by_precision_table_fits_a_terminal() -> None:
     md = format_table(result, markdown=True)
     assert sum(line.startswith("| model |") for line in md.splitlines()) == 2  # per frame, back to back
     assert "| dense (openvino int8) | " in md
+
+
+def test_the_exact_sparse_head_on_a_larger_grid_is_the_documented_move(tmp_path) -> None:
+    """make reproduce's bench loads the sparse model's 288 x 144 weights under mpchair_sparse_exact.yaml (768 x 512,
+    the exact sparse head: the same weights): one plain warning that says both, not 'results may differ'."""
+    import warnings
+
+    trained = write_test_config(tmp_path / "trained.yaml", model=dict(backbone="sparse"))
+    cfg = load_experiment(trained)
+    ckpt = tmp_path / "run.pt"
+    model = build_model(cfg.model)
+    save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg,
+                                             epoch=0, step_in_epoch=0, step=0, global_batch=1))
+    exact = load_experiment(write_test_config(tmp_path / "exact.yaml", model=dict(
+        backbone="sparse", head="sparse_exact", output_shape=[128, 96])))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        load_model(exact, ckpt)
+    assert [str(w.message) for w in seen] == [
+        f"{ckpt}: weights trained on the 96 x 64 grid run on this config's 128 x 96 grid (same pillars, larger area; "
+        "anchors at the head map's cell centres; head sparse_exact here (the same weights))"]
