@@ -93,8 +93,10 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     assert name == "dense / sparse" and set(ratios) == set(SHARED) and ratios["bbox_extract"] == pytest.approx(d / s)
     text = format_table(result)
     back = text[text.index("timed back to back"):].splitlines()
-    assert back[2].split() == ["model", "Head", "BBox", "Extract"] and back[5].startswith("dense / sparse")
-    assert f"{ratios['head']:.2f}x" in back[5] and "| model | Head | BBox Extract |" in md
+    h = next(i for i, line in enumerate(back) if line.startswith("model"))  # after the title (wrapped) and a blank
+    assert back[h - 1] == "" and all(len(line) <= 118 for line in back[:h])
+    assert back[h].split() == ["model", "Head", "BBox", "Extract"] and back[h + 3].startswith("dense / sparse")
+    assert f"{ratios['head']:.2f}x" in back[h + 3] and "| model | Head | BBox Extract |" in md
 
 
 def test_shared_components_run_back_to_back_in_rotated_order(data) -> None:
