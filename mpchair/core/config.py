@@ -106,6 +106,8 @@ def key_lines(path: str | Path) -> dict[str, int]:
             for key_node, value_node in node.value:
                 key = f"{prefix}{key_node.value}"
                 lines.setdefault(key, key_node.start_mark.line + 1)
+                if isinstance(value_node, yaml.MappingNode):
+                    lines.setdefault(key + ".", key_node.start_mark.line + 1)  # marks a section
                 walk(value_node, key + ".")
 
     if root is not None:
@@ -118,12 +120,15 @@ _KEYISH = re.compile(r"'([A-Za-z_][\w.]*)'|\b([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+)\b
 
 def at_key_line(e: InputError, path: str | Path) -> InputError:
     """``e`` with the line of the config key its message names (``model.backbone: ...``, ``unknown key 'x.y'``; for
-    a missing key, its section's line), when ``e`` names ``path`` and no line yet; else ``e`` itself."""
+    a missing key, its section's line), when ``e`` names ``path`` and no line yet; else ``e`` itself. A message about
+    a whole section (``model: needs at least ... GiB``) gets no line: no one line is at fault."""
     if e.line is not None or e.path != str(path):
         return e
     lines = key_lines(path)
     best: tuple[int, int] | None = None  # (parts, line) of the most specific key named
     for match in _KEYISH.finditer(e.message):
+        if match.group(3) and match.group(3) + "." in lines:
+            continue  # "section: ..." speaks of the whole section
         parts = next(g for g in match.groups() if g).split(".")
         for n in range(len(parts), 0, -1):
             line = lines.get(".".join(parts[:n]))
