@@ -138,7 +138,10 @@ def test_ctrl_c_says_how_many_frames_are_kept_and_the_same_command_resumes(house
     want = _reference(houses, tmp_path, frames)
     out = tmp_path / "out"
     cmd = _cmd(houses, out, frames, "--workers", "1")
-    proc = _start(cmd)
+    # SIGINT as a terminal's Ctrl-C delivers it: not ignored (a job started in the background inherits SIG_IGN, and
+    # Python then installs no KeyboardInterrupt handler)
+    proc = subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         _wait_for(lambda: len(list((out / ".frames").glob("*.json"))) >= 2, proc)
         os.killpg(proc.pid, signal.SIGINT)
