@@ -74,6 +74,11 @@ def test_without_a_probe_only_the_same_cpu_is_scaled_and_bf16_trainings_in_fp32_
     assert same.seconds == {"train": 1800.0} and "the same CPU as the record's (AMD EPYC, 2 CPUs)" in same.basis
     other = estimate(rec, RECORDED, ["train"], {"cpu": "Intel Xeon", "logical_cpus": 2}, 0.3)
     assert other.seconds == {"train": 1800.0} and "not scaled to this machine" in other.basis
+    # one model name covers CPUs with and without native bf16: those are not the same CPU
+    rec = dataclasses.replace(rec, machine={"cpu": "AMD EPYC", "logical_cpus": 2, "bf16": True})
+    no_bf16 = estimate(rec, RECORDED, ["train"], {"cpu": "AMD EPYC", "logical_cpus": 2, "bf16": False}, 0.3)
+    assert "not scaled to this machine: the record ran on AMD EPYC (2 CPUs, native bf16)" in no_bf16.basis
+    assert "this one is AMD EPYC (2 CPUs, no native bf16)" in no_bf16.basis
     fp32 = estimate(rec, dataclasses.replace(RECORDED, precision="fp32"), ["train"], {"cpu": "AMD EPYC",
                                                                                      "logical_cpus": 2}, None)
     assert fp32.seconds == pytest.approx({"train": 1800.0 * FP32_OVER_BF16_STEP}) and "fp32 here" in fp32.basis

@@ -60,10 +60,12 @@ def probe_seconds(threads: int, repeats: int = 5) -> float:
 
 
 def this_machine() -> dict:
-    """The CPU model and logical CPU count of this machine (as ``detector bench`` records them)."""
+    """The CPU model, logical CPU count and native-bf16 flag of this machine (as ``detector bench`` records them: a
+    model name such as "AMD EPYC" covers CPUs with and without AVX512-BF16)."""
     from detector.device import cpu_model
+    from detector.reproduce.scales import cpu_has_native_bf16
 
-    return {"cpu": cpu_model(), "logical_cpus": os.cpu_count()}
+    return {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "bf16": cpu_has_native_bf16()}
 
 
 def write_probe(out: Path, threads: int) -> dict:
@@ -178,7 +180,9 @@ def _bench_machine(record: Path) -> dict:
     if not bench.is_file():
         return {}
     machine = json.loads(bench.read_text()).get("machine", {})
-    return {"cpu": machine.get("cpu"), "logical_cpus": machine.get("logical_cpus")}
+    flags = machine.get("precision_flags") or {}
+    return {"cpu": machine.get("cpu"), "logical_cpus": machine.get("logical_cpus"),
+            "bf16": bool(flags.get("bf16")) if "bf16" in flags else None}
 
 
 # --- scaling ------------------------------------------------------------------------------------------------------
@@ -235,14 +239,17 @@ def estimate(rec: RecordedTimes, planned: Scale, steps: list[str], here: dict, p
         speed = probe_here / rec.probe_s
         machine = (f"this machine's GEMM probe {probe_here:.2f} s against {rec.probe_s:.2f} s on the recorded one "
                    f"(x{speed:.2f})")
-    elif rec.machine and rec.machine.get("cpu") == here.get("cpu") and (
-            rec.machine.get("logical_cpus") == here.get("logical_cpus")):
+    elif rec.machine and all(rec.machine.get(k) == here.get(k) for k in ("cpu", "logical_cpus")) and (
+            rec.machine.get("bf16") is None or here.get("bf16") is None or rec.machine["bf16"] == here["bf16"]):
         speed, machine = 1.0, f"the same CPU as the record's ({here['cpu']}, {here['logical_cpus']} CPUs)"
     else:
         speed = 1.0
-        machine = (f"not scaled to this machine: the record ran on {rec.machine.get('cpu') or 'another CPU'} "
-                   f"({rec.machine.get('logical_cpus', '?')} CPUs) and holds no probe time; this one is "
-                   f"{here.get('cpu')} ({here.get('logical_cpus')} CPUs)")
+        def cpu(m: dict) -> str:
+            bf16 = {True: ", native bf16", False: ", no native bf16"}.get(m.get("bf16"), "")
+            return f"{m.get('cpu') or 'another CPU'} ({m.get('logical_cpus', '?')} CPUs{bf16})"
+
+        machine = (f"not scaled to this machine: the record ran on {cpu(rec.machine)} and holds no probe time; this "
+                   f"one is {cpu(here)}")
     # None: the configs' precision, which the CPU configs leave at the schema's fp32
     slower_training = rec.scale.precision == "bf16" and (planned.precision or "fp32") == "fp32"
     seconds: dict[str, float | None] = {}
