@@ -17,11 +17,12 @@ test: venv
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-# The paper's experiment on synthetic houses, on a schedule chosen (estimated, not yet timed) to fit one 3-hour
-# session of 2 cores with native bf16 together with make reproduce-stream (dense 4 / sparse 5 epochs); `make reproduce SCALE=recipe` trains the longer
-# dense 16 / sparse 20 (~4.5 h on 2 native-bf16 cores, ~16 h on 2 AVX2-only ones); `make reproduce SCALE=small` is a
-# quick check (~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
-# with other jobs).
+# The paper's experiment on synthetic houses, on a schedule chosen to fit one 3-hour session of 2 cores with native
+# bf16 together with make reproduce-stream (dense 4 / sparse 5 epochs; the committed run's steps took 76.7 min up to
+# its record, docs/results-data/commands.log); `make reproduce SCALE=recipe` trains the longer dense 16 / sparse 20
+# (an estimated ~3.5 h of training on 2 native-bf16 cores, ~16 h on 2 AVX2-only ones: steps x measured step times,
+# docs/benchmarks.md); `make reproduce SCALE=small` is a quick check (33.5 min on a shared 2-core machine). Each run
+# prints its own estimate for this machine before it starts (detector/reproduce/estimate.py).
 SCALE ?= full
 reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)

@@ -194,6 +194,9 @@ def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
 GRID_KEYS = ("point_cloud_range", "voxel_size", "output_shape")
 """The model keys that make a pseudo-image grid: weights moved between grids get cell-centred anchors."""
 
+GRID_MOVE_KEYS = frozenset({"point_cloud_range", "output_shape", "anchor_range", "anchor_centres"})
+"""The keys a move to a larger or smaller grid of the same pillars changes: weights moved so are said in one line."""
+
 
 def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: torch.device | str = "cpu", *,
                seed: int = 0) -> PointPillars:
@@ -230,7 +233,15 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
     if misfit is not None:
         why = "; ".join(differences) if differences else misfit
         raise InputError(f"checkpoint does not fit the config's model: {why}", checkpoint)
-    if differences:
+    if differing and set(differing) <= GRID_MOVE_KEYS | {"head"} and "output_shape" in differing:
+        # the documented transfer (make reproduce times the 288 x 144-trained weights at 768 x 512, the sparse ones
+        # also with the exact sparse head, the same weights computing the same maps): one plain line
+        (was, now) = ((" x ".join(str(v) for v in shape) if isinstance(shape, list) else str(shape))
+                      for shape in differing["output_shape"])
+        head = (f"; head {differing['head'][1]} here (the same weights)" if "head" in differing else "")
+        warnings.warn(f"{checkpoint}: weights trained on the {was} grid run on this config's {now} grid (same "
+                      f"pillars, larger area; anchors at the head map's cell centres{head})", stacklevel=2)
+    elif differences:
         warnings.warn(f"{checkpoint}: trained under another config ({'; '.join(differences)}); its weights load "
                       "into this one, but results may differ from the trained model's", stacklevel=2)
     model.load_state_dict(saved.model)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mpchair.core.config import from_dict, load_yaml
+from mpchair.core.config import at_key_line, from_dict, load_yaml
 from mpchair.core.errors import InputError
 from mpchair.geometry import PseudoimageGeometry, grid_size
 
@@ -417,8 +417,13 @@ def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConf
 
 
 def load_experiment(path: str | Path) -> ExperimentConfig:
-    """Load and validate an experiment YAML (``configs/models/*.yaml``); bad keys/types/values → InputError."""
-    return experiment_from_dict(load_yaml(path), source=str(path))
+    """Load and validate an experiment YAML (``configs/models/*.yaml``); bad keys/types/values → InputError naming
+    the file and the line of the key at fault."""
+    data = load_yaml(path)
+    try:
+        return experiment_from_dict(data, source=str(path))
+    except InputError as e:
+        raise at_key_line(e, path) from None
 
 
 def load_run_config(path: str | Path) -> ExperimentConfig:

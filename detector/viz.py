@@ -24,11 +24,12 @@ import torch
 from torch import nn
 
 from detector.checkpoint import load_model
-from detector.config import ExperimentConfig, load_experiment
+from detector.config import ExperimentConfig, load_experiment, pseudoimage_geometry
 from detector.data.experiment import load_eval_frames, open_split
 from detector.models import PointPillars
 from mpchair.core.atomic import write_bytes
 from mpchair.core.errors import InputError
+from mpchair.geometry import frame_density
 from mpchair.kitti import imageset_path
 
 STAGES: tuple[str, ...] = ("input", "block1", "block2", "block3")
@@ -122,12 +123,20 @@ def panel_png(images: dict[str, list[np.ndarray]], fractions: dict[str, list[flo
     return buf.getvalue()
 
 
+#: With neither --frame nor --index, the frame drawn is the one of median density D among the split's first
+#: TYPICAL_FRAMES: the first frame may be nearly empty (D = 0.00036 on the demo data), which draws a blank panel.
+TYPICAL_FRAMES = 50
+
+
 def split_position(cfg: ExperimentConfig, data_dir: str | Path, split: str, *, frame_id: str | None = None,
                    index: int | None = None) -> int:
-    """Position in ``split`` of the frame named by exactly one of ``frame_id`` (``"000123"``; it must be listed in the
-    split) or ``index`` (0 = the split's first frame); an :class:`InputError` naming the split file otherwise."""
-    if (frame_id is None) == (index is None):
-        raise InputError("give either --frame ID (a frame id) or --index N (a position in the split)")
+    """Position in ``split`` of the frame named by at most one of ``frame_id`` (``"000123"``; it must be listed in the
+    split) or ``index`` (0 = the split's first frame); with neither, :func:`typical_position`. An
+    :class:`InputError` naming the split file otherwise."""
+    if frame_id is not None and index is not None:
+        raise InputError("give either --frame ID (a frame id) or --index N (a position in the split), not both")
+    if frame_id is None and index is None:
+        return typical_position(cfg, data_dir, split)
     ids = open_split(cfg, data_dir, split).ids
     listing = imageset_path(data_dir, split)
     if frame_id is not None:
@@ -138,6 +147,16 @@ def split_position(cfg: ExperimentConfig, data_dir: str | Path, split: str, *, f
     if not 0 <= index < len(ids):
         raise InputError(f"--index {index} is outside split {split!r} (positions 0 to {len(ids) - 1})", listing)
     return index
+
+
+def typical_position(cfg: ExperimentConfig, data_dir: str | Path, split: str) -> int:
+    """Position in ``split`` of the frame of median pseudo-image density D (the lower median, the first such frame)
+    among its first :data:`TYPICAL_FRAMES` frames, at ``cfg``'s grid."""
+    frames = load_eval_frames(cfg, data_dir, split, TYPICAL_FRAMES)
+    geometry = pseudoimage_geometry(cfg.model)
+    densities = [frame_density(f.points, geometry)[2] for f in frames]
+    order = sorted(range(len(densities)), key=lambda k: (densities[k], k))
+    return order[(len(order) - 1) // 2]
 
 
 def viz_sparsity(

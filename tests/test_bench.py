@@ -30,11 +30,24 @@ def data(tmp_path_factory):
     return make_tiny_dataset(tmp_path_factory.mktemp("bench") / "ds", n_frames=3)
 
 
+def test_bench_json_prints_to_stdout_and_json_out_writes_a_file(data, tmp_path) -> None:
+    """One meaning per flag: ``--json`` prints the result to stdout (no table), ``--json-out FILE`` writes it."""
+    out = tmp_path / "bench.json"
+    args = ["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
+            "--threads", "1", "--no-progress"]
+    res = click.testing.CliRunner().invoke(cli, [*args, "--json", "--json-out", str(out)])
+    assert res.exit_code == 0, res.output
+    printed = json.loads(res.stdout)
+    assert printed == json.loads(out.read_text()) and [m["name"] for m in printed["models"]] == ["dense"]
+    res = click.testing.CliRunner().invoke(cli, [*args, "--json", str(out)])  # the old file-taking form
+    assert res.exit_code == 2 and "unexpected extra argument" in res.output
+
+
 def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     out = tmp_path / "bench.json"
     res = click.testing.CliRunner().invoke(cli, [
         "bench", "--config", DENSE, "--config", SPARSE, "--data", str(data), "--frames", "2", "--trials", "2",
-        "--warmup", "1", "--threads", "1", "--json", str(out)])
+        "--warmup", "1", "--threads", "1", "--json-out", str(out)])
     assert res.exit_code == 0, res.output
     result = json.loads(out.read_text())
     assert set(result) == {"models", "skipped", "headline", "density", "machine", "protocol"}
@@ -82,8 +95,10 @@ def test_bench_cli_json_schema_and_table(data, tmp_path) -> None:
     assert name == "dense / sparse" and set(ratios) == set(SHARED) and ratios["bbox_extract"] == pytest.approx(d / s)
     text = format_table(typed)
     back = text[text.index("timed back to back"):].splitlines()
-    assert back[2].split() == ["model", "Head", "BBox", "Extract"] and back[5].startswith("dense / sparse")
-    assert f"{ratios['head']:.2f}x" in back[5] and "| model | Head | BBox Extract |" in md
+    h = next(i for i, line in enumerate(back) if line.startswith("model"))  # after the title (wrapped) and a blank
+    assert back[h - 1] == "" and all(len(line) <= 118 for line in back[:h])
+    assert back[h].split() == ["model", "Head", "BBox", "Extract"] and back[h + 3].startswith("dense / sparse")
+    assert f"{ratios['head']:.2f}x" in back[h + 3] and "| model | Head | BBox Extract |" in md
 
 
 def test_shared_components_run_back_to_back_in_rotated_order(data) -> None:
@@ -121,7 +136,7 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
     out = tmp_path / "bench.json"
     res = click.testing.CliRunner().invoke(cli, [
         "bench", "--config", DENSE, "--config", SPARSE, "--checkpoint", str(ckpt), "--checkpoint", "-", "--data",
-        str(data), "--frames", "2", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", str(out)])
+        str(data), "--frames", "2", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out", str(out)])
     assert res.exit_code == 0, res.output
     trained, untrained = json.loads(out.read_text())["models"]
     assert trained["weights"] == str(ckpt) and untrained["weights"].startswith("random")
@@ -132,7 +147,7 @@ def test_bench_checkpoint_times_the_trained_weights(data, tmp_path) -> None:
     # a checkpoint of another architecture is refused before anything is timed
     res = click.testing.CliRunner().invoke(cli, [
         "bench", "--config", SPARSE, "--checkpoint", str(ckpt), "--data", str(data), "--frames", "1", "--trials", "1",
-        "--json", str(tmp_path / "no.json")])
+        "--json-out", str(tmp_path / "no.json")])
     assert res.exit_code != 0 and "checkpoint does not fit the config's model" in str(res.exception)
     assert not (tmp_path / "no.json").exists()
 
@@ -154,7 +169,7 @@ def test_bench_threads_default_to_the_free_cores_and_warn_when_oversubscribed(da
         monkeypatch.setattr(device, "load_1m", lambda: load)
         with pytest.raises(SystemExit) as e:
             main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
-                  *threads, "--json", str(tmp_path / "b.json")])
+                  *threads, "--json-out", str(tmp_path / "b.json")])
         assert e.value.code == 0
         return capsys.readouterr().err.splitlines(), json.loads((tmp_path / "b.json").read_text())["machine"]
 
@@ -186,7 +201,7 @@ def test_a_checkpoint_is_compared_with_the_config_it_is_loaded_under(data, tmp_p
     def bench(config: Path, checkpoint: Path) -> tuple[int, list[str]]:
         with pytest.raises(SystemExit) as e:
             main(["bench", "--config", str(config), "--checkpoint", str(checkpoint), "--data", str(data), "--frames",
-                  "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", str(tmp_path / "b.json")])
+                  "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out", str(tmp_path / "b.json")])
         return e.value.code, capsys.readouterr().err.splitlines()
 
     code, err = bench(trained, ckpt)
@@ -199,6 +214,18 @@ def test_a_checkpoint_is_compared_with_the_config_it_is_loaded_under(data, tmp_p
         "the head map's cell centres (model.anchor_centres: cells) because the weights move to another grid); its "
         "weights load "
         "into this one, but results may differ from the trained model's"]
+    # the documented move (make reproduce's 288 x 144 weights timed at 768 x 512): the same pillars over a larger
+    # grid is one plain line; in --rate mode, whose rows run in fresh processes, too (no UserWarning source line)
+    wide = write_test_config(tmp_path / "wide.yaml", model=dict(output_shape=[128, 96]))
+    short = (f"warning: {ckpt}: weights trained on the 96 x 64 grid run on this config's 128 x 96 grid (same "
+             "pillars, larger area; anchors at the head map's cell centres)")
+    code, err = bench(wide, ckpt)
+    assert code == 0 and [ln for ln in err if "warning" in ln.lower()] == [short], err
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "--config", str(wide), "--checkpoint", str(ckpt), "--data", str(data), "--frames", "1",
+              "--warmup", "0", "--threads", "1", "--rate", "4", "--duration", "0.5"])
+    err = capsys.readouterr().err.splitlines()
+    assert e.value.code == 0 and [ln for ln in err if "warning" in ln.lower()] == [short], err
     code, err = bench(narrow, ckpt)
     assert code == 2 and err == [f"error: {ckpt}: checkpoint does not fit the config's model: model.layer_channels is "
                                  "[32, 32, 64] in the checkpoint, [32, 32, 32] here"]
@@ -257,16 +284,59 @@ def test_detector_gemm_is_read_once_by_the_cli(data, tmp_path, capsys, monkeypat
 
     monkeypatch.setenv("DETECTOR_GEMM", "fast")
     with pytest.raises(SystemExit) as e:
-        main(["bench", "--config", DENSE, "--data", str(data), "--json", str(tmp_path / "no.json")])
+        main(["bench", "--config", DENSE, "--data", str(data), "--json-out", str(tmp_path / "no.json")])
     assert e.value.code == 2 and not (tmp_path / "no.json").exists()
     assert capsys.readouterr().err == "error: DETECTOR_GEMM must be one of auto, mkl, got 'fast'\n"
     monkeypatch.setenv("DETECTOR_GEMM", "mkl")
     try:
         with pytest.raises(SystemExit) as e:
             main(["bench", "--config", DENSE, "--data", str(data), "--frames", "1", "--trials", "1", "--warmup", "0",
-                  "--threads", "1", "--json", str(tmp_path / "b.json")])
+                  "--threads", "1", "--json-out", str(tmp_path / "b.json")])
     finally:
         torch.set_num_threads(1)
     assert e.value.code == 0
     assert json.loads((tmp_path / "b.json").read_text())["machine"]["gemm"] == "mkl"
     assert gemm.current_backend() == "auto"
+
+
+def test_a_runtime_by_precision_table_fits_a_terminal() -> None:
+    """``bench --runtime --precision``'s text output (the committed run's deploy result, 21 rows): one table per
+    runtime x precision under its heading, every table line within 120 columns (the single table was ~170), the
+    group's ratios as ratio_rows gives them; --markdown stays one table with every digit."""
+    result = BenchResult.from_json(json.loads((Path(__file__).resolve().parents[1] / "docs" / "results-data" /
+                                               "results" / "deploy_bench.json").read_text()))
+    text = format_table(result)
+    tables_part = text[: text.index("\nheadline: ")]
+    assert max(len(line) for line in tables_part.splitlines()) <= 120
+    groups = list(dict.fromkeys((m.runtime, m.precision) for m in result.models))
+    assert len(groups) > 1 and all(f"{r} {p}:" in tables_part.splitlines() for r, p in groups)
+    ratios = dict(ratio_rows(result))
+    for r, p in groups:
+        block = tables_part[tables_part.index(f"{r} {p}:"):].split("\n\n")[0].splitlines()
+        want = ratios.get(f"dense ({r} {p}) / sparse ({r} {p})", ratios.get("dense / sparse"))
+        (row,) = [line for line in block if line.startswith("dense / sparse ")]
+        assert row.split()[3] == f"{want['to_device']:.2f}x" and row.split()[-1] == f"{want['total']:.2f}x", row
+    md = format_table(result, markdown=True)
+    assert sum(line.startswith("| model |") for line in md.splitlines()) == 2  # per frame, back to back
+    assert "| dense (openvino int8) | " in md
+
+
+def test_the_exact_sparse_head_on_a_larger_grid_is_the_documented_move(tmp_path) -> None:
+    """make reproduce's bench loads the sparse model's 288 x 144 weights under mpchair_sparse_exact.yaml (768 x 512,
+    the exact sparse head: the same weights): one plain warning that says both, not 'results may differ'."""
+    import warnings
+
+    trained = write_test_config(tmp_path / "trained.yaml", model=dict(backbone="sparse"))
+    cfg = load_experiment(trained)
+    ckpt = tmp_path / "run.pt"
+    model = build_model(cfg.model)
+    save_checkpoint(ckpt, Checkpoint.capture(model=model, optimizer=torch.optim.AdamW(model.parameters()), cfg=cfg,
+                                             epoch=0, step_in_epoch=0, step=0, global_batch=1))
+    exact = load_experiment(write_test_config(tmp_path / "exact.yaml", model=dict(
+        backbone="sparse", head="sparse_exact", output_shape=[128, 96])))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        load_model(exact, ckpt)
+    assert [str(w.message) for w in seen] == [
+        f"{ckpt}: weights trained on the 96 x 64 grid run on this config's 128 x 96 grid (same pillars, larger area; "
+        "anchors at the head map's cell centres; head sparse_exact here (the same weights))"]

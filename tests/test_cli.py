@@ -53,6 +53,37 @@ def test_group_help_lists_every_command() -> None:
     assert all(name in out for name in DETECTOR_COMMANDS)
 
 
+def test_detector_help_trains_the_cpu_configs() -> None:
+    """``detector --help``'s examples that train or run a model on a stream use the CPU-sized configs (the paper's
+    GPU-sized ones plan ~70 days of training on 2 cores), and every config they name exists."""
+    out = click.testing.CliRunner().invoke(detector_cli, ["--help"]).output
+    joined = out.replace("\\\n", " ")
+    examples = [" ".join(line.split()) for line in joined.splitlines() if line.strip().startswith("detector ")]
+    trains = [e for e in examples if e.split()[1] in ("train", "eval", "stream-eval")]
+    assert len(trains) == 3 and all("_cpu.yaml" in e for e in trains), trains
+    named = {w for e in examples for w in e.split() if w.endswith(".yaml")}
+    assert named and all((Path(__file__).resolve().parents[1] / w).is_file() for w in named), named
+
+
+def test_a_config_error_names_the_file_and_the_line_of_the_key(tmp_path: Path, capsys) -> None:
+    """README's promise, for errors other than YAML syntax: ``error: FILE:LINE: ...`` with the line of the key at
+    fault (a misspelt value, an unknown key), as ``detector train`` reads the config before anything else."""
+    from detector.cli import main
+
+    smoke = Path(__file__).resolve().parents[1] / "configs" / "models" / "mpchair_dense_smoke.yaml"
+    text = smoke.read_text()
+    for bad, line, message in (
+            (text.replace("  backbone: dense", "  backbone: sprase"), 15, "model.backbone: 'sprase' is not one of"),
+            (text.replace("  score_thr: 0.1", "  score_thresh: 0.1"), 40, "unknown key 'model.score_thresh'")):
+        cfg = tmp_path / "cfg.yaml"
+        cfg.write_text(bad)
+        with pytest.raises(SystemExit) as e:
+            main(["train", "--config", str(cfg), "--data", str(tmp_path), "--out", str(tmp_path / "run")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.startswith(f"error: {cfg}:{line}: {message}"), err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()
+
+
 def test_input_error_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     @click.command()
     def boom() -> None:
@@ -174,7 +205,7 @@ def test_outputs_that_cannot_be_written_fail_before_the_work_naming_the_folder(t
     assert e.value.code == 2
     assert capsys.readouterr().err == f"error: {blocker}: is not a folder, so {blocker / 'x.png'} cannot be written\n"
     code, _, err = _detector(capsys, "bench", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
-                             "--json", blocker / "out" / "b.json")
+                             "--json-out", blocker / "out" / "b.json")
     assert code == 2 and err.splitlines()[-1].startswith(f"error: {blocker}: is not a folder"), err
     code, _, err = _detector(capsys, "train", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
                              "--out", blocker / "run")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -91,8 +92,18 @@ def test_config_errors_name_file_and_key(tmp_path, text, match):
     path = write(tmp_path, text)
     with pytest.raises(InputError, match=match) as info:
         load_config(Scene, path)
-    assert str(info.value).startswith(f"{path}: ")
     assert info.value.path == str(path)
+    # the line is the named key's (for a missing key, its section's; none when not even that is in the file)
+    named = re.match(r"(?:unknown key |missing required key )?'?([\w.]+)", info.value.message).group(1).split(".")
+    lines = text.splitlines()
+    want = None
+    for n in range(len(named), 0, -1):
+        at = [i + 1 for i, ln in enumerate(lines) if ln.startswith(" " * 2 * (n - 1) + named[n - 1] + ":")]
+        if at:
+            want = at[0]
+            break
+    assert info.value.line == want, (info.value, want)
+    assert str(info.value).startswith(f"{path}:{want}: " if want else f"{path}: ")
 
 
 def test_config_file_level_errors(tmp_path):

@@ -47,6 +47,9 @@ def test_demo_leaves_a_dataset_and_prints_where(tmp_path: Path) -> None:
     assert again.returncode == 0, again.stderr
     first, second = lines[1], again.stdout.splitlines()[1]
     assert again.stdout.splitlines()[0] == str(dataset)
+    # nothing is synthesized again, and the run says so rather than claiming it made the house
+    assert "synthesized house" not in again.stderr and f"already in {out / 'houses'} (nothing synthesized)" in (
+        again.stderr)
     assert second.startswith(f"{dataset}: 3 frames (complete); nothing needed to be made (3 frames already there); ")
     # the dataset is described from its manifest: the same boxes, rejections, points and splits as the first run
     kept = sum(len(r["kept"]) for r in manifest["frames"])

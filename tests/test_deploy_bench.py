@@ -39,7 +39,7 @@ def test_every_model_runtime_precision_is_a_row_interleaved(setup, tmp_path, cap
                             "--frames", "2", "--trials", "1", "--warmup", "1", "--threads", "1",
                             "--runtime", "torch", "--runtime", "onnxruntime", "--runtime", "openvino",
                             "--precision", "fp32", "--precision", "bf16", "--precision", "int8",
-                            "--calibration-split", "test", "--calibration-frames", "2", "--json", out], capsys)
+                            "--calibration-split", "test", "--calibration-frames", "2", "--json-out", out], capsys)
     assert code == 0
     result = json.loads(out.read_text())
     rows = {(m["name"].split(" ")[0], m["runtime"], m["precision"]) for m in result["models"]}
@@ -109,7 +109,7 @@ def test_cpu_flags_read_the_first_flags_line(tmp_path):
 def test_only_skipped_combinations_is_one_error_line(setup, tmp_path, capsys):
     data, cfgs = setup
     code, _, err = _cli(["bench", "--config", cfgs["dense"], "--data", data, "--frames", "1", "--trials", "1",
-                         "--runtime", "onnxruntime", "--precision", "bf16", "--json", tmp_path / "b.json"], capsys)
+                         "--runtime", "onnxruntime", "--precision", "bf16", "--json-out", tmp_path / "b.json"], capsys)
     assert code == 2 and err.count("\n") == 1 and "no bf16 kernels" in err
     assert not (tmp_path / "b.json").exists()
 
@@ -181,7 +181,7 @@ def test_rate_mode_reports_the_budget_of_each_row(setup, tmp_path, capsys):
     out = tmp_path / "budget.json"
     code, stdout, _ = _cli(["bench", "--config", cfgs["sparse"], "--data", data, "--frames", "2", "--warmup", "1",
                             "--threads", "1", "--runtime", "torch", "--runtime", "onnxruntime", "--precision", "fp32",
-                            "--precision", "bf16", "--rate", "4", "--duration", "1", "--json", out], capsys)
+                            "--precision", "bf16", "--rate", "4", "--duration", "1", "--json-out", out], capsys)
     assert code == 0
     result = json.loads(out.read_text())
     flags = cpu_flags()
@@ -207,7 +207,7 @@ def test_format_table_keeps_eager_only_results_as_before(setup, tmp_path, capsys
     data, cfgs = setup
     out = tmp_path / "b.json"
     code, stdout, _ = _cli(["bench", "--config", cfgs["dense"], "--config", cfgs["sparse"], "--data", data,
-                            "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", out],
+                            "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out", out],
                            capsys)
     assert code == 0
     result = json.loads(out.read_text())

@@ -50,7 +50,7 @@ def test_a_missing_deploy_package_is_one_line_naming_the_extra(setup, blocked, a
         full = [*args, "--config", cfg, "--out", out]
     elif args[0] == "bench":
         full = [*args, "--config", cfg, "--data", data, "--frames", "1", "--trials", "1", "--threads", "1",
-                "--calibration-split", "test", "--calibration-frames", "1", "--json", out / "b.json"]
+                "--calibration-split", "test", "--calibration-frames", "1", "--json-out", out / "b.json"]
     else:
         from detector.checkpoint import Checkpoint, save_checkpoint
         from detector.config import load_experiment

@@ -70,9 +70,9 @@ def test_the_report_table_reads_the_step_outputs(tmp_path: Path, capsys) -> None
               "onnxruntime")
     bench = ["--config", cfg, "--data", data, "--split", "val", "--checkpoint", ckpt, "--threads", "1", "--frames",
              "1", "--runtime", "torch", "--runtime", "onnxruntime", "--markdown"]
-    _detector(capsys, "bench", *bench, "--trials", "1", "--warmup", "0", "--json", res / "deploy_bench.json",
+    _detector(capsys, "bench", *bench, "--trials", "1", "--warmup", "0", "--json-out", res / "deploy_bench.json",
               stdout=res / "deploy_bench.md")
-    _detector(capsys, "bench", *bench, "--rate", "2", "--duration", "1", "--warmup", "0", "--json",
+    _detector(capsys, "bench", *bench, "--rate", "2", "--duration", "1", "--warmup", "0", "--json-out",
               res / "deploy_budget.json", stdout=res / "deploy_budget.md")
 
     rows = {(r.model, r.runtime, r.precision): r for r in read_deploy(res)}

@@ -131,6 +131,32 @@ def test_sigkill_before_every_rename_then_the_same_command_resumes_byte_identica
         assert tree(out) == want, k  # no temp or lock file left either
 
 
+def test_ctrl_c_says_how_many_frames_are_kept_and_the_same_command_resumes(houses, tmp_path):
+    """Ctrl-C (SIGINT to the job's process group) part-way: exit 130, no traceback, one line saying how many frames
+    the folder keeps and to run the same command again; that command ends byte-identical to an uninterrupted run."""
+    frames = 12
+    want = _reference(houses, tmp_path, frames)
+    out = tmp_path / "out"
+    cmd = _cmd(houses, out, frames, "--workers", "1")
+    # SIGINT as a terminal's Ctrl-C delivers it: not ignored (a job started in the background inherits SIG_IGN, and
+    # Python then installs no KeyboardInterrupt handler)
+    proc = subprocess.Popen(cmd, env=ENV, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        _wait_for(lambda: len(list((out / ".frames").glob("*.json"))) >= 2, proc)
+        os.killpg(proc.pid, signal.SIGINT)
+    finally:
+        err = _finish(proc)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    kept = len(list((out / ".frames").glob("*.json")))
+    assert 2 <= kept < frames
+    assert err.strip().splitlines()[-1] == (f"interrupted: {kept} of {frames} frames are kept in {out}: run the same "
+                                            "command again to resume")
+    res = _run(cmd + ["--json"])
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["resumed"] == kept and tree(out) == want
+
+
 def test_a_killed_pool_worker_stops_the_run_with_one_error_line_and_the_run_resumes(houses, tmp_path):
     frames = 12
     want = _reference(houses, tmp_path, frames)

@@ -46,7 +46,12 @@ def test_train_refuses_a_hostile_config_before_writing(tmp_path, capsys, case):
     cfg = _edited(tmp_path, section, key, value)
     with pytest.raises(InputError) as err:
         load_experiment(cfg)
-    assert str(err.value).startswith(f"{cfg}: {message}"), err.value
+    # a message about one key names its line (README's error: file:line:), one about the whole section does not
+    lines = cfg.read_text().splitlines()
+    at = lines.index(f"{section}:")
+    line = next(i + 1 for i, text in enumerate(lines) if i > at and text.startswith(f"  {key}:"))
+    where = f"{cfg}:{line}" if message.startswith(f"{section}.{key}") else f"{cfg}"
+    assert str(err.value).startswith(f"{where}: {message}"), err.value
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as exit_:
         main(["train", "--config", str(cfg), "--data", str(tmp_path / "nodata"), "--out", str(out)])

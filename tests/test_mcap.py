@@ -203,16 +203,21 @@ def test_dataset_bag(folders, tmp_path):
                          _sensor_height(folders / "dataset" / "manifest.json"))
 
 
-def test_stream_eval_bag_has_what_the_detector_had(folders, tmp_path):
+def test_stream_eval_bag_has_what_the_detector_had(folders, tmp_path, capsys):
     pytest.importorskip("mcap_ros2")
     from detector.stream import Source, prepare, read_stream
     from detector.stream.run import query_sources
 
     out = tmp_path / "e.mcap"
     # 1.5 s of latency at 1 Hz: the oracle's first box arrives at frame 2, one or two frames stale
+    capsys.readouterr()
     _main("detector.cli", "stream-eval", "--data", str(folders / "stream"), "--oracle", "--latency-ms", "1500",
           "--mcap", str(out), "--quiet")
     msgs, types, _ = _read(out)
+    # it says what it wrote, as mpchair view --mcap does: the bag's frames, messages and topics
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-1] == (f"wrote {out}: 12 frames, {sum(len(m) for m in msgs.values())} messages on {len(msgs)} "
+                           f"topics (open it in Foxglove, or replay it: ros2 bag play -s mcap {out})"), printed
     topics = ("/detections/oracle", "/detections/oracle/ego")
     for topic in topics:
         assert types[topic] == "vision_msgs/msg/Detection3DArray"

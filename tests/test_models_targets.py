@@ -71,7 +71,7 @@ def test_weights_moved_to_another_grid_keep_their_anchors(tmp_path) -> None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             moved = load_model(big, ckpt)
-        assert any("model.anchor_centres: cells" in str(w.message) for w in caught)
+        assert any("anchors at the head map's cell centres" in str(w.message) for w in caught)
         # head cells are 0.1 m; the small grid's cell (iy, ix) is the big one's (iy + 118, ix): y -7.2 vs -19.0
         a_small = model.anchors.view(144, 72, 2, 7)[..., :2].double()
         a_big = moved.anchors.view(384, 256, 2, 7)[118:118 + 144, :72, :, :2].double()

@@ -91,7 +91,7 @@ def test_bench_peer_row_same_frames_json_and_table(setup, tmp_path, capsys, monk
     out = tmp_path / "bench.json"
     code, stdout, _ = _cli(["bench", "--config", dense, "--config", sparse, "--data", data, "--frames", "2",
                             "--trials", "2", "--warmup", "1", "--threads", "1", "--peer", "open3d-ml",
-                            "--json", out], capsys)
+                            "--json-out", out], capsys)
     assert code == 0
     result = json.loads(out.read_text())
     names = [m["name"] for m in result["models"]]
@@ -119,6 +119,6 @@ def test_bench_peer_without_open3d_ml_is_one_error_line(setup, tmp_path, capsys,
     monkeypatch.delitem(sys.modules, "open3d._ml3d.torch.models.point_pillars", raising=False)
     out = tmp_path / "bench.json"
     code, _, err = _cli(["bench", "--config", dense, "--data", data, "--frames", "1", "--trials", "1",
-                         "--peer", "open3d-ml", "--json", out], capsys)
+                         "--peer", "open3d-ml", "--json-out", out], capsys)
     assert code == 2 and err.startswith("error: ") and err.count("\n") == 1 and "Open3D-ML" in err
     assert not out.exists()

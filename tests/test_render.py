@@ -79,7 +79,13 @@ def test_view_bad_inputs(small, tmp_path, capsys):
     assert code == 2 and out.startswith("error: ") and "frame 000007 not found" in out
     code, out = run_main(capsys, "view", small, "--frame", "0", "--out", tmp_path / "x.png", "--results",
                          tmp_path / "none")
-    assert code == 2 and out.count("\n") == 1 and "none/000000.txt: label file not found" in out
+    assert code == 2 and out.count("\n") == 1 and f"{tmp_path / 'none'}: result folder not found" in out
+    # a frame outside the results' split: said as a result file, not a "label file"
+    (tmp_path / "res").mkdir()
+    code, out = run_main(capsys, "view", small, "--frame", "0", "--out", tmp_path / "x.png", "--results",
+                         tmp_path / "res")
+    assert code == 2 and out.count("\n") == 1 and "label file" not in out
+    assert "res/000000.txt: result file not found: frame 000000 is not among these results" in out
     assert not (tmp_path / "x.png").exists()
 
 
@@ -155,7 +161,10 @@ def test_render_house_arrays(tmp_path):
     render_house(v, f, shown, highlight_faces=owner == 2, highlight_boxes=box, viewpoints=vp, size=(500, 400),
                  hidden_faces=owner == 1)
     a, b = assert_picture(covered, (500, 400), 10), assert_picture(shown, (500, 400), 10)
-    assert near(b, "#ff7f0e", 30) > 4 * near(a, "#ff7f0e", 30) > 0  # chair fill uncovered (its box outline always)
+    # below the legend (the top tenth, whose orange swatch both pictures share): the chair fill uncovered (its box
+    # outline always)
+    a, b = a[int(0.1 * 400):], b[int(0.1 * 400):]
+    assert near(b, "#ff7f0e", 30) > 3 * near(a, "#ff7f0e", 30) > 0  # (the legend leaves smaller panels)
     assert near(b, "#1f4fff", 40) > 20  # viewpoints
 
 
@@ -233,6 +242,17 @@ def test_view_draws_a_stream_frame_with_sequence(tmp_path, capsys):
     assert info["points"] == int((points[:, 2] < 2.0 - 0.8).sum()) > 0
     assert info["boxes"] == len(read_labels(seq / "label_2" / "000005.txt").objects())
     assert_picture(pic, (400, 300))
+    # a stream of one sequence needs no --sequence: it draws that sequence's frame
+    import shutil
+
+    single = tmp_path / "single"
+    shutil.copytree(out, single)
+    shutil.rmtree(single / "sequences" / "00")
+    code, output = run_main(capsys, "view", single, "--frame", "5", "--out", tmp_path / "s.png", "--json", "--size",
+                            "400", "300")
+    assert code == 0, output
+    assert {k: v for k, v in json.loads(output).items() if k != "out"} == {
+        k: v for k, v in info.items() if k != "out"}
 
 
 def _figures(monkeypatch) -> list:
@@ -264,6 +284,42 @@ def test_stats_plots_tell_their_curves_and_bands_apart(small, monkeypatch):
     colours = {to_hex(p.get_edgecolor()) for p in sizes.patches}
     assert len(colours) == 3, colours
     assert [t.get_text().split()[0] for t in sizes.get_legend().get_texts()] == ["l", "w", "h"]
+
+
+def test_pictures_explain_themselves(small, monkeypatch):
+    """Issue 50's pictures: the density plot's legend lies beside the axes (inside, it covered the KITTI median line)
+    and its x label says the grid as the docs do (768 x 512); every box-statistics histogram has a y label; the house
+    picture has a legend of its colours; BEV labels are 10 pt dark text on an opaque tag."""
+    from matplotlib.colors import to_hex
+
+    from mpchair.analysis import render
+    from mpchair.analysis.stats import box_stats, density_stats
+
+    saved = _figures(monkeypatch)
+    render.plot_density_histogram(density_stats(small, MATTERPORT_GEOMETRY), "d.png")
+    fig = saved[-1]
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert ax.get_legend().get_window_extent(renderer).x0 >= ax.get_window_extent(renderer).x1
+    assert ax.get_legend().get_window_extent(renderer).x1 <= fig.bbox.x1  # and inside the picture
+    assert "(768 x 512 cells)" in ax.get_xlabel()
+    render.plot_box_stats(box_stats(small, classes=["Chair"]), "b.png")
+    histograms = saved[-1].axes[:7]
+    assert all(a.get_ylabel() for a in histograms), [a.get_title() for a in histograms if not a.get_ylabel()]
+
+    verts = np.array([[0, 0, 0], [4, 0, 0], [0, 4, 0], [4, 4, 1]], dtype=float)
+    render.render_house(verts, np.array([[0, 1, 2], [1, 3, 2]]), "h.png", highlight_faces=np.array([False, True]),
+                        viewpoints=np.array([[1.0, 1.0, 0.0, 0.5]]), highlight_label="chair objects")
+    (legend,) = saved[-1].legends
+    assert [t.get_text() for t in legend.get_texts()] == [
+        "floors and tops (lighter = higher)", "walls (outlines)", "chair objects", "viewpoints (position, heading)"]
+
+    boxes = np.array([[2.0, 1.0, -0.5, 1.0, 0.5, 0.8, 0.6]])
+    render.render_bev(np.zeros((1, 4)), boxes, "f.png", names=["Chair"])
+    (tag,) = [t for t in saved[-1].axes[0].texts if t.get_text() == "Chair"]
+    assert tag.get_fontsize() >= 10 and to_hex(tag.get_color()) == "#111111"
+    assert tag.get_bbox_patch().get_alpha() >= 0.9
 
 
 def test_bev_labels_sit_on_their_own_box():

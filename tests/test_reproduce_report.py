@@ -106,7 +106,7 @@ def test_default_reproduction_is_the_one_session_full_scale(tmp_path: Path, caps
     split 8 / 2 / 2 by house, dense 4 epochs and sparse 5 (the paper's 250 / 200 ratio), bf16 where the CPU computes
     it natively, else fp32; ``--scale recipe`` is the same data with dense 16 / sparse 20 epochs."""
     assert main(["--dry-run", "--out", str(tmp_path / "full")]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ")]  # the commands
     synth = [ln for ln in lines if " synth " in ln]
     generate = [ln for ln in lines if " generate " in ln]
     train = [ln for ln in lines if " train " in ln]
@@ -116,7 +116,7 @@ def test_default_reproduction_is_the_one_session_full_scale(tmp_path: Path, caps
     assert len(train) == 2 and f"--epochs 4 --precision {auto}" in train[0] and "dense_cpu" in train[0]
     assert f"--epochs 5 --precision {auto}" in train[1] and "sparse_cpu" in train[1]
     assert main(["--dry-run", "--scale", "recipe", "--out", str(tmp_path / "recipe")]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ")]
     train = [ln for ln in lines if " train " in ln]
     assert any(" generate " in ln and "--frames 400 " in ln and "--split-mode house" in ln for ln in lines)
     assert len(train) == 2 and f"--epochs 16 --precision {auto}" in train[0]
@@ -124,11 +124,11 @@ def test_default_reproduction_is_the_one_session_full_scale(tmp_path: Path, caps
 
     # a flag overrides the scale's precision; the quick scale keeps the configs' precision
     assert main(["--dry-run", "--precision", "fp32", "--out", str(tmp_path / "fp32")]) == 0
-    train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
+    train = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ") and " train " in ln]
     assert len(train) == 2 and train[0].endswith("--epochs 4 --precision fp32")
     assert train[1].endswith("--epochs 5 --precision fp32")
     assert main(["--dry-run", "--scale", "small", "--out", str(tmp_path / "small")]) == 0
-    train = [ln for ln in capsys.readouterr().out.splitlines() if " train " in ln]
+    train = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("$ ") and " train " in ln]
     assert len(train) == 2 and train[0].endswith("--epochs 2") and train[1].endswith("--epochs 3")
 
 
@@ -393,7 +393,7 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
         run("detector", "eval", "--config", cfg[m], "--data", data, "--checkpoint", runs / m / "last.pt", "--split",
             "val", "--out", res / f"eval_{m}", "--threads", "1")
     run("detector", "bench", "--config", cfg["dense"], "--config", cfg["sparse"], "--data", data, "--split", "test",
-        "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json", res / "bench_default.json",
+        "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out", res / "bench_default.json",
         "--markdown", "--checkpoint", runs / "dense" / "last.pt", "--checkpoint", runs / "sparse" / "last.pt",
         stdout=res / "bench_default.md")
     run("detector", "ops", "--config", cfg["sparse"], "--data", data, "--split", "test", "--frames", "2", "--out",

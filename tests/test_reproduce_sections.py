@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -106,7 +107,7 @@ def test_reference_head_section_is_written_from_the_benchs_json(tiny, tmp_path: 
     res = tmp_path / "results"
     res.mkdir()
     _tool("bench_reference_head", ["--config", tiny["dense"], "--config", tiny["sparse"], "--data", tiny["data"],
-                                   "--frames", "2", "--trials", "1", "--warmup", "0", "--threads", "1", "--json",
+                                   "--frames", "2", "--trials", "1", "--warmup", "0", "--threads", "1", "--json-out",
                                    res / "bench_reference_head.json"], res / "bench_reference_head.md", capsys)
     result = json.loads((res / "bench_reference_head.json").read_text())
     ms = {m["name"]: m["mean_ms"] for m in result["models"]}
@@ -141,7 +142,7 @@ def test_density_curve_section_is_written_from_the_tools_json(tiny, tmp_path: Pa
     (res / "density.json").write_text(json.dumps({"summary": {"median": 0.0061, "min": 0.001, "max": 0.01}}))
     _tool("bench_density", ["--dense-config", tiny["dense"], "--sparse-config", tiny["sparse"], "--densities",
                             "0.01,0.05", "--frames", "1", "--trials", "1", "--warmup", "0", "--threads", "1", "--data",
-                            tiny["data"], "--real-frames", "1", "--json", res / "density_curve.json", "--plot",
+                            tiny["data"], "--real-frames", "1", "--json-out", res / "density_curve.json", "--plot",
                             res / "density_curve.png", "--mark", "this dataset=0.0061"],
           res / "density_curve.md", capsys)
     curve = json.loads((res / "density_curve.json").read_text())
@@ -174,7 +175,7 @@ def test_ablations_section_is_written_from_the_bench_and_eval_outputs(tiny, tmp_
     with pytest.raises(SystemExit) as e:
         detector_main(["bench", "--config", str(tiny["dense"]), "--config", str(tiny["sparse"]), "--config",
                        str(tiny["sparse1_dense23"]), "--data", str(tiny["data"]), "--frames", "1", "--trials", "1",
-                       "--warmup", "0", "--threads", "1", "--json", str(res / "bench_ablations_kitti.json"),
+                       "--warmup", "0", "--threads", "1", "--json-out", str(res / "bench_ablations_kitti.json"),
                        "--no-progress"])
     assert e.value.code == 0
     capsys.readouterr()
@@ -242,16 +243,44 @@ def test_the_tools_refuse_bad_input_in_one_line_and_write_nothing(tiny, tmp_path
     out = tmp_path / "r.json"
     cases = [
         (refhead, ["--config", tiny["dense"], "--config", tiny["sparse"], "--checkpoint", "-", "--data", tiny["data"],
-                   "--json", out], "give one --checkpoint per --config"),
-        (refhead, ["--config", tiny["dense"], "--data", tmp_path / "none", "--json", out], "none"),
-        (density, ["--dense-config", tiny["sparse"], "--sparse-config", tiny["dense"], "--json", out],
+                   "--json-out", out], "give one --checkpoint per --config"),
+        (refhead, ["--config", tiny["dense"], "--data", tmp_path / "none", "--json-out", out], "none"),
+        (density, ["--dense-config", tiny["sparse"], "--sparse-config", tiny["dense"], "--json-out", out],
          "needs a dense config first and a sparse one second"),
-        (density, ["--mark", "mine=2", "--json", out], "--mark takes LABEL=D with 0 < D < 1, got 'mine=2'"),
-        (density, ["--densities", "0.01,x", "--json", out], "error: --densities"),
-        (density, ["--densities", "0.01,1.5", "--json", out], "densities must lie in (0, 1)"),
+        (density, ["--mark", "mine=2", "--json-out", out], "--mark takes LABEL=D with 0 < D < 1, got 'mine=2'"),
+        (density, ["--densities", "0.01,x", "--json-out", out], "error: --densities"),
+        (density, ["--densities", "0.01,1.5", "--json-out", out], "densities must lie in (0, 1)"),
     ]
     for tool, args, said in cases:
         assert tool.main([str(a) for a in args]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and said in err[0], err
         assert not out.exists()
+
+
+def test_the_density_curve_names_its_lines_in_a_legend_and_labels_ticks_plainly() -> None:
+    """The committed run's curve redrawn: every vertical line (the paper's densities, this dataset's median) is a
+    legend entry beside the plot, no text sits at the lines (close densities put their labels on each other), and the
+    D axis is labelled in plain decimals (its log-axis minor labels collided)."""
+    import matplotlib.pyplot as plt
+
+    from detector.bench.density import PAPER_DENSITY, curve_figure
+
+    result = json.loads((Path(__file__).resolve().parents[1] / "docs" / "results-data" / "results" /
+                         "density_curve.json").read_text())
+    fig = curve_figure(result, {"this dataset (median)": 0.00788})
+    try:
+        (ax,) = fig.axes
+        legend = [t.get_text() for t in ax.get_legend().get_texts()]
+        for label, d in {**PAPER_DENSITY, "this dataset (median)": 0.00788}.items():
+            assert f"D = {d:.4f}: {label}" in legend, legend
+        assert not ax.texts
+        fig.canvas.draw()
+        ticks = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+        assert ticks and all(re.fullmatch(r"0\.\d+", t) for t in ticks), ticks
+        assert not [t for t in ax.xaxis.get_minorticklabels() if t.get_text()]
+        # the legend lies right of the axes, over no data
+        renderer = fig.canvas.get_renderer()
+        assert ax.get_legend().get_window_extent(renderer).x0 >= ax.get_window_extent(renderer).x1
+    finally:
+        plt.close(fig)

@@ -241,13 +241,13 @@ def test_config_yaml_picks_model_geometry(tmp_path):
 
 
 #: Model YAMLs whose pillar grid ``stats --config`` cannot read, and the message (after the file name) it gives.
-BAD_GRIDS = {
-    "no model section": ("train:\n  epochs: 3\n", "model: expected a mapping"),
-    "missing key": (GOOD_MODEL.replace("  output_shape: [16, 16]\n", ""), "model.output_shape: missing"),
-    "wrong type": (GOOD_MODEL.replace("[0.5, 0.5, 2]", "fine"), "model.voxel_size: expected a list"),
-    "not a whole number of voxels": (GOOD_MODEL.replace("[0.5, 0.5, 2]", "[0.3, 0.5, 2]"),
+BAD_GRIDS = {  # the file's text, the line the error names ("" where the key is nowhere in it), the message
+    "no model section": ("train:\n  epochs: 3\n", "", "model: expected a mapping"),
+    "missing key": (GOOD_MODEL.replace("  output_shape: [16, 16]\n", ""), ":1", "model.output_shape: missing"),
+    "wrong type": (GOOD_MODEL.replace("[0.5, 0.5, 2]", "fine"), ":3", "model.voxel_size: expected a list"),
+    "not a whole number of voxels": (GOOD_MODEL.replace("[0.5, 0.5, 2]", "[0.3, 0.5, 2]"), ":2",
                                      "model.point_cloud_range / voxel_size / output_shape: pc_range"),
-    "canvas smaller than the grid": (GOOD_MODEL.replace("[16, 16]", "[8, 16]"),
+    "canvas smaller than the grid": (GOOD_MODEL.replace("[16, 16]", "[8, 16]"), ":2",
                                      "model.point_cloud_range / voxel_size / output_shape: grid 16 x 8 is smaller"),
 }
 
@@ -255,15 +255,24 @@ BAD_GRIDS = {
 @pytest.mark.parametrize("case", list(BAD_GRIDS))
 def test_stats_config_reads_the_grid_keys_only(small, tmp_path, capsys, case):
     """``stats --config`` reads ``model.point_cloud_range / voxel_size / output_shape`` and nothing else (mpchair never
-    reads the detector's schema): a bad grid key is one ``error:`` line naming the file and the key, no plot."""
-    text, message = BAD_GRIDS[case]
+    reads the detector's schema): a bad grid key is one ``error:`` line naming the file, the key's line (its section's
+    for a missing key) and the key, no plot."""
+    text, line, message = BAD_GRIDS[case]
     cfg = tmp_path / "exp.yaml"
     write_text(cfg, text)
     plot = tmp_path / "p.png"
     code, out = run_main(capsys, "stats", "--density", small, "--config", cfg, "--plot", plot)
     assert code == 2, out
-    assert len(out.splitlines()) == 1 and out.startswith(f"error: {cfg}: {message}"), out
+    assert len(out.splitlines()) == 1 and out.startswith(f"error: {cfg}{line}: {message}"), out
     assert not plot.exists()
+
+
+def test_stats_config_help_says_only_the_grid_is_checked(capsys):
+    """The help promises no more than the command does: only the pillar grid of --config is read and checked."""
+    code, out = run_main(capsys, "stats", "--help")
+    text = " ".join(out.split())
+    assert code == 0 and "validated whole" not in text
+    assert "only its pillar grid is read and checked" in text and "detector train validates the whole file" in text
 
 
 def test_stats_config_ignores_the_detector_keys(tmp_path):

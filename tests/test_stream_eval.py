@@ -189,10 +189,15 @@ def test_cli_json_is_byte_identical_and_has_the_issue_shape(streams, tmp_path):
     moving, _ = streams
     outs = []
     for k in range(2):
-        res = _cli("--data", str(moving.root), "--oracle", "--latency-ms", "700", "--mode", "raw", "--json",
-                   str(tmp_path / f"r{k}.json"), "--quiet")
+        res = _cli("--data", str(moving.root), "--oracle", "--latency-ms", "700", "--mode", "raw", "--json-out",
+                   str(tmp_path / f"r{k}.json"), "--quiet", *(["--json"] if k else []))
         assert res.returncode == 0, res.stderr
         outs.append((tmp_path / f"r{k}.json").read_bytes())
+        # --json prints the same JSON to stdout instead of the table; --json-out alone still prints the table
+        if k:
+            assert json.loads(res.stdout) == json.loads(outs[-1])
+        else:
+            assert res.stdout.startswith("streaming evaluation:")
     assert outs[0] == outs[1]
     s = json.loads(outs[0])
     assert set(s["sAP"]["Chair"]) == {"3d", "bev"} and set(s["sAP"]["Chair"]["3d"]) == {"R40", "R11"}
@@ -213,7 +218,7 @@ def test_cli_errors(streams, tmp_path, capsys):
         (["--results", str(tmp_path / "none"), "--latency-ms", "0"], "result folder not found"),
         (["--oracle", "--latency", str(tmp_path / "none.json")], "latency log not found"),
         (["--oracle", "--latency-ms", "0", "--latency-log", str(tmp_path / "l.json")], "--latency-log records"),
-        (["--oracle", "--latency-ms", "0", "--json", str(tmp_path / "x.txt")], "--json must name a .json file"),
+        (["--oracle", "--latency-ms", "0", "--json-out", str(tmp_path / "x.txt")], "--json-out must name a .json file"),
     ]
     for args, message in cases:
         with pytest.raises(SystemExit) as e:

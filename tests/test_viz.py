@@ -77,11 +77,31 @@ def test_viz_sparsity_pictures(tmp_path, capsys) -> None:
         (["--frame", "1234567"], "'1234567' is not a frame id"),
         (["--index", "2"], f"error: {split_file}: --index 2 is outside split 'test' (positions 0 to 1)"),
         (["--index", "-1"], "Invalid value for '--index'"),
-        (["--frame", "1", "--index", "0"], "give either --frame ID (a frame id) or --index N"),
-        ([], "give either --frame ID (a frame id) or --index N"),
+        (["--frame", "1", "--index", "0"], "give either --frame ID (a frame id) or --index N (a position in the "
+                                           "split), not both"),
     ):
         with pytest.raises(SystemExit) as e:
             main(["viz-sparsity", "--config", SPARSE, "--data", str(data), *args, "--out", str(tmp_path / "x")])
         err = capsys.readouterr().err
         assert e.value.code == 2 and message in err and len(err.splitlines()) == 1, (args, err)
         assert not (tmp_path / "x").exists()
+
+
+def test_without_frame_or_index_the_frame_of_median_density_is_drawn(tmp_path, capsys) -> None:
+    """The help's first example gives neither --frame nor --index: the frame drawn is the split's frame of median D
+    (the split's first frame may be nearly empty), and its D is the median of the split's densities."""
+    from detector.config import load_experiment, pseudoimage_geometry
+    from detector.data.experiment import load_eval_frames
+    from mpchair.geometry import frame_density
+
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=5, splits={"train": [0], "val": [0], "test": [0, 1, 2, 3, 4]})
+    cfg = load_experiment(SPARSE)
+    frames = load_eval_frames(cfg, data, "test")
+    d = {f.frame_id: frame_density(f.points, pseudoimage_geometry(cfg.model))[2] for f in frames}
+    assert len(set(d.values())) == 5  # distinct densities: one median frame
+    median_id = sorted(d, key=d.get)[2]
+    with pytest.raises(SystemExit) as e:
+        main(["viz-sparsity", "--config", SPARSE, "--data", str(data), "--out", str(tmp_path / "viz"), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert e.value.code == 0 and result["frame_id"] == median_id
+    assert result["nonzero_fraction"]["dense"][0] == pytest.approx(d[median_id])

@@ -2,7 +2,7 @@
 they cross (``detector.bench.density``): clustered synthetic sites from D = 0.002 to KITTI's 0.0246 on the paper's
 768 x 512 canvas, random weights, the two models interleaved per frame in one process.
 
-    .venv/bin/python tools/bench_density.py --threads 2 --json curve.json --plot curve.png \\
+    .venv/bin/python tools/bench_density.py --threads 2 --json-out curve.json --plot curve.png \\
         [--data DATASET --split test --real-frames 5] [--mark "this dataset=0.0061"]
 
 ``--data``: also time that many real frames of the split at their own D (a check of the synthetic curve).
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--real-frames", type=int, default=5)
     p.add_argument("--mark", action="append", default=[], help="LABEL=D: a vertical line on the plot (repeatable)")
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--json-out", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args(argv)
     # a warning raised on the way (a checkpoint of another grid): one line each, after the result
@@ -62,7 +62,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         densities = [float(x) for x in args.densities.split(",") if x.strip()]
         marks = dict(_mark(m) for m in args.mark)
-        for out in (args.json, args.plot):
+        for out in (args.json_out, args.plot):
             if out is not None:
                 check_writable(out)
         real = []
@@ -81,8 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     except (InputError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    if args.json is not None:
-        write_text(args.json, json.dumps(result, indent=2) + "\n")
+    if args.json_out is not None:
+        write_text(args.json_out, json.dumps(result, indent=2) + "\n")
     if args.plot is not None:
         plot_curve(result, args.plot, marks)
     print(format_curve(result))

@@ -3,7 +3,7 @@ one process, on the models' own GEMM shapes and on whole models.
 
     PYTHONPATH=. .venv/bin/python tools/bench_gemm.py --config configs/models/mpchair_dense.yaml \\
         --config configs/models/mpchair_sparse_exact.yaml --checkpoint DENSE.pt --checkpoint SPARSE.pt \\
-        --data DATASET --split test --frames 10 --trials 3 --threads 2 [--json out.json]
+        --data DATASET --split test --frames 10 --trials 3 --threads 2 [--json-out out.json]
 
 1. **shapes**: ``x @ w.t()`` for the GEMMs of the Matterport models (the sparse SubM blocks, the neck levels, the
    dense neck), each in MKL (``torch.mm``) and in oneDNN (``torch.ops.mkldnn._linear_pointwise``), alternating;
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=3)
     p.add_argument("--repeats", type=int, default=20, help="calls per GEMM shape and library")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--json", type=Path, default=None, help="also write the result here")
+    p.add_argument("--json-out", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
     return run_holding_warnings(lambda: _run(args))
 
@@ -189,8 +189,8 @@ def _run(args: argparse.Namespace) -> int:
         ckpts = bench_checkpoints(args.config, args.checkpoint)
         if args.frames < 1 or args.trials < 1 or args.repeats < 1:
             raise InputError("--frames, --trials and --repeats must be >= 1")
-        if args.json is not None:
-            check_writable(args.json)
+        if args.json_out is not None:
+            check_writable(args.json_out)
         device = use_device("cpu", args.threads)
         with torch.no_grad():
             shapes = time_shapes(args.repeats)
@@ -204,8 +204,8 @@ def _run(args: argparse.Namespace) -> int:
               "machine": {**machine_info(device), "gemm": "both"},
               "protocol": {"data": str(args.data), "split": args.split, "frames": args.frames, "trials": args.trials,
                            "repeats": args.repeats, "interleaved": True, "batch_size": 1}}
-    if args.json is not None:
-        write_text(args.json, json.dumps(result, indent=2) + "\n")
+    if args.json_out is not None:
+        write_text(args.json_out, json.dumps(result, indent=2) + "\n")
     print(format_result(result))
     return 0
 

@@ -2,7 +2,8 @@
 GEMM): ``detector.bench.reference_head``. Interleaved per frame, one process; ms per frame.
 
     .venv/bin/python tools/bench_reference_head.py --config configs/models/mpchair_dense.yaml \\
-        --config configs/models/mpchair_sparse.yaml --data DATASET --split test --frames 20 --trials 3 --json out.json
+        --config configs/models/mpchair_sparse.yaml --data DATASET --split test --frames 20 --trials 3 \\
+        --json-out out.json
 
 ``--checkpoint`` once per ``--config`` (``-`` = random weights, the default for all); the table goes to stdout.
 """
@@ -34,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0, help="seed of random weights")
-    p.add_argument("--json", type=Path, default=None, help="also write the result here")
+    p.add_argument("--json-out", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
     # a warning raised on the way (a checkpoint of another grid): one line each, after the result
     return run_holding_warnings(lambda: _run(args))
@@ -44,16 +45,16 @@ def _run(args: argparse.Namespace) -> int:
     """The tool's work once its options are parsed; 2 with one ``error:`` line on bad input."""
     try:
         ckpts = bench_checkpoints(args.config, args.checkpoint)
-        if args.json is not None:
-            check_writable(args.json)
+        if args.json_out is not None:
+            check_writable(args.json_out)
         result = run_reference_head_bench([BenchModel("", c, k) for c, k in zip(args.config, ckpts)], args.data,
                                           split=args.split, frames=args.frames, trials=args.trials,
                                           warmup=args.warmup, threads=args.threads, seed=args.seed)
     except (InputError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    if args.json is not None:
-        write_text(args.json, json.dumps(result, indent=2) + "\n")
+    if args.json_out is not None:
+        write_text(args.json_out, json.dumps(result, indent=2) + "\n")
     print(format_reference_head(result))
     return 0
 

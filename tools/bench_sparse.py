@@ -31,7 +31,7 @@ against its rulebook form and the ``auto`` pick, on clustered and uniform sites 
 ``*_train``); with ``--data`` also the whole sparse backbone on real frames with every conv of one kind forced to
 each form (docs/sparse.md, "Compute").
 
-    PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json out.json]
+    PYTHONPATH=. .venv/bin/python tools/bench_sparse.py [--threads 2] [--repeats 5] [--json-out out.json]
         [--skip subm forms backbone e2e train] [--data DATASET [--frames 8]] [--reuse-allocator] [--omp-passive]
 """
 
@@ -468,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=None,
                    help="KITTI-format dataset: also time the forms on its first --frames test frames")
     p.add_argument("--frames", type=int, default=8)
-    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this path")
+    p.add_argument("--json-out", type=Path, default=None, help="also write the results as JSON to this path")
     p.add_argument("--reuse-allocator", action="store_true", help=f"re-run under {MALLOC_REUSE}")
     p.add_argument("--omp-passive", action="store_true", help=f"re-run under {PASSIVE_ENV} (busy machines)")
     args = p.parse_args(argv)
@@ -516,8 +516,8 @@ def main(argv: list[str] | None = None) -> int:
     results["summary"] = summary(results)
     print(fmt_summary(results["summary"], header))
     print(f"\n# load average at the end: {results['load_average_end']}")
-    if args.json is not None:
-        write_text(args.json, json.dumps(results, indent=1))
+    if args.json_out is not None:
+        write_text(args.json_out, json.dumps(results, indent=1))
     return 0
 
 

@@ -10,7 +10,7 @@ The GT-sampling database is built once per config and shared by its runs.
     python tools/bench_train_step.py --data out/reproduce-full-e12-bf16/dataset \\
         --config configs/models/mpchair_dense_cpu.yaml --config configs/models/mpchair_sparse_cpu.yaml \\
         [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--precision fp32 [--precision bf16]]
-        [--gemm auto [--gemm mkl]] [--json OUT]
+        [--gemm auto [--gemm mkl]] [--json-out OUT]
 
 With several configs the rounds interleave them too (round 1: every config at every precision, then round 2, ...),
 so load drift hits every config alike; the table's last rows are ``first / other`` step-time ratios per precision.
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gemm", action="append", choices=("auto", "mkl"), default=None,
                    help="fp32 GEMM library setting to time (repeat to time both side by side; default: "
                         "DETECTOR_GEMM, i.e. auto = oneDNN)")
-    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON")
+    p.add_argument("--json-out", type=Path, default=None, help="also write the results as JSON")
     args = p.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.rounds < 1:
         print("error: --steps and --rounds must be >= 1, --warmup >= 0", file=sys.stderr)
@@ -133,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
         cells = [f"{q['ratio'][pr]:.2f}x" for pr in precisions]
         print(f"| {Path(q['first']).stem} / {Path(q['other']).stem} | {q['gemm']} | " + " | ".join(cells)
               + (" |" if len(precisions) == 1 else " | |"))
-    if args.json is not None:
-        args.json.write_text(json.dumps({"models": rows, "ratios": ratios, "machine": machine}, indent=1) + "\n")
+    if args.json_out is not None:
+        args.json_out.write_text(json.dumps({"models": rows, "ratios": ratios, "machine": machine}, indent=1) + "\n")
     return 0
 
 

@@ -125,12 +125,12 @@ fi
 if want bench; then
   run_step bench_mpchair --timeout 240 --stdout "$RES/bench_mpchair.md" -- "$PY" -m detector bench \
     --config "$CFG/mpchair_dense.yaml" --config "$CFG/mpchair_sparse.yaml" --config "$CFG/mpchair_sparse_exact.yaml" \
-    --data "$DATA" --split test "${BENCH[@]}" --device "$DEVICE" --json "$RES/bench_mpchair.json" --markdown \
+    --data "$DATA" --split test "${BENCH[@]}" --device "$DEVICE" --json-out "$RES/bench_mpchair.json" --markdown \
     --no-progress
   run_step bench_kitti --timeout 180 --stdout "$RES/bench_kitti.md" -- "$PY" -m detector bench \
     --config "$CFG/kitti_car_dense.yaml" --config "$CFG/kitti_car_sparse.yaml" \
     --config "$CFG/kitti_car_sparse_exact.yaml" --data "$ROOT/tests/data/kitti" --split val "${KITTI_BENCH[@]}" \
-    --device "$DEVICE" --json "$RES/bench_kitti.json" --markdown --no-progress
+    --device "$DEVICE" --json-out "$RES/bench_kitti.json" --markdown --no-progress
 fi
 
 if want train; then

@@ -24,6 +24,7 @@ import concurrent.futures
 import multiprocessing
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -100,14 +101,19 @@ def _budget_row(model: BenchModel, runtime: str, precision: str, data_dir: str, 
                 threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int,
                 gemm: str = "auto") -> dict:
     """One row in this (fresh) process, under the parent's GEMM library ``gemm`` (a spawned process starts outside
-    its :func:`detector.ops.gemm.gemm_backend` block): build it, warm up, run :func:`fixed_rate`; its record."""
-    with gemm_backend(gemm):
-        return _budget_row_here(model, runtime, precision, data_dir, split, frames, threads, seed, variant, rate,
-                                duration, warmup)
+    its :func:`detector.ops.gemm.gemm_backend` block): its record (:func:`_row_record`) and, under ``"warnings"``,
+    the text of each Python warning it raised: the parent raises them again, so that the command prints them as its
+    own one-line ``warning:`` lines instead of the fresh interpreter printing each with its source line."""
+    with gemm_backend(gemm), warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("always")
+        record = _row_record(model, runtime, precision, data_dir, split, frames, threads, seed, variant, rate,
+                             duration, warmup)
+    return {**record, "warnings": list(dict.fromkeys(str(w.message) for w in held))}
 
 
-def _budget_row_here(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
-                     threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
+def _row_record(model: BenchModel, runtime: str, precision: str, data_dir: str, split: str, frames: int,
+                threads: int, seed: int, variant: Variant, rate: float, duration: float, warmup: int) -> dict:
+    """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
     with tempfile.TemporaryDirectory(prefix="detector-budget-") as work:
@@ -160,6 +166,8 @@ def run_budget(models: Sequence[BenchModel], data_dir: str | Path, *, rate: floa
                     rec = pool.submit(_budget_row, replace(model, name=name), runtime, precision, str(data_dir),
                                       split, frames, threads, seed, variant, rate, duration, warmup,
                                       current_backend()).result()
+                for text in rec.pop("warnings"):
+                    warnings.warn(text, stacklevel=2)
                 rows.append(rec)
     if not rows:
         raise InputError("every model x runtime x precision asked for is skipped on this CPU: "

@@ -7,9 +7,10 @@ same read back from ``detector bench --json`` with ``BenchResult.from_json``), s
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 
-from detector.bench.result import BenchResult, ModelResult
+from detector.bench.result import BenchResult, ModelResult, Stat
 from detector.bench.timing import COMPONENTS, SHARED, TITLES
 from detector.device import Machine
 
@@ -63,7 +64,8 @@ def format_table(result: BenchResult, markdown: bool = False) -> str:
     if any(m.back_to_back for m in result.models):
         title = (f"{' and '.join(TITLES[k] for k in SHARED)} timed back to back (every model's, on its own maps, order "
                  "rotated per frame; the components' own cost, to compare between models):")
-        lines += ["", title, ""] + _table(result, "back_to_back", SHARED, markdown)
+        title_lines = [title] if markdown else textwrap.wrap(title, 118)
+        lines += ["", *title_lines, ""] + _table(result, "back_to_back", SHARED, markdown)
     headline = headline_line(result)
     if headline:
         lines += ["", headline]
@@ -124,15 +126,67 @@ def _notes(result: BenchResult) -> list[str]:
 
 
 def _table(result: BenchResult, section: str, keys: Sequence[str], markdown: bool) -> list[str]:
-    """Rows of one section (mean ± std ms per model that has it, then its ratio rows), as text or Markdown lines."""
-    header = ["model", *(TITLES[k] for k in keys)]
-    rows = [[m.name, *(f"{_fmt(getattr(m, section)[k].mean_ms)} ± {_fmt(getattr(m, section)[k].std_ms)}"
-                       for k in keys)]
-            for m in result.models if getattr(m, section)]
-    rows += [[name, *(f"{r[k]:.2f}x" for k in keys)] for name, r in ratio_rows(result, section)]
+    """Rows of one section (mean ± std ms per model that has it, then its ratio rows), as text or Markdown lines.
+
+    Markdown is one table (the docs keep it whole). Text with several runtimes / precisions is one table per runtime x
+    precision under its own heading line, the group's suffix left out of the names and the numbers to the decimals a
+    reader compares (:func:`_compact`), so that it fits a terminal (one table of 21 rows was ~170 columns wide); the
+    JSON and ``--markdown`` keep every digit."""
+    models = [m for m in result.models if getattr(m, section)]
+
+    def stat(m: ModelResult, k: str) -> Stat:
+        return getattr(m, section)[k]
+
     if markdown:
+        header = ["model", *(TITLES[k] for k in keys)]
+        rows = [[m.name, *(f"{_fmt(stat(m, k).mean_ms)} ± {_fmt(stat(m, k).std_ms)}" for k in keys)] for m in models]
+        rows += [[name, *(f"{r[k]:.2f}x" for k in keys)] for name, r in ratio_rows(result, section)]
         cells = ["| " + " | ".join(r) + " |" for r in [header, *rows]]
         return [cells[0], "|" + "---|" * len(header), *cells[1:]]
+    groups = list(dict.fromkeys(_group(m) for m in models))
+    if len(groups) <= 1:
+        rows = [[m.name, *(f"{_fmt(stat(m, k).mean_ms)} ± {_fmt(stat(m, k).std_ms)}" for k in keys)] for m in models]
+        rows += [[name, *(f"{r[k]:.2f}x" for k in keys)] for name, r in ratio_rows(result, section)]
+        return _text_table(["model", *(TITLES[k] for k in keys)], rows)
+    lines: list[str] = []
+    ratios = ratio_rows(result, section)
+    for group in groups:
+        suffix = f" ({group[0]} {group[1]})"
+        members = [m for m in models if _group(m) == group]
+        rows = [[_short_name(m.name, suffix), *(_compact(stat(m, k).mean_ms, stat(m, k).std_ms) for k in keys)]
+                for m in members]
+        names = {m.name for m in members}
+        rows += [[" / ".join(_short_name(n, suffix) for n in name.split(" / ")), *(f"{r[k]:.2f}x" for k in keys)]
+                 for name, r in ratios if set(name.split(" / ")) <= names]
+        lines += ([""] if lines else []) + [f"{group[0]} {group[1]}:"] + _text_table(
+            ["model", *(TITLES[k] for k in keys)], rows)
+    # ratios between groups (ours against the peer) after the groups
+    rest = [[name, *(f"{r[k]:.2f}x" for k in keys)] for name, r in ratios
+            if not any(set(name.split(" / ")) <= {m.name for m in models if _group(m) == g} for g in groups)]
+    if rest:
+        lines += [""] + _text_table(["ratio", *(TITLES[k] for k in keys)], rest)
+    return lines
+
+
+def _group(m: ModelResult) -> tuple[str, str]:
+    """A model row's runtime x precision."""
+    return m.runtime, m.precision
+
+
+def _short_name(name: str, suffix: str) -> str:
+    """A row's name without its group's `` (runtime precision)`` suffix (the group's heading says it)."""
+    return name[: -len(suffix)] if name.endswith(suffix) else name
+
+
+def _compact(mean: float, std: float) -> str:
+    """``mean±std`` in ms to the decimals a reader compares (0 from 100 ms, 1 from 10, 2 from 1, else 3), the std to
+    the mean's decimals: ``290.8, 1.593`` -> ``291±2``, ``0.751, 0.011`` -> ``0.751±0.011``."""
+    decimals = 0 if mean >= 100 else 1 if mean >= 10 else 2 if mean >= 1 else 3
+    return f"{mean:,.{decimals}f}±{std:,.{decimals}f}"
+
+
+def _text_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """Rows under a header, the first column left-aligned, the others right-aligned, two spaces between columns."""
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
     return [fmt.format(*header)] + [fmt.format(*r) for r in rows]

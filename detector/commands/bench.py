@@ -41,15 +41,16 @@ import click
               help="CPU budget mode: run each model x runtime x precision on its own at this sensor rate (Hz) for "
                    "--duration s and report CPU share, deadline misses, latency p50 / p95 and peak RSS.")
 @click.option("--duration", type=float, default=30.0, show_default=True, help="Seconds per row in --rate mode.")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
-              help="Also write the full result as JSON to this file.")
+@click.option("--json", "as_json", is_flag=True, help="Print the full result as JSON instead of the table.")
+@click.option("--json-out", "json_out", type=click.Path(dir_okay=False), default=None,
+              help="Also write the full result as JSON to this file (the table is still printed).")
 @click.option("--markdown", is_flag=True, help="Print the table as Markdown.")
 @click.option("--no-progress", is_flag=True,
               help="No progress bars (shown on stderr by default when it is a terminal, between the timed frames).")
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
           warmup: int, device: str, threads: int | None, seed: int, peer: str | None, runtimes: tuple[str, ...],
           precisions: tuple[str, ...], calibration_split: str, calibration_frames: int, rate: float | None,
-          duration: float, json_out: str | None, markdown: bool, no_progress: bool) -> None:
+          duration: float, as_json: bool, json_out: str | None, markdown: bool, no_progress: bool) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
@@ -69,7 +70,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
       detector bench --config configs/models/mpchair_dense.yaml --config configs/models/mpchair_sparse.yaml \\
-        --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json bench.json
+        --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json-out bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench
     from detector.bench.run import Variant, bench_checkpoints
@@ -109,4 +110,4 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         data = result.to_json()
     if json_out:
         write_text(json_out, json.dumps(data, indent=2) + "\n")
-    click.echo(text)
+    click.echo(json.dumps(data, indent=2) if as_json else text)

@@ -39,8 +39,9 @@ from mpchair.core.errors import InputError
               help="Measured latency: untimed runs before the first timed one.")
 @click.option("--threads", type=int, default=None, help="torch CPU threads.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
-@click.option("--json", "json_out", type=click.Path(path_type=Path), default=None,
-              help="Write the summary as JSON to this file ('-': print it instead of the table).")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON instead of the table.")
+@click.option("--json-out", "json_out", type=click.Path(path_type=Path), default=None,
+              help="Also write the summary as JSON to this file (the table is still printed).")
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Also write a Rerun recording (.rrd): points, labels, pose and the boxes the detector had at each "
                    "moment, stale and ego-compensated (needs the rerun extra).")
@@ -50,7 +51,7 @@ from mpchair.core.errors import InputError
                    "(/detections/<model>/ego) (needs the ros extra).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency_log, save_results, offline,
-                latency_ms, mode, schedule, repeats, warmup, threads, device, json_out, rerun_out, mcap_out,
+                latency_ms, mode, schedule, repeats, warmup, threads, device, as_json, json_out, rerun_out, mcap_out,
                 quiet) -> None:
     """Streaming AP: score each frame of a robot's stream with the latest output the detector had emitted by its
     capture time, pooled over all frames with the KITTI evaluator (Chair, 3D and BEV, IoU 0.5, R40 and R11, every
@@ -59,7 +60,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
     \b
     Examples:
       detector stream-eval --data stream/ --config configs/models/mpchair_sparse_cpu.yaml \\
-                           --checkpoint runs/sparse/last.pt --threads 2 --json sparse-ego.json
+                           --checkpoint runs/sparse/last.pt --threads 2 --json-out sparse-ego.json
       detector stream-eval --data stream/ --oracle --latency-ms 300 --mode raw
       detector stream-eval --data stream/ --results offline/ --latency-ms 120 --rerun stream.rrd
       detector stream-eval --data stream/ --oracle --latency-ms 300 --mcap oracle.mcap
@@ -83,9 +84,9 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         from mpchair.recording.mcap import check_mcap_path
 
         check_mcap_path(mcap_out)
-    if json_out is not None and str(json_out) != "-" and json_out.suffix.lower() != ".json":
-        raise InputError("--json must name a .json file (or '-')", json_out)
-    for output in (json_out if json_out is not None and str(json_out) != "-" else None, latency_log):
+    if json_out is not None and json_out.suffix.lower() != ".json":
+        raise InputError("--json-out must name a .json file", json_out)
+    for output in (json_out, latency_log):
         if output is not None:
             check_writable(output)
     if save_results is not None:
@@ -95,29 +96,40 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
     prep = prepare(stream, source, latency_ms=latency_ms, latency_log=replay, schedule=schedule, repeats=repeats,
                    warmup=warmup, offline=offline, progress=not quiet)
     summary = score(prep, mode)
+    wrote: list[str] = []  # one "wrote FILE: what" line per file written, after the table
     if save_results is not None:
         write_results(prep, save_results)
+        wrote.append(f"wrote {save_results}: the outputs as KITTI result files (rescore them with --results)")
     if latency_log is not None:
         from mpchair.core.atomic import write_text
 
         write_text(latency_log, json.dumps(prep.latency_log, sort_keys=True, indent=1) + "\n")
+        wrote.append(f"wrote {latency_log}: the measured latencies (replay them with --latency {latency_log})")
     text = json.dumps(summary, sort_keys=True, indent=1) + "\n"
     if rerun_out is not None:
         from detector.stream.rerun import log_stream_eval
 
-        log_stream_eval(prep, rerun_out)
+        info = log_stream_eval(prep, rerun_out)
+        wrote.append(f"wrote {rerun_out}: {info['frames']} frames with the detector's boxes "
+                     f"(open it with: rerun {rerun_out})")
     if mcap_out is not None:
         from detector.stream.mcap import log_stream_eval as log_stream_eval_bag
 
-        log_stream_eval_bag(prep, mcap_out)
-    if json_out is not None and str(json_out) != "-":
+        info = log_stream_eval_bag(prep, mcap_out)
+        wrote.append(f"wrote {mcap_out}: {info['frames']} frames, {sum(info['topics'].values())} messages on "
+                     f"{len(info['topics'])} topics (open it in Foxglove, or replay it: ros2 bag play -s mcap "
+                     f"{mcap_out})")
+    if json_out is not None:
         from mpchair.core.atomic import write_text
 
         write_text(json_out, text)
-    if json_out is not None and str(json_out) == "-":
+        wrote.append(f"wrote {json_out}: the summary as JSON")
+    if as_json:
         click.echo(text, nl=False)
     else:
         click.echo(format_summary(summary))
+    for line in wrote:  # as mpchair view says it; on stderr when stdout is the JSON
+        click.echo(line, err=as_json)
 
 
 def format_summary(s: dict) -> str:
@@ -141,6 +153,10 @@ def format_summary(s: dict) -> str:
     fmt = lambda x: "-" if x is None else f"{x:.1f}"  # noqa: E731
     lines.append(f"latency ms: median {fmt(lat['median'])}, p95 {fmt(lat['p95'])}; staleness: mean {fmt(st['mean'])} "
                  f"ms ({fmt(sf['mean'])} frames), p95 {fmt(st['p95'])} ms ({fmt(sf['p95'])} frames)")
-    lines.append(f"frames processed {100 * s['frames_processed']:.1f} %, in time {100 * s['in_time']:.1f} %, "
-                 f"queries without output {s['queries_without_output']}")
+    # "in time" alone read as a failure at any latency: a query is scored at its frame's capture time, when that
+    # frame's own output cannot exist yet unless the latency is 0, so its answer is an earlier frame's (staleness)
+    lines.append(f"frames processed {100 * s['frames_processed']:.1f} % (the others arrived while the detector was "
+                 f"busy); queries answered by their own frame {100 * s['in_time']:.1f} % (needs zero latency: "
+                 "otherwise an earlier frame's output answers, as the staleness says); queries without output "
+                 f"{s['queries_without_output']}")
     return "\n".join(lines)

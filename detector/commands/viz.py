@@ -17,7 +17,8 @@ from mpchair.core.clitools import FRAME_ID
 @click.option("--frame", "frame_id", type=FRAME_ID, default=None,
               help="Frame id (123 or 000123, as mpchair view); it must be in --split.")
 @click.option("--index", type=click.IntRange(min=0), default=None,
-              help="Instead of --frame: the frame's position in --split (0 = its first frame).")
+              help="Instead of --frame: the frame's position in --split (0 = its first frame). With neither: the "
+                   "frame of median density D among the split's first 50 (a typical frame, not a near-empty one).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder for the PNGs.")
 @click.option("--split", default="test", show_default=True, help="ImageSets split.")
 @click.option("--dense-checkpoint", default=None, help="Trained dense weights (default: random, seeded).")
@@ -32,8 +33,8 @@ def viz_sparsity(config_path: str, data_dir: str, frame_id: str | None, index: i
     Writes OUT/{dense,sparse}_{input,block1,block2,block3}.png (ny x nx, white = any non-zero channel, +x right,
     +y up; the dense backbone runs without BatchNorm, as in the paper) and OUT/panel.png (both rows together).
     Example:
+      detector viz-sparsity --config configs/models/mpchair_sparse.yaml --data dataset/ --out figs/
       detector viz-sparsity --config configs/models/mpchair_sparse.yaml --data dataset/ --frame 12 --out figs/
-      detector viz-sparsity --config configs/models/mpchair_sparse.yaml --data dataset/ --index 0 --out figs/
     """
     from detector.viz import STAGES
     from detector.viz import viz_sparsity as run

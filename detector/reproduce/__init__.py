@@ -13,6 +13,8 @@ writes its reports from their output files; it imports only the floor of ``mpcha
     report    ``docs/results.md`` from those records (``report_runtime``: training time, reference head, density
               curve; ``report_ablations``: the ablations' runtime and AP)
     status    ``--status``: where a work folder stands
+    estimate  how long the steps still to run take on this machine, printed before they start (the record's measured
+              command times scaled to the scale's sizes and to this machine's GEMM probe)
     cli       ``main(argv)`` of ``tools/reproduce.py``
     stream/   the streaming reproduction (``tools/reproduce_stream.py``, ``docs/streaming.md``)
 """

@@ -57,7 +57,7 @@ def ablation_bench_command(plan: Plan, geometry: str, json_out: Path) -> list[st
     for c in configs:
         cmd += ["--config", str(c)]
     cmd += ["--data", str(data), "--split", split, "--frames", frames, "--trials", str(plan.scale.bench_trials),
-            "--threads", str(plan.threads), "--json", str(json_out), "--markdown", "--no-progress"]
+            "--threads", str(plan.threads), "--json-out", str(json_out), "--markdown", "--no-progress"]
     ckpts = [_checkpoint(plan, m) for m in BENCH_MODELS]
     if geometry == "mpchair" and all(c.exists() for c in ckpts):
         for c in ckpts:

@@ -38,17 +38,20 @@ ablations to the committed run without training the dense and sparse models agai
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
-``--scale full`` (the default, ``make reproduce``) is the issue's experiment on a schedule chosen to fit one 3-hour
+Before the first command it prints its estimate of how long the steps still to run take on this machine
+(:mod:`detector.reproduce.estimate`: the run record's measured command times, scaled to the scale's sizes and to this
+machine's probe).
+
+``--scale full`` (the default, ``make reproduce``) is the paper's experiment on a schedule chosen to fit one 3-hour
 session of 2 cores together with ``make reproduce-stream``: 12 houses, 4,800 frames split by house = 3,200 train /
 800 val / 800 test (8 / 2 / 2 houses, none shared), dense 4 epochs and sparse 5 (the paper's 200 / 250 ratio), in
 bfloat16 autocast where the CPU has native
 bf16 (AVX512-BF16 / AMX) and fp32 elsewhere (a dense step ~0.25 s in bf16 on 2 AVX512-BF16 cores, ~1.75 s in
 fp32 on 2 AVX2-only ones: docs/benchmarks.md). ``--scale recipe`` is
-the longer schedule, dense 16 / sparse 20 epochs (about 4.5 hours on 2 native-bf16 cores, about 16 hours on 2
-AVX2-only ones, measured 2026-12-02): a GPU's job or a machine that outlives a session. ``--scale small`` is a
-quick end-to-end check (2 houses, 300 frames,
-2 epochs: ~3 min on 2 idle cores, several times longer on a loaded machine: 14.5 min was seen on 2 cores shared
-with other jobs); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
+the longer schedule, dense 16 / sparse 20 epochs (an estimated ~3.5 h of training on 2 native-bf16 cores and ~16 h
+on 2 AVX2-only ones: steps x the step times measured 2026-12-01 / 02, docs/benchmarks.md): a GPU's job or a machine
+that outlives a session. ``--scale small`` is a quick end-to-end check (2 houses, 300 frames, 2 epochs: 33.5 min on
+a 2-core machine shared with other jobs, 2026-12-06); ``--scale medium`` 8 houses, 2,000 frames, 10 epochs.
 
 Every command is printed before it runs and its own output passes through as it comes: the train step's ``detector
 train`` runs without progress bars but prints its plan, the duration it measured on its first steps and one line per
@@ -68,6 +71,7 @@ from pathlib import Path
 
 from detector.reproduce.ablations import run_ablation_bench, run_ablations
 from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
+from detector.reproduce.estimate import estimate, estimate_lines, recorded_times, this_machine, write_probe
 from detector.reproduce.record import (
     MAX_FILE_BYTES,
     RecordError,
@@ -82,7 +86,7 @@ from detector.reproduce.results import ABLATIONS
 from detector.reproduce.runner import ROOT, Runner
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
-from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate
+from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate, step_outputs
 from mpchair.core.doctable import write_doc_table
 from mpchair.core.errors import InputError
 
@@ -90,10 +94,11 @@ from mpchair.core.errors import InputError
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scale", choices=sorted(SCALES), default=None,
-                   help="full (default): the issue's experiment on a one-session schedule (dense 4 / sparse 5 "
-                        "epochs); recipe: dense 16 / sparse 20 epochs, ~4.5 h on 2 native-bf16 cores, ~16 h on 2 "
-                        "AVX2-only ones; small: a quick check, ~3 min on 2 idle cores and several times longer on a "
-                        "loaded machine")
+                   help="full (default): the paper's experiment on synthetic houses, on a one-session schedule "
+                        "(dense 4 / sparse 5 epochs); recipe: dense 16 / sparse 20 epochs (an estimated ~3.5 h of "
+                        "training on 2 native-bf16 cores, ~16 h on 2 AVX2-only ones); small: a quick check that "
+                        "every step runs (33.5 min on a shared 2-core machine). Every run prints its own estimate "
+                        "for this machine before it starts")
     p.add_argument("--steps", default=",".join(STEPS),
                    help=f"comma-separated subset of {','.join(STEPS)}, or the opt-in {','.join(OPT_IN_STEPS)} "
                         "(the ablations' trainings: make reproduce-ablations)")
@@ -181,6 +186,23 @@ def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool)
     return sc, [*meta.get("notes", []), *args.note, *later]
 
 
+def _estimate(plan: Plan, record: Path) -> list[str]:
+    """The lines saying how long the steps still to run will take here, from ``record``'s measured times and (unless
+    a dry run, which writes nothing) this machine's probe (detector.reproduce.estimate); none without a record."""
+    rec = recorded_times(record)
+    if rec is None:
+        return [f"estimate: none (no run record with a commands.log at {record})"]
+    probe = None if plan.dry_run else write_probe(plan.out, plan.threads)
+    here = this_machine()
+    if probe is not None and (probe.get("cpu"), probe.get("logical_cpus")) != (here["cpu"], here["logical_cpus"]):
+        probe = None  # the work folder's probe is an earlier machine's: its steps are that machine's too
+    outputs = step_outputs(plan.out)
+    done = set() if plan.force else {s for s in plan.steps if s in outputs and all(
+        p.exists() for p in outputs[s].values())}
+    est = estimate(rec, plan.scale, list(plan.steps), here, None if probe is None else probe["probe_s"])
+    return estimate_lines(est, done)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
     args = _parser().parse_args(argv)
@@ -227,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"restored {len(restored)} file(s) of the record {args.from_record} into {out}")
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
                 force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs)
+    for line in _estimate(plan, args.from_record or ROOT / "docs" / "results-data"):
+        print(line, flush=True)
     r = Runner(args.dry_run, out / "commands.log")
     t0 = time.perf_counter()
     for run_step in (*COMMAND_STEPS, run_ablations, run_ablation_bench):
@@ -238,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"error: {e}", file=sys.stderr)
                 return 2
     total = time.perf_counter() - t0
-    # only the issue's scales replace the committed report and record; a quick check keeps both in its work folder
+    # only the full and recipe scales replace the committed report and record; a quick check keeps both in its work
+    # folder
     full = args.scale in ("full", "recipe")
     if "report" in steps and not args.dry_run:
         results = args.results or (ROOT / "docs" / "results.md" if full else out / "results.md")

@@ -108,12 +108,12 @@ def run_deploy(plan, r: Runner, config) -> None:
               "--calibration-frames", str(CALIBRATION_FRAMES)]
     if plan.todo("deploy", outputs["bench"]):
         r.run([str(BIN / "detector"), "bench", *common, "--frames", str(plan.scale.bench_frames), "--trials",
-               str(plan.scale.bench_trials), "--json", str(outputs["bench"]), "--markdown", "--no-progress"],
+               str(plan.scale.bench_trials), "--json-out", str(outputs["bench"]), "--markdown", "--no-progress"],
               env=REUSE_ENV, stdout=plan.res / "deploy_bench.md")
     if plan.todo("deploy", outputs["budget"]):
         # each row also pays a fresh process and its export (10-30 s) beside the scale's budget_seconds
         r.run([str(BIN / "detector"), "bench", *common, "--frames", str(plan.scale.bench_frames), "--rate",
-               str(BUDGET_RATE_HZ), "--duration", str(plan.scale.budget_seconds), "--json", str(outputs["budget"]),
+               str(BUDGET_RATE_HZ), "--duration", str(plan.scale.budget_seconds), "--json-out", str(outputs["budget"]),
                "--markdown"],
               env=REUSE_ENV, stdout=plan.res / "deploy_budget.md")
 

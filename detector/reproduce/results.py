@@ -117,7 +117,7 @@ def read_eval_outputs(res: Path, models: tuple[str, ...] = MODELS) -> EvalOutput
     return EvalOutputs(kitti=kitti, open3d_ml=o3d)
 
 
-# --- detector bench --json (bench_<allocator>.json) -------------------------------------------------------------------
+# --- detector bench --json-out (bench_<allocator>.json) ---------------------------------------------------------------
 def read_bench(path: Path) -> BenchResult | None:
     """A bench JSON, read by its one definition (:class:`detector.bench.result.BenchResult`); None when the bench
     step did not write it."""
@@ -131,7 +131,7 @@ def bench_weights(path: Path) -> tuple[str, ...]:
     return tuple(m.weights for m in bench.models) if bench else ()
 
 
-# --- tools/bench_reference_head.py --json (bench_reference_head.json) -------------------------------------------------
+# --- tools/bench_reference_head.py --json-out (bench_reference_head.json) ---------------------------------------------
 @dataclass(frozen=True)
 class ReferenceHeadBench:
     """Each model's mean ms per frame by component (``head``, ``total``, ``head_reference``,
@@ -160,7 +160,7 @@ def read_reference_head(path: Path) -> ReferenceHeadBench | None:
     return None if d is None else ReferenceHeadBench.from_json(d)
 
 
-# --- tools/bench_density.py --json (density_curve.json) ---------------------------------------------------------------
+# --- tools/bench_density.py --json-out (density_curve.json) -----------------------------------------------------------
 @dataclass(frozen=True)
 class CurvePoint:
     """One density of the curve: D, pillars, both backbones' median ms, their ratio and the op-count ratio (dense

@@ -247,7 +247,7 @@ def bench_command(plan: Plan, json_out: Path, peer: bool) -> list[str]:
     # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
     cmd = [_tool("detector"), "bench", "--config", _config("mpchair_dense"), "--config", _config("mpchair_sparse"),
            "--config", _config("mpchair_sparse_exact"), "--data", str(plan.data), "--split", "test", "--frames",
-           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json",
+           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json-out",
            str(json_out), "--markdown"]
     # the peer row: Open3D-ML's own PointPillars with the dense model's architecture, grid and weights
     if peer:
@@ -295,7 +295,7 @@ def reference_head_command(plan: Plan, json_out: Path) -> list[str]:
     NCHW 1x1 convs, interleaved per frame (the trained weights once both exist)."""
     cmd = [sys.executable, str(ROOT / "tools" / "bench_reference_head.py"), "--config", _config("mpchair_dense"),
            "--config", _config("mpchair_sparse"), "--data", str(plan.data), "--split", "test", "--frames",
-           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json",
+           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json-out",
            str(json_out)]
     ckpts = _checkpoints(plan)
     if all(Path(c).exists() for c in ckpts):
@@ -319,7 +319,7 @@ def curve_command(plan: Plan, json_out: Path, png: Path) -> list[str]:
     cmd = [sys.executable, str(ROOT / "tools" / "bench_density.py"), "--dense-config", _config("mpchair_dense"),
            "--sparse-config", _config("mpchair_sparse"), "--frames", str(sc.curve_frames), "--trials",
            str(sc.curve_trials), *_threads(plan), "--data", str(plan.data), "--split", "test", "--real-frames",
-           str(sc.curve_real_frames), "--json", str(json_out), "--plot", str(png)]
+           str(sc.curve_real_frames), "--json-out", str(json_out), "--plot", str(png)]
     if sc.curve_densities:
         cmd += ["--densities", ",".join(f"{d:g}" for d in sc.curve_densities)]
     density = read_density(step_outputs(plan.out)["stats"]["density"])

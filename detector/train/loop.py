@@ -44,6 +44,7 @@ from detector.train.metrics import (
     add_losses,
     epoch_line,
     estimate_line,
+    long_run_warning,
     mean_losses,
     plan_line,
     validation_line,
@@ -398,31 +399,38 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
                unit="step", disable=not run.show_bars, dynamic_ncols=True, leave=False)
     sums, steps, last_loss, stopped = ZERO_LOSSES, 0, None, False
     t_epoch = time.perf_counter()
-    for batch in rank_loader(keys, base, tc.num_workers, pin=pin_memory(settings.device)):
-        if run.reached_max_steps(at.step) or run.out_of_time():
-            stopped = True
-            break
-        if plateau is not None:  # the plateau schedule's LR is a function of the step and the decays so far
-            lr = plateau_lr(at.step, steps_per_epoch=run.steps_per_epoch, decays=plateau.decays, tc=tc)
-            for group in parts.optimizer.param_groups:
-                group["lr"] = lr
-        t0 = time.perf_counter()
-        stats = train_step(batch, parts, settings, epoch=at.epoch, step=at.step)
-        at = Position(epoch=at.epoch, step_in_epoch=at.step_in_epoch + 1, step=at.step + 1)
-        steps += 1
-        last_loss = stats.losses.total
-        sums = add_losses(sums, stats.losses)
-        log.step(epoch=at.epoch + 1, step=at.step, stats=stats, seconds=time.perf_counter() - t0)
-        per_step = estimate.after_step(at.step)
-        if per_step is not None:
-            validation = f" (+ validation on {run.eval_split} every {tc.eval_every} epochs)" if run.validates else ""
-            run.say(estimate_line(estimate.todo, per_step, validation))
-        bar.update(1)
-        bar.set_postfix(loss=f"{last_loss:.4f}")
-        if run.info.is_main and saves.due():
-            _save(run, parts, at, run.last_path)
-            saves.saved()
-    bar.close()
+    try:  # closed on Ctrl-C too, so that the interrupt's message starts on a line of its own
+        for batch in rank_loader(keys, base, tc.num_workers, pin=pin_memory(settings.device)):
+            if run.reached_max_steps(at.step) or run.out_of_time():
+                stopped = True
+                break
+            if plateau is not None:  # the plateau schedule's LR is a function of the step and the decays so far
+                lr = plateau_lr(at.step, steps_per_epoch=run.steps_per_epoch, decays=plateau.decays, tc=tc)
+                for group in parts.optimizer.param_groups:
+                    group["lr"] = lr
+            t0 = time.perf_counter()
+            stats = train_step(batch, parts, settings, epoch=at.epoch, step=at.step)
+            at = Position(epoch=at.epoch, step_in_epoch=at.step_in_epoch + 1, step=at.step + 1)
+            steps += 1
+            last_loss = stats.losses.total
+            sums = add_losses(sums, stats.losses)
+            log.step(epoch=at.epoch + 1, step=at.step, stats=stats, seconds=time.perf_counter() - t0)
+            per_step = estimate.after_step(at.step)
+            if at.step - estimate.first_step == 1 and estimate.first_step_s is not None:
+                warning = long_run_warning(estimate.todo, estimate.first_step_s)
+                if warning:
+                    run.say(warning)
+            if per_step is not None:
+                validation = (f" (+ validation on {run.eval_split} every {tc.eval_every} epochs)"
+                              if run.validates else "")
+                run.say(estimate_line(estimate.todo, per_step, validation, estimate.expected_total(per_step)))
+            bar.update(1)
+            bar.set_postfix(loss=f"{last_loss:.4f}")
+            if run.info.is_main and saves.due():
+                _save(run, parts, at, run.last_path)
+                saves.saved()
+    finally:
+        bar.close()
     return _EpochPart(at=at, sums=sums, steps=steps, seconds=time.perf_counter() - t_epoch, stopped=stopped,
                       last_loss=last_loss)
 

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import collections
 import json
+import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 
@@ -15,9 +17,12 @@ from detector.models.losses import Losses
 from detector.train.step import StepStats
 from mpchair.core.atomic import write_text
 
-#: The start-up estimate times ESTIMATE_STEPS steps after ESTIMATE_WARMUP untimed ones (the first step of a process
-#: allocates its buffers and is several times slower than the rest).
-ESTIMATE_WARMUP = 1
+#: The start-up estimate skips ESTIMATE_WARMUP steps (the first steps of a process allocate buffers, build the GEMM
+#: kernels of each new shape and fill the loader's queue: measured on 2 cores, they ran about twice as slow as the
+#: rest, which made a 20-step estimate 2x high), then takes the median of ESTIMATE_STEPS step times (one checkpoint
+#: write or late kernel build among them does not move it), and adds the steps still to run at that pace to the
+#: time already spent.
+ESTIMATE_WARMUP = 2
 ESTIMATE_STEPS = 3
 #: The estimate in each epoch line is the mean wall time of the last ROLLING_STEPS steps (data loading, checkpoints
 #: and validation included): step times drift by several times over a run (a shared CPU, the GT sampler's
@@ -130,19 +135,26 @@ ZERO_LOSSES = Losses(cls=0.0, reg=0.0, dir=0.0, total=0.0)
 
 
 class DurationEstimate:
-    """The duration estimates of a process that runs ``todo`` steps from global step ``first_step``.
+    """The duration estimates of a process that runs ``todo`` steps from global step ``first_step`` (a resumed run's
+    checkpoint step: only the steps this process runs count).
 
-    The start-up one: the wall time of its steps ``ESTIMATE_WARMUP + 1`` to ``ESTIMATE_WARMUP + ESTIMATE_STEPS``
-    (data loading and checkpoints included), nothing for ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` steps or fewer. The
-    rolling one (:meth:`rolling`): the mean wall time between the ends of the last ``ROLLING_STEPS`` steps after the
-    warm-up, updated at every step, for the epoch lines."""
+    The start-up one (:meth:`after_step`): the median wall time between the ends of steps ``ESTIMATE_WARMUP + 1`` to
+    ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` of this process (data loading and checkpoints included), nothing for
+    ``ESTIMATE_WARMUP + ESTIMATE_STEPS`` steps or fewer; :meth:`expected_total` turns it into the whole run's
+    duration (the time spent so far plus the steps left at that pace). The rolling one (:meth:`rolling`): the mean
+    wall time between the ends of the last ``ROLLING_STEPS`` steps after the warm-up, updated at every step, for the
+    epoch lines. ``clock`` is the time source (seconds)."""
 
-    def __init__(self, *, first_step: int, todo: int) -> None:
+    def __init__(self, *, first_step: int, todo: int, clock: Callable[[], float] = time.perf_counter) -> None:
         self.first_step = first_step
         self.todo = todo
-        self._timed_from: float | None = None
+        self._clock = clock
+        self._started = clock()
         self._last_end: float | None = None
+        self._done = 0
+        self._timed: list[float] = []
         self._recent: collections.deque[float] = collections.deque(maxlen=ROLLING_STEPS)
+        self.first_step_s: float | None = None  # wall time of this process's first step, once it ran
 
     @property
     def will_measure(self) -> bool:
@@ -151,16 +163,22 @@ class DurationEstimate:
     def after_step(self, step: int) -> float | None:
         """Call after every step (``step``: the global steps done); returns the measured seconds per step once, else
         None."""
-        now = time.perf_counter()
-        done = step - self.first_step
-        if self._last_end is not None and done > ESTIMATE_WARMUP:
+        now = self._clock()
+        self._done = step - self.first_step
+        if self._done == 1:
+            self.first_step_s = now - self._started
+        if self._last_end is not None and self._done > ESTIMATE_WARMUP:
             self._recent.append(now - self._last_end)
+            if len(self._timed) < ESTIMATE_STEPS:
+                self._timed.append(now - self._last_end)
         self._last_end = now
-        if done == ESTIMATE_WARMUP:
-            self._timed_from = now
-        elif done == ESTIMATE_WARMUP + ESTIMATE_STEPS and self._timed_from is not None and self.will_measure:
-            return (now - self._timed_from) / ESTIMATE_STEPS
+        if self._done == ESTIMATE_WARMUP + ESTIMATE_STEPS and self.will_measure:
+            return statistics.median(self._timed)
         return None
+
+    def expected_total(self, per_step: float) -> float:
+        """Seconds this process will train in all: the time since it started plus its steps left at ``per_step``."""
+        return (self._clock() - self._started) + per_step * max(self.todo - self._done, 0)
 
     def rolling(self) -> float | None:
         """Mean seconds per step over the last ``ROLLING_STEPS`` timed steps (None before the first timed one)."""
@@ -186,9 +204,27 @@ def plan_line(*, todo: int, epochs: int, steps_per_epoch: int, global_batch: int
             + ("; timing the first steps..." if will_estimate else ""))
 
 
-def estimate_line(todo: int, per_step: float, validation: str) -> str:
-    """``6 steps, ~0.85 s/step measured -> ~5 s`` followed by ``validation`` (what comes on top, or empty)."""
-    return f"{todo} steps, ~{per_step:.2f} s/step measured -> ~{format_duration(per_step * todo)}" + validation
+#: A plan that would run longer than this on this machine is said at once, after its first step (not after the
+#: warm-up: on a CPU the paper's GPU-sized config takes ~37 s a step, so the measured estimate came ~2 min later).
+LONG_RUN_S = 24 * 3600.0
+
+
+def long_run_warning(todo: int, first_step_s: float) -> str | None:
+    """After the first step (``first_step_s`` seconds): a warning when even at half that pace (the first step is the
+    slowest) the ``todo`` steps take longer than :data:`LONG_RUN_S`, else None."""
+    lower = todo * first_step_s / 2
+    if lower <= LONG_RUN_S:
+        return None
+    return (f"warning: the first step took {first_step_s:.0f} s: even at half that pace the {todo:,} steps take "
+            f"~{lower / 86400:.0f} days on this machine; on a CPU, train the "
+            "configs/models/*_cpu.yaml configs (sized for 2 cores) or pass --max-steps")
+
+
+def estimate_line(todo: int, per_step: float, validation: str, total: float | None = None) -> str:
+    """``6 steps, ~0.85 s/step measured -> ~5 s`` followed by ``validation`` (what comes on top, or empty); ``total``:
+    the expected seconds of the whole run (default ``todo x per_step``)."""
+    total = per_step * todo if total is None else total
+    return f"{todo} steps, ~{per_step:.2f} s/step measured -> ~{format_duration(total)}" + validation
 
 
 def epoch_line(*, epoch: int, epochs: int, means: Losses, steps: int, seconds: float, step: int,

@@ -88,12 +88,14 @@ def plot_density_histogram(stats: dict, out: str | Path, size: tuple[int, int] =
         ax.axvspan(paper[key]["min"], paper[key]["max"], color=colour, alpha=0.12,
                    label=f"paper {name}: min-max {paper[key]['min']:.5f}-{paper[key]['max']:.5f}")
     g = stats["geometry"]
-    ax.set_xlabel(f"pseudoimage density D = non-empty pillars / ({g['grid'][0]} x {g['grid'][1]})")
+    # the grid as the docs and the configs' output_shape write it: [ny, nx] = 768 x 512 (geometry's grid is (nx, ny))
+    ax.set_xlabel(f"pseudoimage density D = non-empty pillars / ({g['grid'][1]} x {g['grid'][0]} cells)")
     ax.set_ylabel("frames")
     ax.set_title(f"{Path(stats['dataset']).name or stats['dataset']}: density per frame"
                  + ("  (FOV-cropped)" if stats["fov_crop"] else "") + "  (shaded: paper min-max)")
-    ax.legend(loc="upper right", fontsize=8)
-    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.12, top=0.92)
+    # beside the plot, not over it: inside, it covered the KITTI median line
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+    fig.subplots_adjust(left=0.07, right=0.6, bottom=0.12, top=0.92)
     _save_figure(fig, out)
 
 
@@ -122,6 +124,8 @@ def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 
     bpf = stats["boxes_per_frame"]["histogram"]
     axes[0].bar([int(k) for k in bpf], list(bpf.values()), color="#4c72b0")
     axes[0].set_title(f"boxes per frame ({stats['frames']} frames)")
+    axes[0].set_xlabel("boxes in the frame")
+    axes[0].set_ylabel("frames")
 
     def steps(ax, key: str, title: str, log: bool = False, ls: str = "-", label: bool = True) -> None:
         for name, c in classes.items():
@@ -154,6 +158,8 @@ def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 
     axes[5].set_xticks([lv + 0.4 - width / 2 for lv in levels], [str(lv) for lv in levels])
     axes[5].set_title("occlusion level (label_2)")
     steps(axes[6], "truncated", "truncation (label_2)")
+    for a in axes[1:7]:
+        a.set_ylabel("boxes")
     ax = axes[7]
     rej = stats.get("rejected")
     # Text panel: the per-class mean box (the anchor a model config should use) and the manifest's reasons.
@@ -168,7 +174,7 @@ def plot_box_stats(stats: dict, out: str | Path, size: tuple[int, int] = (1600, 
     ax.set_axis_off()
     fig.suptitle(f"{Path(stats['dataset']).name or stats['dataset']}: box statistics")
     # Fixed margins instead of tight_layout: measuring every label of 8 panels costs seconds.
-    fig.subplots_adjust(left=0.04, right=0.99, bottom=0.06, top=0.9, wspace=0.25, hspace=0.35)
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.08, top=0.9, wspace=0.3, hspace=0.4)
     _save_figure(fig, out)
 
 
@@ -217,8 +223,11 @@ def _draw_bev_boxes(ax, boxes: np.ndarray, colour: str, texts: Sequence[str] | N
         # at the box's own top-most corner, just above it: the bounding corner (max x, max y) of a rotated box lies
         # outside it, and in a crowded frame that is nearer a neighbour than its own box
         for (x, y), t in zip(label_anchors(boxes), texts):
-            ax.text(x, y, t, color=colour, fontsize=8, zorder=4, clip_on=True, ha="center", va="bottom",
-                    bbox={"facecolor": "white", "alpha": 0.6, "pad": 1, "edgecolor": "none"})
+            # dark text on an opaque white tag edged in the box's colour: readable on the dark background and on
+            # the points (the box's own colour as text was low-contrast at 8 pt)
+            ax.text(x, y, t, color="#111111", fontsize=10, fontweight="bold", zorder=4, clip_on=True, ha="center",
+                    va="bottom", bbox={"facecolor": "white", "alpha": 0.9, "pad": 1.5, "edgecolor": colour,
+                                       "linewidth": 1.2})
 
 
 def render_bev(
@@ -371,17 +380,29 @@ def render_frame_3d(
             cloud = pv.PolyData(pts)
             cloud["z"] = pts[:, 2]
             plotter.add_mesh(cloud, scalars="z", cmap="viridis", point_size=2.0, render_points_as_spheres=False,
-                             show_scalar_bar=False)
+                             show_scalar_bar=True, scalar_bar_args={
+                                 "title": "z (m, sensor frame)", "vertical": True, "position_x": 0.9,
+                                 "position_y": 0.25, "height": 0.5, "width": 0.05, "color": "white",
+                                 "title_font_size": 14, "label_font_size": 12, "fmt": "%.1f"})
         for b, colour in ((boxes, GT_COLOUR), (det_boxes, DET_COLOUR)):
             if b is None or len(b) == 0:
                 continue
             seg = _box_lines(np.asarray(b, dtype=np.float64).reshape(-1, 7)).reshape(-1, 3)
             plotter.add_mesh(pv.line_segments_from_points(seg), color=colour, line_width=3)
         extent = float(np.linalg.norm(np.ptp(np.percentile(pts, [5, 95], axis=0), axis=0))) if len(pts) else 1.0
-        plotter.add_mesh(pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), scale=max(1.0, 0.05 * extent)), color="white")
+        # the sensor: at the origin, facing +x (said in the key below, so the arrow explains itself)
+        plotter.add_mesh(pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), scale=max(1.0, 0.05 * extent)), color="white",
+                         ambient=0.6)
         plotter.add_axes(xlabel="x", ylabel="y", zlabel="z", line_width=3)  # the sensor frame's axes
+        # a scale: the scene's bounds with tick labels in metres on the axes' titles
+        plotter.show_bounds(xtitle="x forward (m)", ytitle="y left (m)", ztitle="z up (m)", color="white",
+                            font_size=10, location="outer", ticks="outside", fmt="%.0f")
         if title:
             plotter.add_text(title, position="upper_left", font_size=10, color="white")
+        key = ["white arrow: the sensor (origin, facing +x)", "green boxes: ground truth"]
+        if det_boxes is not None and len(det_boxes):
+            key.append("red boxes: detections")
+        plotter.add_text("\n".join(key), position="lower_right", font_size=9, color="white")
         # Camera: behind and above the scene, looking along +x and down; then fit the scene's robust bounds (the
         # 1-99 percentiles of the points, plus every box) so a few far returns do not shrink everything.
         parts = [np.zeros((1, 3))]
@@ -423,6 +444,7 @@ def render_house(
     panel_titles: Sequence[str] | None = None,
     size: tuple[int, int] = (1200, 1200),
     title: str = "",
+    highlight_label: str = "highlighted objects",
 ) -> None:
     """Top-down PNG of a house mesh (Matterport world frame, z up, metres), ``size = (W, H)`` pixels.
 
@@ -491,7 +513,20 @@ def render_house(
         if panel_titles is not None:
             ax.set_title(panel_titles[k])
     fig.suptitle(title)
-    fig.tight_layout()
+    # what the colours mean, once for every panel, under the title
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=(0.6, 0.6, 0.6), edgecolor="none", label="floors and tops (lighter = higher)"),
+               Line2D([], [], color="#303030", lw=1.2, label="walls (outlines)")]
+    if hl.any() or len(boxes):
+        handles.append(Patch(facecolor=HIGHLIGHT_COLOUR, edgecolor=HIGHLIGHT_COLOUR, label=highlight_label))
+    if len(vp):
+        handles.append(Line2D([], [], color=VIEWPOINT_COLOUR, marker="o", markersize=4, lw=1.6,
+                              label="viewpoints (position, heading)"))
+    fig.tight_layout(rect=(0.0, 0.03, 1.0, 0.9))
+    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.945), ncol=len(handles), fontsize=9,
+               frameon=False)
     _save_figure(fig, out)
 
 
@@ -511,6 +546,13 @@ def result_boxes(results: str | Path, frame_id: str, calib: Calib) -> tuple[np.n
     sensor-frame boxes (through the frame's ``calib``), scores (K,) and names. A 15-column file is an
     :class:`InputError` (it has no scores)."""
     path = Path(results) / f"{frame_id}.txt"
+    if not Path(results).is_dir():
+        raise InputError("result folder not found (--results takes a folder of KITTI result files, e.g. detector "
+                         "eval's OUT/data)", results)
+    if not path.is_file():
+        # result folders hold only the frames of the split they were evaluated on (detector eval --split)
+        raise InputError(f"result file not found: frame {frame_id} is not among these results, which hold the frames "
+                         "of the split they were evaluated on (e.g. ImageSets/val.txt)", path)
     labels = read_labels(path).objects()
     if labels.score is None and len(labels):
         raise InputError("result file has 15 columns; detections need the 16th (score)", path)
@@ -681,7 +723,7 @@ def house_picture(
     render_house(house.vertices, house.faces, out, highlight_faces=np.isin(house.face_object, positions),
                  highlight_boxes=aligned_boxes(objs), viewpoints=viewpoints, z_ranges=z_ranges,
                  hidden_faces=house.face_category == resolve_category("ceiling"),
-                 panel_titles=titles, size=size,
+                 panel_titles=titles, size=size, highlight_label=f"{category} objects (and their boxes)",
                  title=f"house {house_id}: {len(objs)} {category} object(s)"
                        + ("" if viewpoints is None else f", {len(viewpoints)} viewpoints"))
     return {"house": house_id, "faces": int(len(house.faces)), "objects": len(objs),

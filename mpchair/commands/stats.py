@@ -16,10 +16,12 @@ from mpchair.core.errors import InputError
 @click.option("--density", "mode", flag_value="density", help="Pseudoimage density D per frame.")
 @click.option("--boxes", "mode", flag_value="boxes", help="Box statistics (label_2 + scans [+ manifest.json]).")
 @click.option("--config", "config", type=click.Path(path_type=Path), default=None,
-              help="Detector experiment YAML (validated whole, as detector train does): model.point_cloud_range, "
-                   "model.voxel_size, model.output_shape [ny, nx].")
+              help="Detector experiment YAML: only its pillar grid is read and checked (model.point_cloud_range, "
+                   "model.voxel_size, model.output_shape [ny, nx]); its other keys are not (detector train "
+                   "validates the whole file).")
 @click.option("--preset", type=click.Choice(["matterport", "kitti"]), default=None,
-              help="Paper geometry: matterport (default; 0.05 m, 512 x 768) or kitti (0.16 m, 440 x 504 padded).")
+              help="Paper geometry: matterport (default; 0.05 m, 768 x 512 cells, ny x nx as the configs' "
+                   "output_shape) or kitti (0.16 m, 504 x 440 padded).")
 @click.option("--range", "pc_range", type=float, nargs=6, default=None,
               metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX", help="Point cloud range (sensor frame, metres).")
 @click.option("--voxel", type=float, nargs=2, default=None, metavar="VX VY", help="Pillar size (metres).")
@@ -38,7 +40,8 @@ def stats(dataset: Path, mode: str | None, config: Path | None, preset: str | No
     \b
     --density: D = non-empty pillars / (W x H) per frame, pillars indexed exactly as the detector's voxelizer
       (mpchair.geometry.pillar_coords: min <= p < max, floor((p - min) / voxel)). Geometry from --config, or
-      --preset, or --range/--voxel[/--grid]; default: Matterport-Chair [0,-19,-2,25,19,2], 0.05 m, 512 x 768.
+      --preset, or --range/--voxel[/--grid]; default: Matterport-Chair [0,-19,-2,25,19,2], 0.05 m, 768 x 512
+      (ny x nx).
     --boxes: boxes per frame, mean/std of l, w, h (the anchor), points per box, distance, yaw, occlusion,
       truncation, and the manifest's rejected-box reasons.
 

@@ -26,7 +26,8 @@ def _png(path: Path, option: str) -> Path:
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--frame", "frame", type=FRAME_ID, help="Frame id (123 or 000123).")
 @click.option("--sequence", default=None, metavar="NN",
-              help="On a stream (mpchair stream): the sequence whose --frame to draw (DIR/sequences/NN).")
+              help="On a stream (mpchair stream): the sequence whose --frame to draw (DIR/sequences/NN); not needed "
+                   "when the stream holds one sequence.")
 @click.option("--out", type=click.Path(path_type=Path), help="Bird's-eye view PNG.")
 @click.option("--rerun", "rerun_out", type=click.Path(path_type=Path), default=None,
               help="Instead of a picture: write DATASET (a stream or a dataset) as a Rerun recording (.rrd): per frame "
@@ -83,7 +84,7 @@ def view(dataset: Path, frame: str | None, sequence: str | None, out: Path | Non
     _png(out, "--out")
     if min(size) < 64:
         raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
-    folder, split_dir = _frame_folder(dataset, sequence, fov_crop)
+    folder, split_dir, sequence = _frame_folder(dataset, sequence, fov_crop)
     if not (folder / split_dir / "velodyne" / f"{fid}.bin").is_file():
         raise InputError(f"frame {fid} not found (no {Path(split_dir) / 'velodyne' / (fid + '.bin')})", folder)
     out_3d = out.with_name(out.stem + "-3d.png") if three_d else None
@@ -104,25 +105,28 @@ def view(dataset: Path, frame: str | None, sequence: str | None, out: Path | Non
                                                             f", {info['detections']} detections"))
 
 
-def _frame_folder(dataset: Path, sequence: str | None, fov_crop: bool) -> tuple[Path, str]:
-    """``(folder, split_dir)`` holding the frames to draw: a dataset's ``training/``, or with ``sequence`` a stream's
-    ``sequences/NN/``. A stream without ``--sequence`` is an :class:`InputError` that lists its sequences."""
+def _frame_folder(dataset: Path, sequence: str | None, fov_crop: bool) -> tuple[Path, str, str | None]:
+    """``(folder, split_dir, sequence)`` holding the frames to draw: a dataset's ``training/``, or a stream's
+    ``sequences/NN/`` (``--sequence NN``; a stream of one sequence needs none). A stream of several sequences without
+    ``--sequence`` is an :class:`InputError` that lists them."""
     is_stream = (dataset / "stream.json").is_file()
-    if sequence is None:
-        if is_stream:
-            seqs = sorted(p.name for p in (dataset / "sequences").iterdir() if p.is_dir())
-            raise InputError(f"a stream: pick the sequence with --sequence NN (it has {', '.join(seqs) or 'none'}); "
-                             "frame ids count from 000000 in each", dataset)
-        return dataset, "training"
+    if sequence is None and not is_stream:
+        return dataset, "training", None
     if not is_stream:
         raise InputError("--sequence applies to a stream (mpchair stream); this folder has no stream.json", dataset)
+    seqs = sorted(p.name for p in (dataset / "sequences").iterdir() if p.is_dir()) if (
+        dataset / "sequences").is_dir() else []
+    if sequence is None:
+        if len(seqs) != 1:
+            raise InputError(f"a stream: pick the sequence with --sequence NN (it has {', '.join(seqs) or 'none'}); "
+                             "frame ids count from 000000 in each", dataset)
+        (sequence,) = seqs
     if fov_crop:
         raise InputError("--fov-crop needs image_2, which a stream does not write", dataset)
     folder = dataset / "sequences" / sequence
     if not folder.is_dir():
-        seqs = sorted(p.name for p in (dataset / "sequences").iterdir() if p.is_dir())
         raise InputError(f"no sequence {sequence} (it has {', '.join(seqs) or 'none'})", dataset)
-    return folder, ""
+    return folder, "", sequence
 
 
 def _zmax(value: str) -> float | None:

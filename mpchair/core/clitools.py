@@ -87,7 +87,8 @@ def run_cli(group: click.Group, args: list[str] | None = None) -> None:
 
     :class:`InputError`, an ``OSError`` (``error: PATH: reason``: a full disk, a missing permission, ``--out`` under
     a file) and click's usage errors (with the command's ``--help`` hint on the same line) exit with status 2,
-    :class:`RunError` with 1; Ctrl-C exits 130 without a traceback. Python warnings raised on the way (a house's
+    :class:`RunError` with 1; Ctrl-C exits 130 without a traceback (``interrupted: ...`` with what a command's
+    ``KeyboardInterrupt`` says was kept). Python warnings raised on the way (a house's
     oddities, numpy's floating-point notes) are held and printed after a successful run as one ``warning: ...`` line
     each (repeats once); a failed run prints its error line alone, so the error is never buried.
     """
@@ -117,8 +118,12 @@ def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | N
         return 2, str(e)
     except RunError as e:
         return 1, str(e)
-    except (click.exceptions.Abort, KeyboardInterrupt):
-        click.echo("interrupted", err=True)
+    except (click.exceptions.Abort, KeyboardInterrupt) as e:
+        # a command that knows what its interrupted work left raises KeyboardInterrupt(what is kept, how to resume);
+        # click turns a KeyboardInterrupt into Abort, keeping it as the cause
+        cause = e if isinstance(e, KeyboardInterrupt) else (e.__cause__ or e.__context__)
+        said = str(cause) if isinstance(cause, KeyboardInterrupt) else ""
+        click.echo(f"interrupted: {said}" if said else "interrupted", err=True)
         return 130, None
     except click.UsageError as e:
         hint = f" (see '{e.ctx.command_path} --help')" if e.ctx is not None else ""

@@ -88,9 +88,65 @@ def load_yaml(path: str | Path) -> dict:
     return data
 
 
+def key_lines(path: str | Path) -> dict[str, int]:
+    """Dotted key (``model.backbone``) -> the 1-based line it is on, for every mapping key of the YAML file ``path``
+    (already read by :func:`load_yaml`, so it parses); {} when it cannot be read."""
+    try:
+        loader = _ConfigLoader(decode_utf8(Path(path).read_bytes(), path))
+        try:
+            root = loader.get_single_node()
+        finally:
+            loader.dispose()
+    except (OSError, InputError, yaml.YAMLError):
+        return {}
+    lines: dict[str, int] = {}
+
+    def walk(node: yaml.Node, prefix: str) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                key = f"{prefix}{key_node.value}"
+                lines.setdefault(key, key_node.start_mark.line + 1)
+                if isinstance(value_node, yaml.MappingNode):
+                    lines.setdefault(key + ".", key_node.start_mark.line + 1)  # marks a section
+                walk(value_node, key + ".")
+
+    if root is not None:
+        walk(root, "")
+    return lines
+
+
+_KEYISH = re.compile(r"'([A-Za-z_][\w.]*)'|\b([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+)\b|^([A-Za-z_]\w*)(?:\[\d+\])*:")
+
+
+def at_key_line(e: InputError, path: str | Path) -> InputError:
+    """``e`` with the line of the config key its message names (``model.backbone: ...``, ``unknown key 'x.y'``; for
+    a missing key, its section's line), when ``e`` names ``path`` and no line yet; else ``e`` itself. A message about
+    a whole section (``model: needs at least ... GiB``) gets no line: no one line is at fault."""
+    if e.line is not None or e.path != str(path):
+        return e
+    lines = key_lines(path)
+    best: tuple[int, int] | None = None  # (parts, line) of the most specific key named
+    for match in _KEYISH.finditer(e.message):
+        if match.group(3) and match.group(3) + "." in lines:
+            continue  # "section: ..." speaks of the whole section
+        parts = next(g for g in match.groups() if g).split(".")
+        for n in range(len(parts), 0, -1):
+            line = lines.get(".".join(parts[:n]))
+            if line is not None:
+                if best is None or n > best[0]:
+                    best = (n, line)
+                break
+    return e if best is None else InputError(e.message, e.path, best[1])
+
+
 def load_config(cls: type[T], path: str | Path) -> T:
-    """Load the YAML file ``path`` into the frozen dataclass ``cls``, validating every key and type."""
-    return from_dict(cls, load_yaml(path), source=str(path))
+    """Load the YAML file ``path`` into the frozen dataclass ``cls``, validating every key and type (an error names
+    the file and the line of the key at fault)."""
+    data = load_yaml(path)
+    try:
+        return from_dict(cls, data, source=str(path))
+    except InputError as e:
+        raise at_key_line(e, path) from None
 
 
 def from_dict(cls: type[T], data: dict, source: str = "<config>", prefix: str = "") -> T:

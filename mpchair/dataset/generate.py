@@ -470,6 +470,11 @@ def _make_frames(plan: _Plan, pending: list[FrameTask], shard_frames_total: int,
         if fresh:  # these settings cannot make the dataset: leave the folder as it was for the corrected command
             _undo(out, {t.fid for t in pending}, existed, req.shard)
         raise
+    except KeyboardInterrupt:
+        bar.close()  # the message below starts on a line of its own
+        done = sum(record_path(out, t.fid).is_file() for t in pending) + shard_frames_total - len(pending)
+        raise KeyboardInterrupt(f"{done} of {shard_frames_total} frames are kept in {out}: run the same command "
+                                "again to resume") from None
     except WorkerDied as e:
         raise RunError(f"{out}: {e}; stopped the other workers; {resume}") from None
     except OSError as e:

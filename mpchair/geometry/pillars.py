@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.config import from_dict, load_yaml
+from mpchair.core.config import at_key_line, from_dict, load_yaml
 from mpchair.core.errors import InputError
 
 
@@ -127,6 +127,14 @@ def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
     when it loads the file); a missing or mistyped one, or a canvas smaller than the range's grid, is an
     :class:`InputError` naming the file and the key."""
     data = load_yaml(path)
+    try:
+        return _grid_of(data, path)
+    except InputError as e:  # with the line of the key at fault
+        raise at_key_line(e, path) from None
+
+
+def _grid_of(data: dict, path: str | Path) -> PseudoimageGeometry:
+    """:func:`geometry_from_model_yaml` of the loaded mapping ``data`` (errors name ``path``, no line yet)."""
     model = data.get("model")
     if not isinstance(model, dict):
         raise InputError("model: expected a mapping with point_cloud_range, voxel_size and output_shape", path)

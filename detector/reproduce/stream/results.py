@@ -1,4 +1,4 @@
-"""Typed readers of what the streaming reproduction's report reads: ``detector stream-eval --json`` summaries (and
+"""Typed readers of what the streaming reproduction's report reads: ``detector stream-eval --json-out`` summaries (and
 the measuring run's ``measure.json``, a summary too) and ``mpchair stream``'s ``stream.json``. AP in percent, times
 in milliseconds; a file that does not exist reads as None, a key a summary lacks as None."""
 
@@ -40,7 +40,7 @@ def _chair_r40(block: dict | None) -> Mapping[str, float] | None:
 
 @dataclass(frozen=True)
 class StreamSummary:
-    """One ``detector stream-eval --json`` summary: streaming AP (``sap``) and offline AP (every frame through the
+    """One ``detector stream-eval --json-out`` summary: streaming AP (``sap``) and offline AP (every frame through the
     model; None when not computed) as Chair's R40 by metric; latency, staleness (ms and frames), the fraction of
     frames processed; the latency repeats and the machine when the latencies were measured here (else None)."""
 

@@ -110,7 +110,7 @@ def _measure_command(plan: StreamPlan, run: MeasuredRun, model: str) -> list[str
     cmd = [str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *run.point)), "--config",
            str(plan.config(run.setting, model)), "--checkpoint", str(plan.checkpoints[model]), "--threads",
            str(run.setting.threads), "--repeats", str(run.repeats), "--warmup", str(plan.scale.warmup),
-           "--latency-log", str(ev / "latency.json"), "--json", str(ev / "measure.json"), "--quiet"]
+           "--latency-log", str(ev / "latency.json"), "--json-out", str(ev / "measure.json"), "--quiet"]
     return cmd + ["--save-results", str(ev / "outputs")] + ([] if run.offline else ["--no-offline"])
 
 
@@ -126,7 +126,7 @@ def run_measure_and_score(plan: StreamPlan, r: Runner) -> None:
                 if plan.todo("score", ev / f"{mode}.json"):
                     r.run([str(BIN / "detector"), "stream-eval", "--data", str(stream_dir(plan.out, *run.point)),
                            "--results", str(ev / "outputs"), "--latency", str(ev / "latency.json"), "--mode", mode,
-                           "--json", str(ev / f"{mode}.json"), "--quiet"])
+                           "--json-out", str(ev / f"{mode}.json"), "--quiet"])
 
 
 def run_oracle(plan: StreamPlan, r: Runner) -> None:
@@ -142,7 +142,7 @@ def run_oracle(plan: StreamPlan, r: Runner) -> None:
                     summary = read_summary(measured)
                     ms = summary.latency_ms.median if summary is not None else f"<{m} median latency>"
                     r.run([str(BIN / "detector"), "stream-eval", "--data", str(s), "--oracle", "--latency-ms",
-                           str(ms), "--mode", mode, "--json", str(target), "--quiet"])
+                           str(ms), "--mode", mode, "--json-out", str(target), "--quiet"])
 
 
 #: The steps before the report, in the order they run.
