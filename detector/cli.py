@@ -22,12 +22,12 @@ def cli() -> None:
 
     \b
     Typical use:
-      detector train --config configs/models/mpchair_dense.yaml --data dataset/ --out runs/dense
-      detector eval --config configs/models/mpchair_dense.yaml --data dataset/ --checkpoint runs/dense/last.pt
-      detector stream-eval --data stream/ --config configs/models/mpchair_dense.yaml --checkpoint runs/dense/last.pt
-      detector bench --config configs/models/mpchair_dense.yaml \\
-        --config configs/models/mpchair_sparse.yaml --data dataset/
-      detector export --config configs/models/mpchair_sparse_exact.yaml --format openvino --out exported/
+      detector train --config detector/configs/mpchair_dense.yaml --data dataset/ --out runs/dense
+      detector eval --config detector/configs/mpchair_dense.yaml --data dataset/ --checkpoint runs/dense/last.pt
+      detector stream-eval --data stream/ --config detector/configs/mpchair_dense.yaml --checkpoint runs/dense/last.pt
+      detector bench --config detector/configs/mpchair_dense.yaml \\
+        --config detector/configs/mpchair_sparse.yaml --data dataset/
+      detector export --config detector/configs/mpchair_sparse_exact.yaml --format openvino --out exported/
     Distributed: torchrun --nproc-per-node=2 -m detector train ...
     """
 

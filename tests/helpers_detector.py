@@ -4,7 +4,7 @@ Rooms are a noisy floor plus three walls around the sensor; "chairs" are dense b
 ``Chair``) and each frame also has one larger "table" cluster (labelled ``Table``, another class) and one DontCare row.
 The calibration is mpchair's: ``R0_rect`` = identity, ``Tr_velo_to_cam`` the sensor → camera axis swap, a pinhole
 ``P2`` whose image holds every chair (so projected 2D boxes are large and untruncated: every chair is "Easy").
-The scenes fit the smoke configs (``configs/models/mpchair_*_smoke.yaml``: x 0-6.4 m, |y| < 4.8 m, box bottoms at
+The scenes fit the smoke configs (``detector/configs/mpchair_*_smoke.yaml``: x 0-6.4 m, |y| < 4.8 m, box bottoms at
 z = 0 in the sensor frame).
 """
 
@@ -135,7 +135,7 @@ def make_tiny_dataset(
     return root
 
 
-SMOKE_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "models" / "mpchair_dense_smoke.yaml"
+SMOKE_CONFIG = Path(__file__).resolve().parents[1] / "detector" / "configs" / "mpchair_dense_smoke.yaml"
 
 
 def write_test_config(path: str | Path, *, model: dict | None = None, data: dict | None = None,

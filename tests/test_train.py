@@ -217,7 +217,7 @@ def test_bf16_training_autocasts_the_forward_and_keeps_fp32_state(data, tmp_path
 def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():
     from detector.config import load_experiment
 
-    configs = ROOT / "configs" / "models"
+    configs = ROOT / "detector" / "configs"
     for name in ("mpchair_dense_cpu", "mpchair_sparse_cpu"):
         tc = load_experiment(configs / f"{name}.yaml").train
         assert (tc.schedule, tc.lr, tc.pct_start, tc.div_factor, tc.final_div_factor, tc.beta1_range) == (
