@@ -22,12 +22,13 @@ def cli() -> None:
 
     \b
     Typical use:
-      detector train --config detector/configs/mpchair_dense.yaml --data dataset/ --out runs/dense
-      detector eval --config detector/configs/mpchair_dense.yaml --data dataset/ --checkpoint runs/dense/last.pt
-      detector stream-eval --data stream/ --config detector/configs/mpchair_dense.yaml --checkpoint runs/dense/last.pt
-      detector bench --config detector/configs/mpchair_dense.yaml \\
-        --config detector/configs/mpchair_sparse.yaml --data dataset/
-      detector export --config detector/configs/mpchair_sparse_exact.yaml --format openvino --out exported/
+      detector train --config mpchair_dense --data dataset/ --out runs/dense
+      detector eval --config mpchair_dense --data dataset/ --checkpoint runs/dense/last.pt
+      detector stream-eval --data stream/ --config mpchair_dense --checkpoint runs/dense/last.pt
+      detector bench --config mpchair_dense --config mpchair_sparse --data dataset/
+      detector export --config mpchair_sparse_exact --format openvino --out exported/
+    --config takes a packaged config's name (detector train --help lists them) or a YAML path; --checkpoint
+    pretrained:NAME takes packaged weights.
     Distributed: torchrun --nproc-per-node=2 -m detector train ...
     """
 

@@ -36,11 +36,13 @@ pytestmark = [pytest.mark.slow,
 SOURCES = ("pyproject.toml", "README.md", "mpchair", "detector")
 
 
-def _run(args: list, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
-    """Run ``args`` in ``cwd`` with no PYTHONPATH (nothing may reach the checkout); fail with its output if it fails."""
+def _run(args: list, cwd: Path, expect: int = 0) -> subprocess.CompletedProcess:
+    """Run ``args`` in ``cwd`` with no PYTHONPATH (nothing may reach the checkout); fail with its output unless it
+    exits ``expect``."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    proc = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, f"{' '.join(map(str, args))} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}"
+    proc = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    command = " ".join(map(str, args))
+    assert proc.returncode == expect, f"{command} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}"
     return proc
 
 
@@ -122,3 +124,8 @@ def test_the_installed_wheel_generates_trains_evaluates_and_exports_outside_the_
           "--format", "onnx", "--out", "exported"], work)
     deploy = json.loads((work / "exported" / "deploy.json").read_text())
     assert (work / "exported" / "model.onnx").stat().st_size > 100_000 and deploy["weights"] == "run/last.pt"
+    # the reproduction, which writes a clone's docs/, says in one line that an installed package is not one
+    refused = _run([bin_ / "python", "-c", "from detector.reproduce.cli import main; raise SystemExit(main([]))"],
+                   work, expect=2)
+    assert refused.stderr.startswith("error: the reproduction runs in a clone of the repository")
+    assert len(refused.stderr.strip().splitlines()) == 1

@@ -71,7 +71,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     Allocator: CPU timings depend on glibc's; compare with
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
-      detector bench --config detector/configs/mpchair_dense.yaml --config detector/configs/mpchair_sparse.yaml \\
+      detector bench --config mpchair_dense --config mpchair_sparse \\
         --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench

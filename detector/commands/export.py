@@ -36,7 +36,7 @@ def export(config: str, checkpoint: str | None, fmt: str, out_dir: str, precisio
     Voxelization, the pillar net, the scatter and box decoding + NMS stay outside (docs/deployment.md).
     Needs the deploy extra: pip install '.[deploy]'.
     Example:
-      detector export --config detector/configs/mpchair_sparse_exact.yaml --checkpoint runs/sparse/last.pt \\
+      detector export --config mpchair_sparse_exact --checkpoint runs/sparse/last.pt \\
         --format openvino --out exported/sparse
     """
     from detector.deploy.folder import MANIFEST, export_folder

@@ -32,7 +32,7 @@ def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as
     (input, output, tap) triples x C_in x C_out, from the sparse backbone's own index tables on the frame's real
     pillars), the paper's Table I upper bound at that frame's density D, and what detector.sparse computes with its
     zero taps. Example:
-      detector ops --config detector/configs/mpchair_sparse.yaml --data dataset/ --frames 50
+      detector ops --config mpchair_sparse --data dataset/ --frames 50
     """
     from detector.opcount import count_dataset, format_counts
     from mpchair.core.atomic import check_writable, write_text

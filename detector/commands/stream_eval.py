@@ -60,7 +60,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
 
     \b
     Examples:
-      detector stream-eval --data stream/ --config detector/configs/mpchair_sparse_cpu.yaml \\
+      detector stream-eval --data stream/ --config mpchair_sparse_cpu \\
                            --checkpoint runs/sparse/last.pt --threads 2 --json sparse-ego.json
       detector stream-eval --data stream/ --oracle --latency-ms 300 --mode raw
       detector stream-eval --data stream/ --results offline/ --latency-ms 120 --rerun stream.rrd

@@ -33,8 +33,8 @@ def viz_sparsity(config_path: str, data_dir: str, frame_id: str | None, index: i
     Writes OUT/{dense,sparse}_{input,block1,block2,block3}.png (ny x nx, white = any non-zero channel, +x right,
     +y up; the dense backbone runs without BatchNorm, as in the paper) and OUT/panel.png (both rows together).
     Example:
-      detector viz-sparsity --config detector/configs/mpchair_sparse.yaml --data dataset/ --frame 12 --out figs/
-      detector viz-sparsity --config detector/configs/mpchair_sparse.yaml --data dataset/ --index 0 --out figs/
+      detector viz-sparsity --config mpchair_sparse --data dataset/ --frame 12 --out figs/
+      detector viz-sparsity --config mpchair_sparse --data dataset/ --index 0 --out figs/
     """
     from detector.viz import STAGES
     from detector.viz import viz_sparsity as run
