@@ -10,7 +10,7 @@ from detector.commands import PRETRAINED_HELP, config_help
 
 
 @click.command("bench")
-@click.option("--config", "configs", multiple=True, required=True, type=click.Path(dir_okay=False),
+@click.option("--config", "configs", multiple=True, required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
               help=config_help("Experiment config; repeat to time several models interleaved (the first is the ratio's "
                                "numerator)"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),

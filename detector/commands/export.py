@@ -8,7 +8,7 @@ from detector.commands import PRETRAINED_HELP, config_help
 
 
 @click.command("export")
-@click.option("--config", required=True, type=click.Path(dir_okay=False),
+@click.option("--config", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
               help=config_help("Experiment config of the model"))
 @click.option("--checkpoint", default=None, type=click.Path(dir_okay=False),
               help=f"Trained weights ({PRETRAINED_HELP}; default: seeded random weights, said so in deploy.json).")

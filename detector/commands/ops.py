@@ -10,7 +10,7 @@ from detector.commands import config_help
 
 
 @click.command("ops")
-@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
               help=config_help("Experiment config (dense or sparse: the other variant is the same config with another "
                              "backbone)"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),

@@ -14,7 +14,8 @@ from mpchair.core.errors import InputError
 
 @click.command("stream-eval", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Stream folder (mpchair stream).")
-@click.option("--config", type=click.Path(path_type=Path), help=config_help("Experiment config of the model"))
+@click.option("--config", type=click.Path(path_type=Path), metavar="NAME|YAML",
+              help=config_help("Experiment config of the model"))
 @click.option("--checkpoint", type=click.Path(path_type=Path),
               help=f"Trained checkpoint of the model ({PRETRAINED_HELP}).")
 @click.option("--results", type=click.Path(path_type=Path),

@@ -11,7 +11,7 @@ from mpchair.core.clitools import FRAME_ID
 
 
 @click.command("viz-sparsity")
-@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
               help=config_help("Experiment config: its geometry is used for both the dense and the sparse backbone"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
               help="KITTI-format dataset folder (training/ + ImageSets/).")

@@ -126,7 +126,8 @@ def resolve_named_file(name_or_path: str | Path, folder: Path, what: str) -> Pat
     listed = ", ".join(names) or "none"
     if looks_like_path:
         raise InputError(f"{what} file not found (packaged {what}s, available by name: {listed})", p)
-    raise InputError(f"unknown {what} {text!r}: no such file and no packaged {what} of that name (available: {listed})")
+    # the name of neither a file nor a packaged one (the wording docs/generate.md lists for --sensor)
+    raise InputError(f"unknown {what} {text!r} (available: {listed})")
 
 
 #: The key with which a YAML file names the file it derives from (OpenPCDet's spelling).
