@@ -106,14 +106,6 @@ def resolve_checkpoint(checkpoint: str | Path, folder: Path | None = None) -> Pa
     return path
 
 
-def pretrained_config(checkpoint: str | Path, folder: Path | None = None) -> str | None:
-    """The packaged config name the index pairs with ``pretrained:NAME`` (None for a file path or an unlisted name)."""
-    if not is_pretrained(checkpoint):
-        return None
-    entry = read_index(folder).get(str(checkpoint)[len(PREFIX):])
-    return None if entry is None else entry.config
-
-
 def add_to_index(folder: Path, weights: Path, names: dict[str, str]) -> None:
     """List the weights file ``weights`` (in ``folder``) in ``folder/index.json`` under each of ``names`` (name → the
     packaged config to use it with), with its SHA-256; the index's other names are kept."""
