@@ -24,6 +24,7 @@ from torch import nn
 
 from detector.config import ExperimentConfig, experiment_from_dict
 from detector.models import PointPillars, build_model
+from detector.pretrained import add_to_index, resolve_checkpoint
 from mpchair.core.atomic import write_bytes
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
@@ -125,10 +126,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """Read a checkpoint written by :func:`save_checkpoint` (tensors and plain data only), tensors on
     ``map_location``.
 
-    A missing, damaged or foreign file, and one whose pickle would import or call anything else, is an
-    :class:`InputError` (one line); nothing in the file runs.
+    ``path`` may name packaged weights (``pretrained:sparse``, :mod:`detector.pretrained`). A missing, damaged or
+    foreign file, and one whose pickle would import or call anything else, is an :class:`InputError` (one line);
+    nothing in the file runs.
     """
-    path = Path(path)
+    path = resolve_checkpoint(path)
     if not path.is_file():
         raise InputError("checkpoint not found", path)
     try:
@@ -246,3 +248,27 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
                       "into this one, but results may differ from the trained model's", stacklevel=2)
     model.load_state_dict(saved.model)
     return model.eval()
+
+
+#: Precisions a packed file may store its floating-point tensors in (loading casts them back to the model's fp32).
+PACK_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}
+
+
+def pack_pretrained(checkpoint: str | Path, names: dict[str, str], folder: Path, *, dtype: str = "bf16") -> Path:
+    """Pack a training's checkpoint as packaged weights (:mod:`detector.pretrained`): its model state dict with the
+    floating-point tensors cast to ``dtype`` and its experiment config, nothing else, written to
+    ``folder/<first name>.pt``; each of ``names`` (name → the packaged config to use it with, e.g. ``{"sparse":
+    "mpchair_sparse_cpu", "sparse_exact": "mpchair_sparse_exact_cpu"}``) is listed in ``folder/index.json``. Returns
+    the weights file."""
+    if dtype not in PACK_DTYPES:
+        raise InputError(f"dtype must be one of {', '.join(PACK_DTYPES)}, got {dtype!r}")
+    if not names:
+        raise InputError("give at least one name for the packed weights")
+    saved = load_checkpoint(checkpoint)
+    if saved.config is None:
+        raise InputError("the checkpoint holds no experiment config; pack a detector train run's last.pt", checkpoint)
+    half = {k: v.to(PACK_DTYPES[dtype]) if v.is_floating_point() else v for k, v in saved.model.items()}
+    out = Path(folder) / f"{next(iter(names))}.pt"
+    save_checkpoint(out, Checkpoint(model=half, config=saved.config))
+    add_to_index(Path(folder), out, names)
+    return out

@@ -25,17 +25,16 @@ def cli() -> None:
     """Train, evaluate and time dense PointPillars vs Sparse PointPillars on KITTI-format datasets.
 
     \b
-    Typical use on a CPU (the *_cpu.yaml configs: the paper's pillars on a 288 x 144 grid, sized for 2 cores):
-      detector train --config configs/models/mpchair_sparse_cpu.yaml --data dataset/ --out runs/sparse
-      detector eval --config configs/models/mpchair_sparse_cpu.yaml --data dataset/ --checkpoint runs/sparse/last.pt
-      detector stream-eval --data stream/ --config configs/models/mpchair_sparse_cpu.yaml \\
-        --checkpoint runs/sparse/last.pt
-      detector bench --config configs/models/mpchair_dense.yaml \\
-        --config configs/models/mpchair_sparse.yaml --data dataset/
-      detector export --config configs/models/mpchair_sparse_exact.yaml --format openvino --out exported/
-    The paper's configs (mpchair_dense.yaml, mpchair_sparse.yaml: 768 x 512, 200 / 250 epochs) are a GPU's job to
-    train: about 70 days of dense training on 2 CPU cores (train says so after its first step). bench times them on
-    a CPU in minutes, with the CPU configs' weights or random ones.
+    Typical use on a CPU (the *_cpu configs: the paper's pillars on a 288 x 144 grid, sized for 2 cores):
+      detector train --config mpchair_sparse_cpu --data dataset/ --out runs/sparse
+      detector eval --config mpchair_sparse_cpu --data dataset/ --checkpoint runs/sparse/last.pt
+      detector stream-eval --data stream/ --config mpchair_sparse_cpu --checkpoint runs/sparse/last.pt
+      detector bench --config mpchair_dense --config mpchair_sparse --data dataset/
+      detector export --config mpchair_sparse_exact --format openvino --out exported/
+    --config takes a packaged config's name (detector train --help lists them) or a YAML path; --checkpoint
+    pretrained:NAME takes packaged weights. The paper's configs (mpchair_dense, mpchair_sparse: 768 x 512, 200 / 250
+    epochs) are a GPU's job to train: about 70 days of dense training on 2 CPU cores (train says so after its first
+    step). bench times them on a CPU in minutes, with the CPU configs' weights or random ones.
     Distributed: torchrun --nproc-per-node=2 -m detector train ...
 
     \b

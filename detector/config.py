@@ -1,6 +1,7 @@
 """The detector's experiment configuration: one YAML file per experiment, loaded into frozen dataclasses.
 
-The schema of ``configs/models/*.yaml``, read once at the edge (``detector train/eval/bench/...``); modules below take
+The schema of the experiment YAMLs (the shipped ones in ``detector/configs/``, by name: ``--config mpchair_sparse``),
+read once at the edge (``detector train/eval/bench/...``); modules below take
 explicit keyword arguments. ``mpchair`` never reads this schema: ``mpchair stats --config`` takes only the pillar grid
 (``model.point_cloud_range / voxel_size / output_shape``) through :func:`mpchair.geometry.geometry_from_model_yaml`,
 and :func:`pseudoimage_geometry` gives the detector the same :class:`~mpchair.geometry.PseudoimageGeometry`.
@@ -13,18 +14,29 @@ in metres, every angle in radians, and all boxes are ``[x, y, z_centre, l, w, h,
 forward, y left, z up), yaw CCW from +x.
 
 Reference values (section 6 of ``pointpillars-reference.md``) are the defaults, so a config only has to name the
-geometry; see ``docs/model.md`` for every key.
+geometry; a config may also derive from another (``_BASE_CONFIG_: mpchair_sparse``) and set only what differs
+(:func:`experiment_yaml`). See ``docs/model.md`` for every key.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mpchair.core.config import at_key_line, from_dict, load_yaml
+from mpchair.core.config import (
+    at_key_line,
+    from_dict,
+    load_derived_yaml,
+    load_yaml,
+    merge_config,
+    package_folder,
+    packaged_names,
+    resolve_named_file,
+)
 from mpchair.core.errors import InputError
 from mpchair.geometry import PseudoimageGeometry, grid_size
 
@@ -416,14 +428,49 @@ def experiment_from_dict(data: dict, source: str = "<config>") -> ExperimentConf
     return cfg
 
 
-def load_experiment(path: str | Path) -> ExperimentConfig:
-    """Load and validate an experiment YAML (``configs/models/*.yaml``); bad keys/types/values → InputError naming
-    the file and the line of the key at fault."""
-    data = load_yaml(path)
+#: Folder of the shipped experiment configs (``detector/configs``, package data: also in an installed wheel).
+CONFIG_DIR = package_folder("detector", "configs")
+
+
+def available_configs() -> list[str]:
+    """Names of the shipped experiment configs (``mpchair_sparse``, ...), sorted."""
+    return packaged_names(CONFIG_DIR)
+
+
+def config_file(name_or_path: str | Path) -> Path:
+    """The YAML file of ``--config``: an existing file (a path wins), else a packaged config's name
+    (:data:`CONFIG_DIR`)."""
+    return resolve_named_file(name_or_path, CONFIG_DIR, "config")
+
+
+def load_experiment(name_or_path: str | Path, overrides: Mapping | None = None) -> ExperimentConfig:
+    """Load and validate an experiment: a YAML path or a packaged name, its ``_BASE_CONFIG_`` chain merged in, then
+    ``overrides`` (a nested mapping like the YAML's, e.g. ``{"train": {"batch_size": 1}}``) on top.
+
+    Bad keys / types / values, a missing base or a cycle of bases are one-line :class:`InputError` s naming the file.
+    """
+    path = config_file(name_or_path)
+    data = experiment_yaml(path)
+    if overrides:
+        return experiment_from_dict(merge_config(data, overrides), source=f"{path} (with overrides)")
     try:
         return experiment_from_dict(data, source=str(path))
-    except InputError as e:
+    except InputError as e:  # name the line of the key at fault in the file
         raise at_key_line(e, path) from None
+
+
+def experiment_yaml(path: str | Path) -> dict:
+    """The mapping of the experiment YAML ``path`` with its ``_BASE_CONFIG_`` chain merged in
+    (:func:`mpchair.core.config.load_derived_yaml`): a base is a YAML path relative to the file's folder or a packaged
+    config's name, and must be a complete, valid experiment on its own (checked as one, so that an error is named by
+    the file that holds it)."""
+    return load_derived_yaml(path, named_base=_packaged_base,
+                             check_base=lambda data, base: experiment_from_dict(data, source=str(base)))
+
+
+def _packaged_base(name: str) -> Path | None:
+    """The shipped config called ``name`` (a ``_BASE_CONFIG_`` value without a suffix), or None."""
+    return CONFIG_DIR / f"{name}.yaml" if name in available_configs() else None
 
 
 def load_run_config(path: str | Path) -> ExperimentConfig:

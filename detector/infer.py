@@ -27,6 +27,7 @@ from detector.data.experiment import augment_options, open_split
 from detector.data.pipeline import make_eval_sample
 from detector.device import use_device
 from detector.models import Detections
+from detector.pretrained import is_pretrained
 from mpchair.core.atomic import write_text
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
@@ -194,7 +195,10 @@ def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> 
 
 def default_results_dir(checkpoint: str | Path, split: str) -> Path:
     """Where ``detector eval --checkpoint`` writes without ``--out``: ``<checkpoint folder>/<checkpoint name>_<split>``
-    (``runs/dense/last.pt``, ``val`` → ``runs/dense/last_val``)."""
+    (``runs/dense/last.pt``, ``val`` → ``runs/dense/last_val``; packaged weights ``pretrained:sparse`` →
+    ``pretrained_sparse_val`` in the working folder)."""
+    if is_pretrained(checkpoint):
+        return Path(f"{str(checkpoint).replace(':', '_')}_{split}")
     ckpt = Path(checkpoint)
     return ckpt.parent / f"{ckpt.stem}_{split}"
 

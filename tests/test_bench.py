@@ -21,8 +21,8 @@ from detector.data.experiment import load_eval_frames
 from detector.models import build_model
 from mpchair.geometry import frame_density
 
-DENSE = "configs/models/mpchair_dense_smoke.yaml"
-SPARSE = "configs/models/mpchair_sparse_smoke.yaml"
+DENSE = "detector/configs/mpchair_dense_smoke.yaml"
+SPARSE = "detector/configs/mpchair_sparse_smoke.yaml"
 
 
 @pytest.fixture(scope="module")

@@ -70,7 +70,7 @@ def test_a_config_error_names_the_file_and_the_line_of_the_key(tmp_path: Path, c
     fault (a misspelt value, an unknown key), as ``detector train`` reads the config before anything else."""
     from detector.cli import main
 
-    smoke = Path(__file__).resolve().parents[1] / "configs" / "models" / "mpchair_dense_smoke.yaml"
+    smoke = Path(__file__).resolve().parents[1] / "detector" / "configs" / "mpchair_dense_smoke.yaml"
     text = smoke.read_text()
     for bad, line, message in (
             (text.replace("  backbone: dense", "  backbone: sprase"), 15, "model.backbone: 'sprase' is not one of"),
@@ -204,10 +204,10 @@ def test_outputs_that_cannot_be_written_fail_before_the_work_naming_the_folder(t
         mpchair_main(["view", str(data), "--frame", "0", "--out", str(blocker / "x.png")])
     assert e.value.code == 2
     assert capsys.readouterr().err == f"error: {blocker}: is not a folder, so {blocker / 'x.png'} cannot be written\n"
-    code, _, err = _detector(capsys, "bench", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
+    code, _, err = _detector(capsys, "bench", "--config", "detector/configs/mpchair_dense_smoke.yaml", "--data", data,
                              "--json-out", blocker / "out" / "b.json")
     assert code == 2 and err.splitlines()[-1].startswith(f"error: {blocker}: is not a folder"), err
-    code, _, err = _detector(capsys, "train", "--config", "configs/models/mpchair_dense_smoke.yaml", "--data", data,
+    code, _, err = _detector(capsys, "train", "--config", "detector/configs/mpchair_dense_smoke.yaml", "--data", data,
                              "--out", blocker / "run")
     assert code == 2 and err == f"error: {blocker}: is not a folder, so {blocker / 'run'} cannot be written\n"
     with pytest.raises(NotADirectoryError) as exc:

@@ -28,8 +28,8 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("openvino")
 onnx = pytest.importorskip("onnx")
 
-DENSE = "configs/models/mpchair_dense_smoke.yaml"
-SPARSE = "configs/models/mpchair_sparse_smoke.yaml"
+DENSE = "detector/configs/mpchair_dense_smoke.yaml"
+SPARSE = "detector/configs/mpchair_sparse_smoke.yaml"
 RUNTIMES = ("onnxruntime", "openvino")
 TOL = 1e-4
 
@@ -207,7 +207,7 @@ def test_export_cli_writes_the_folder_and_its_manifest(slim, tmp_path, capsys):
 
 
 def test_export_cli_errors_are_one_line(tmp_path, capsys):
-    code, _, err = _cli(["export", "--config", "configs/models/kitti_car_sparse1_dense23.yaml", "--format", "onnx",
+    code, _, err = _cli(["export", "--config", "detector/configs/kitti_car_sparse1_dense23.yaml", "--format", "onnx",
                          "--out", tmp_path / "x"], capsys)
     assert code == 2 and err.count("\n") == 1 and "all-sparse backbone" in err
     code, _, err = _cli(["export", "--config", DENSE, "--format", "onnx", "--precision", "int8", "--out",

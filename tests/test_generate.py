@@ -279,7 +279,7 @@ ERRORS = {
 def test_every_documented_error_is_one_line_exit_2_and_writes_nothing(case, house_root, dataset, tmp_path, capsys):
     root, house = house_root
     bad_yaml = tmp_path / "bad.yaml"
-    bad_yaml.write_text((ROOT / "configs" / "sensors" / "mp3d-depth90.yaml").read_text() + "bogus_key: 1\n")
+    bad_yaml.write_text((ROOT / "mpchair" / "scan" / "profiles" / "mp3d-depth90.yaml").read_text() + "bogus_key: 1\n")
     extra, pattern = ERRORS[case]
     extra = [a.replace("{bad_yaml}", str(bad_yaml)) for a in extra]
     out = dataset[0] if case == "other settings" else tmp_path / "out"
@@ -302,7 +302,7 @@ def test_keep_empty_writes_frames_without_boxes_with_one_dontcare_row(house_root
     rejections."""
     root, house = house_root
     strict = tmp_path / "strict.yaml"
-    text = (ROOT / "configs" / "sensors" / "mp3d-depth90.yaml").read_text()
+    text = (ROOT / "mpchair" / "scan" / "profiles" / "mp3d-depth90.yaml").read_text()
     assert "min_visible_pixels: 35\n" in text
     strict.write_text(text.replace("min_visible_pixels: 35\n", "min_visible_pixels: 100000000\n"))
     args = ["generate", "--root", root, "--house", house.id, "--frames", "2", "--sensor", strict, "--seed", "3",

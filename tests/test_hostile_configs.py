@@ -9,16 +9,16 @@ import pytest
 import yaml
 
 from detector.cli import main
-from detector.config import load_experiment, memory_floor_bytes
+from detector.config import experiment_yaml, load_experiment, memory_floor_bytes
 from mpchair.core.config import MAX_CONFIG_DEPTH, load_yaml
 from mpchair.core.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
-SMOKE = REPO / "configs" / "models" / "mpchair_sparse_smoke.yaml"
+SMOKE = REPO / "detector" / "configs" / "mpchair_sparse_smoke.yaml"
 
 
 def _edited(tmp_path: Path, section: str, key: str, value) -> Path:
-    data = yaml.safe_load(SMOKE.read_text())
+    data = experiment_yaml(SMOKE)  # the smoke config with its base merged in
     data.setdefault(section, {})[key] = value
     path = tmp_path / f"{section}-{key}.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -64,7 +64,7 @@ def test_train_refuses_a_hostile_config_before_writing(tmp_path, capsys, case):
 def test_the_memory_floor_passes_every_shipped_config_and_grows_with_the_model():
     """The bound refuses only configs that cannot run: every shipped config is far below this machine's memory, and
     the bound grows with the canvas and the layers."""
-    for path in sorted((REPO / "configs" / "models").glob("*.yaml")):
+    for path in sorted((REPO / "detector" / "configs").glob("*.yaml")):
         cfg = load_experiment(path)  # would raise if the bound refused it
         assert 0 < memory_floor_bytes(cfg.model, cfg.train.batch_size) < 8 * 2**30, path.name
     small = load_experiment(SMOKE).model

@@ -40,6 +40,7 @@ FLOORS: dict[str, int] = {
     "mpchair.cli": 10,
     # the detector stack (on top of the shared floor)
     "detector.config": 4,
+    "detector.pretrained": 4,  # packaged weights by name (index + files; read by checkpoint)
     "detector.device": 4,
     "detector.ops": 4,  # rotated IoU / NMS, and the GEMM of both models (ops.gemm: the sparse convs call it too)
     "detector.sparse": 5,

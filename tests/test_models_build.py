@@ -16,7 +16,7 @@ from detector.models.sparse_backbone import SparseBackboneNeck
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
 
-CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs" / "models").glob("*.yaml"))
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "detector" / "configs").glob("*.yaml"))
 
 
 def test_config_folder_has_every_experiment() -> None:

@@ -60,9 +60,9 @@ def test_weights_moved_to_another_grid_keep_their_anchors(tmp_path) -> None:
     from detector.config import load_experiment
     from detector.models import build_model
 
-    big = load_experiment("configs/models/mpchair_dense.yaml")
+    big = load_experiment("detector/configs/mpchair_dense.yaml")
     for centres, tol in (("cells", 1e-3), ("range", 0.051)):
-        small = load_experiment("configs/models/mpchair_dense_cpu.yaml")
+        small = load_experiment("detector/configs/mpchair_dense_cpu.yaml")
         small = dataclasses.replace(small, model=dataclasses.replace(small.model, anchor_centres=centres))
         model = build_model(small.model)
         ckpt = tmp_path / f"{centres}.pt"

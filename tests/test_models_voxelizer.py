@@ -310,7 +310,7 @@ def test_bench_tool_compares_the_two_forms_on_a_model() -> None:
     from detector.models import build_model
 
     tool = load_tool("bench_feature_extract")
-    model = build_model(load_experiment(ROOT / "configs" / "models" / "mpchair_sparse_smoke.yaml").model).eval()
+    model = build_model(load_experiment(ROOT / "detector" / "configs" / "mpchair_sparse_smoke.yaml").model).eval()
     rng = np.random.default_rng(2)
     frames = [rng.uniform([0, -4.8, -2], [6.4, 4.8, 2], size=(n, 3)).astype(np.float32) for n in (3000, 0, 800)]
     got = tool.run(model, frames, trials=2)

@@ -16,8 +16,8 @@ from detector.config import load_experiment
 from detector.models import build_model
 from detector.opcount import count_dataset, dense_counts, format_counts, frame_counts, sparse_counts, table1
 
-SMOKE = "configs/models/mpchair_sparse_smoke.yaml"
-PAPER = "configs/models/mpchair_sparse.yaml"
+SMOKE = "detector/configs/mpchair_sparse_smoke.yaml"
+PAPER = "detector/configs/mpchair_sparse.yaml"
 K2 = {"3x3 conv": 9, "2x2 conv": 4, "1x1 convT": 1, "2x2 convT": 4, "4x4 convT": 16}
 
 

@@ -233,8 +233,8 @@ GOOD_MODEL = ("model:\n  point_cloud_range: [0, -4, -1, 8, 4, 1]\n  voxel_size: 
 
 
 def test_config_yaml_picks_model_geometry(tmp_path):
-    assert geometry_from_model_yaml(REPO / "configs" / "models" / "mpchair_dense.yaml") == MATTERPORT_GEOMETRY
-    assert geometry_from_model_yaml(REPO / "configs" / "models" / "kitti_car_sparse.yaml") == KITTI_GEOMETRY
+    assert geometry_from_model_yaml(REPO / "detector" / "configs" / "mpchair_dense.yaml") == MATTERPORT_GEOMETRY
+    assert geometry_from_model_yaml(REPO / "detector" / "configs" / "kitti_car_sparse.yaml") == KITTI_GEOMETRY
     cfg = tmp_path / "m.yaml"
     write_text(cfg, GOOD_MODEL)
     assert geometry_from_model_yaml(cfg) == PseudoimageGeometry((0, -4, -1, 8, 4, 1), (0.5, 0.5), (16, 16))

@@ -217,7 +217,7 @@ def test_bf16_training_autocasts_the_forward_and_keeps_fp32_state(data, tmp_path
 def test_cpu_configs_use_onecycle_and_paper_configs_the_reference_constant_lr():
     from detector.config import load_experiment
 
-    configs = ROOT / "configs" / "models"
+    configs = ROOT / "detector" / "configs"
     for name in ("mpchair_dense_cpu", "mpchair_sparse_cpu"):
         tc = load_experiment(configs / f"{name}.yaml").train
         assert (tc.schedule, tc.lr, tc.pct_start, tc.div_factor, tc.final_div_factor, tc.beta1_range) == (
@@ -350,8 +350,8 @@ def test_a_plan_of_more_than_a_day_is_said_after_the_first_step():
 
     line = metrics.long_run_warning(166_600, 37.0)
     assert line == ("warning: the first step took 37 s: even at half that pace the 166,600 steps take ~36 days on "
-                    "this machine; on a CPU, train the configs/models/*_cpu.yaml configs (sized for 2 cores) or pass "
-                    "--max-steps")
+                    "this machine; on a CPU, train the *_cpu configs (e.g. --config mpchair_sparse_cpu, sized for 2 "
+                    "cores) or pass --max-steps")
     assert metrics.long_run_warning(4_000, 40.0) is None  # 22 h at half pace
     clock = iter([0.0, 37.0])
     estimate = metrics.DurationEstimate(first_step=10, todo=100, clock=lambda: next(clock))

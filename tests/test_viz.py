@@ -15,7 +15,7 @@ from PIL import Image
 from detector.cli import main
 from detector.viz import STAGES, viz_sparsity
 
-SPARSE = "configs/models/mpchair_sparse_smoke.yaml"  # 96 x 64 pseudo-image
+SPARSE = "detector/configs/mpchair_sparse_smoke.yaml"  # 96 x 64 pseudo-image
 
 
 def test_viz_sparsity_pictures(tmp_path, capsys) -> None:

@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     models, outputs = {}, {}
     for m in MODELS:
-        cfg = load_experiment(ROOT / "configs" / "models" / f"mpchair_{m}.yaml")
+        cfg = load_experiment(ROOT / "detector" / "configs" / f"mpchair_{m}.yaml")
         model = models[m] = load_model(cfg, ckpts[m], torch.device("cpu"))
         outputs[m] = []
         with torch.no_grad():

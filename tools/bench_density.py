@@ -20,7 +20,7 @@ from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
 from mpchair.core.errors import InputError
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "models"
+CONFIGS = Path(__file__).resolve().parents[1] / "detector" / "configs"
 
 
 def _mark(text: str) -> tuple[str, float]:

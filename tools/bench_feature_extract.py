@@ -1,8 +1,8 @@
 """Feature Extract (voxelize + pillar net), the compiled form against the torch form before it: ms per frame,
 interleaved frame by frame in one process, and whether the outputs are the same.
 
-    .venv/bin/python tools/bench_feature_extract.py --config configs/models/mpchair_sparse.yaml --data out/dataset
-    .venv/bin/python tools/bench_feature_extract.py --config configs/models/kitti_car_sparse.yaml \\
+    .venv/bin/python tools/bench_feature_extract.py --config detector/configs/mpchair_sparse.yaml --data out/dataset
+    .venv/bin/python tools/bench_feature_extract.py --config detector/configs/kitti_car_sparse.yaml \\
         --data ../shared/kitti_sample --split train
 
 Per frame of ``--split`` (points as at inference: ``detector.data.experiment.load_eval_frames``), eval mode, no

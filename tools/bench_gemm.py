@@ -1,8 +1,8 @@
 """What routing the inference GEMMs through oneDNN buys (``detector.ops.gemm``): MKL against oneDNN, side by side in
 one process, on the models' own GEMM shapes and on whole models.
 
-    PYTHONPATH=. .venv/bin/python tools/bench_gemm.py --config configs/models/mpchair_dense.yaml \\
-        --config configs/models/mpchair_sparse_exact.yaml --checkpoint DENSE.pt --checkpoint SPARSE.pt \\
+    PYTHONPATH=. .venv/bin/python tools/bench_gemm.py --config detector/configs/mpchair_dense.yaml \\
+        --config detector/configs/mpchair_sparse_exact.yaml --checkpoint DENSE.pt --checkpoint SPARSE.pt \\
         --data DATASET --split test --frames 10 --trials 3 --threads 2 [--json-out out.json]
 
 1. **shapes**: ``x @ w.t()`` for the GEMMs of the Matterport models (the sparse SubM blocks, the neck levels, the

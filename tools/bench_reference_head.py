@@ -1,8 +1,8 @@
 """The dense / sparse total-time ratio with the reference's head layout (three NCHW 1x1 convs) beside ours (one fused
 GEMM): ``detector.bench.reference_head``. Interleaved per frame, one process; ms per frame.
 
-    .venv/bin/python tools/bench_reference_head.py --config configs/models/mpchair_dense.yaml \\
-        --config configs/models/mpchair_sparse.yaml --data DATASET --split test --frames 20 --trials 3 \\
+    .venv/bin/python tools/bench_reference_head.py --config detector/configs/mpchair_dense.yaml \\
+        --config detector/configs/mpchair_sparse.yaml --data DATASET --split test --frames 20 --trials 3 \\
         --json-out out.json
 
 ``--checkpoint`` once per ``--config`` (``-`` = random weights, the default for all); the table goes to stdout.

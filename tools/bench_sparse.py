@@ -7,7 +7,7 @@ show min and median wall time (ms) and the ratio dense / sparse of the minima. T
 Backbone timer: from the pseudo-image (dense canvas or SparseTensor) to the dense (1, 384, ny/2, nx/2) map, todense and
 concat included; the sparse rows build their neighbour tables inside the timed region.
 
-The "end to end" rows run the models that ``detector.models.build_model`` builds from ``configs/models/
+The "end to end" rows run the models that ``detector.models.build_model`` builds from ``detector/configs/
 mpchair_dense.yaml`` and ``mpchair_sparse.yaml`` (with ``head: sparse_exact``, and once more with its dense head for
 reference), random weights, on one synthetic Matterport-Chair-like frame: 21,095 points (the mp3d-depth90 ray count)
 in clustered pillars at 0.75 % of the 768 x 512 canvas. Every stage of ``detector.bench.timing.time_frame`` is timed:
@@ -70,7 +70,7 @@ from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, u
 from mpchair.core.atomic import write_text
 
 PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "models"
+CONFIGS = Path(__file__).resolve().parents[1] / "detector" / "configs"
 #: The issue's targets: (section, row, label, minimum ratio dense / sparse).
 TARGETS = (
     ("backbone", "matterport", "(a) backbone + neck, Matterport 768x512 clustered 0.75%", 15.0),

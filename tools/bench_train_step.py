@@ -8,7 +8,7 @@ dropped. fp32 and bf16 alternate for ``--rounds`` rounds on identical batches, s
 The GT-sampling database is built once per config and shared by its runs.
 
     python tools/bench_train_step.py --data out/reproduce-full-e12-bf16/dataset \\
-        --config configs/models/mpchair_dense_cpu.yaml --config configs/models/mpchair_sparse_cpu.yaml \\
+        --config detector/configs/mpchair_dense_cpu.yaml --config detector/configs/mpchair_sparse_cpu.yaml \\
         [--steps 30] [--warmup 5] [--rounds 2] [--threads 2] [--precision fp32 [--precision bf16]]
         [--gemm auto [--gemm mkl]] [--json-out OUT]
 

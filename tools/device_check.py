@@ -37,24 +37,24 @@ from typing import TYPE_CHECKING
 
 import yaml
 
+from detector.config import load_experiment
 from mpchair.core.atomic import write_text
+from mpchair.core.config import merge_config, to_dict
 from mpchair.paper import TABLE_II, TABLE_IV, ComponentTimes
 
 if TYPE_CHECKING:  # imported where the summary is written: the step runner itself does not load torch
     from detector.bench.result import BenchResult
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "configs" / "models"
-#: The check's experiments: name → (source YAML under configs/models, overrides). The KITTI geometry has no
-#: exact-head config of its own; its sparse config with ``head: sparse_exact`` is what mpchair_sparse_exact.yaml is
-#: to mpchair_sparse.yaml.
+#: The check's experiments: name → (packaged config, overrides). The KITTI geometry has no exact-head config of its
+#: own; its sparse config with ``head: sparse_exact`` is what mpchair_sparse_exact.yaml is to mpchair_sparse.yaml.
 EXPERIMENTS: dict[str, tuple[str, dict]] = {
-    "mpchair_dense": ("mpchair_dense.yaml", {}),
-    "mpchair_sparse": ("mpchair_sparse.yaml", {}),
-    "mpchair_sparse_exact": ("mpchair_sparse_exact.yaml", {}),
-    "kitti_car_dense": ("kitti_car_dense.yaml", {}),
-    "kitti_car_sparse": ("kitti_car_sparse.yaml", {}),
-    "kitti_car_sparse_exact": ("kitti_car_sparse.yaml", {"model": {"head": "sparse_exact"}}),
+    "mpchair_dense": ("mpchair_dense", {}),
+    "mpchair_sparse": ("mpchair_sparse", {}),
+    "mpchair_sparse_exact": ("mpchair_sparse_exact", {}),
+    "kitti_car_dense": ("kitti_car_dense", {}),
+    "kitti_car_sparse": ("kitti_car_sparse", {}),
+    "kitti_car_sparse_exact": ("kitti_car_sparse", {"model": {"head": "sparse_exact"}}),
 }
 #: ``--dry-run``'s models: the same configs on a small grid (6 x 10 m of a room, 13 x 13 m of a road) with slim
 #: layers and batch 1, so that a CPU runs every step in seconds; voxelizer, anchors, head and losses are unchanged.
@@ -183,20 +183,20 @@ def cmd_machine(args: argparse.Namespace) -> int:
 
 
 def cmd_configs(args: argparse.Namespace) -> int:
-    """Write the :data:`EXPERIMENTS` as ``OUT/<name>.yaml`` (``--tiny``: with :data:`TINY` and the geometry's
-    :data:`TINY_GRID` on top)."""
+    """Write the :data:`EXPERIMENTS` as ``OUT/<name>.yaml``, loaded and validated with their overrides
+    (``--tiny``: with :data:`TINY` and the geometry's :data:`TINY_GRID` on top) and written out in full."""
     out = Path(args.out)
     for name, (source, overrides) in EXPERIMENTS.items():
-        cfg = yaml.safe_load((CONFIGS / source).read_text(encoding="utf-8"))
         changes = [overrides]
         if args.tiny:
             changes += [TINY, {"model": TINY_GRID[name.split("_")[0]]}]
+        merged: dict = {}
         for change in changes:
-            for section, values in change.items():
-                cfg[section].update(values)
+            merged = merge_config(merged, change)
+        cfg = load_experiment(source, overrides=merged)
         said = "; ".join(f"{s}.{k} = {v}" for c in changes for s, vals in c.items() for k, v in vals.items())
-        head = f"# Written by tools/device_check.py from configs/models/{source}" + (f"; {said}" if said else "")
-        write_text(out / f"{name}.yaml", head + "\n" + yaml.safe_dump(cfg, sort_keys=False))
+        head = f"# Written by tools/device_check.py from the packaged config {source}" + (f"; {said}" if said else "")
+        write_text(out / f"{name}.yaml", head + "\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False))
     return 0
 
 
@@ -252,9 +252,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from detector.device import autocast_dtype, peak_memory_bytes, reset_peak_memory
 
     dev = torch.device(args.device)
-    cfg = yaml.safe_load(Path(args.config).read_text(encoding="utf-8"))
     row = {"model": args.name, "config": str(args.config), "device": args.device, "precision": args.precision,
-           "batch_size": int(cfg["train"]["batch_size"]), "steps": args.steps}
+           "batch_size": load_experiment(args.config).train.batch_size, "steps": args.steps}
     precision = "fp32"
     if args.precision == "autocast":
         if autocast_dtype(dev) != torch.bfloat16:

@@ -132,7 +132,7 @@ def measure(work: Path, args: argparse.Namespace, plots: Path | None) -> dict:
     gen = run_json(["generate", "--root", "houses", "--house", house, "--frames", str(args.frames), "--out",
                     "dataset", "--seed", str(args.dataset_seed), "--workers", str(args.workers), "--quiet"],
                    work, work / "generate.json")  # fmt: skip
-    config = str(ROOT / "configs" / "models" / "mpchair_dense.yaml")
+    config = str(ROOT / "detector" / "configs" / "mpchair_dense.yaml")
     density = run_json(["stats", "--density", "dataset", "--config", config, *plot("stats-density.png")], work,
                        work / "stats-density.json")  # fmt: skip
     # The same invocation as the KITTI table in docs/stats.md (`--preset kitti` equals kitti_car_*.yaml, and
@@ -193,7 +193,7 @@ def number_blocks(m: dict, args: argparse.Namespace) -> dict[str, str]:
         f"mpchair synth --out houses --houses 1 --seed {args.house_seed}                 # house {house}",
         f"mpchair generate --root houses --house {house} --frames {args.frames} --out dataset --seed "
         f"{args.dataset_seed} --workers {args.workers}",
-        "mpchair stats --density dataset --config configs/models/mpchair_dense.yaml --plot stats-density.png",
+        "mpchair stats --density dataset --config detector/configs/mpchair_dense.yaml --plot stats-density.png",
         "```",
         "",
         "| | min | median | mean | max |",

@@ -6,15 +6,18 @@ import json
 
 import click
 
+from detector.commands import PRETRAINED_HELP, config_help
+
 
 @click.command("bench")
-@click.option("--config", "configs", multiple=True, required=True, type=click.Path(dir_okay=False),
-              help="Experiment YAML; repeat to time several models interleaved (the first is the ratio's numerator).")
+@click.option("--config", "configs", multiple=True, required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
+              help=config_help("Experiment config; repeat to time several models interleaved (the first is the ratio's "
+                               "numerator)"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
               help="KITTI-format dataset folder (training/ + ImageSets/).")
 @click.option("--checkpoint", "checkpoints", multiple=True,
-              help="Trained weights, one per --config in the same order ('-' = random weights). Default: random "
-                   "weights for every model (fine for timing; said so in the output).")
+              help=f"Trained weights ({PRETRAINED_HELP}), one per --config in the same order ('-' = random weights). "
+                   "Default: random weights for every model (fine for timing; said so in the output).")
 @click.option("--split", default="test", show_default=True, help="ImageSets split whose first frames are timed.")
 @click.option("--frames", type=int, default=20, show_default=True, help="Frames per trial.")
 @click.option("--trials", type=int, default=3, show_default=True, help="Timed passes over the frames.")
@@ -69,7 +72,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     Allocator: CPU timings depend on glibc's; compare with
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
-      detector bench --config configs/models/mpchair_dense.yaml --config configs/models/mpchair_sparse.yaml \\
+      detector bench --config mpchair_dense --config mpchair_sparse \\
         --data dataset/ --frames 20 --trials 3 --peer open3d-ml --json-out bench.json
     """
     from detector.bench import BenchModel, format_table, run_bench

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from detector.commands import PRETRAINED_HELP, config_help
 from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
@@ -49,9 +50,11 @@ def _ids_for(labels: Path, split: str | None) -> list[str]:
               help="kitti: the KITTI protocol (Easy / Moderate / Hard / Overall, R40 and R11). open3d-ml: the "
               "reference's own metric, Open3D-ML's mAP (BEV and 3D, every box difficulty 0; needs Open3D-ML).")
 @click.option("--json", "as_json", is_flag=True, help="Print the JSON summary instead of the table.")
-@click.option("--config", type=click.Path(path_type=Path), help="Experiment config (checkpoint mode).")
+@click.option("--config", type=click.Path(path_type=Path), metavar="NAME|YAML",
+              help=config_help("Experiment config (checkpoint mode)"))
 @click.option("--data", type=click.Path(path_type=Path), help="KITTI-format dataset root (checkpoint mode).")
-@click.option("--checkpoint", type=click.Path(path_type=Path), help="Trained checkpoint (checkpoint mode).")
+@click.option("--checkpoint", type=click.Path(path_type=Path),
+              help=f"Trained checkpoint ({PRETRAINED_HELP}; checkpoint mode).")
 @click.option("--out", type=click.Path(path_type=Path),
               help="Checkpoint mode: folder for result files and metrics.json (metrics_open3d_ml.json with "
               "--protocol open3d-ml; default: beside the checkpoint).")

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import click
 
+from detector.commands import PRETRAINED_HELP, config_help
+
 
 @click.command("export")
-@click.option("--config", required=True, type=click.Path(dir_okay=False), help="Experiment YAML of the model.")
+@click.option("--config", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
+              help=config_help("Experiment config of the model"))
 @click.option("--checkpoint", default=None, type=click.Path(dir_okay=False),
-              help="Trained weights (default: seeded random weights, said so in deploy.json).")
+              help=f"Trained weights ({PRETRAINED_HELP}; default: seeded random weights, said so in deploy.json).")
 @click.option("--format", "fmt", type=click.Choice(["onnx", "openvino"]), required=True,
               help="onnx: model.onnx; openvino: model.xml + model.bin (OpenVINO IR, converted from the ONNX graph).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
@@ -33,7 +36,7 @@ def export(config: str, checkpoint: str | None, fmt: str, out_dir: str, precisio
     Voxelization, the pillar net, the scatter and box decoding + NMS stay outside (docs/deployment.md).
     Needs the deploy extra: pip install '.[deploy]'.
     Example:
-      detector export --config configs/models/mpchair_sparse_exact.yaml --checkpoint runs/sparse/last.pt \\
+      detector export --config mpchair_sparse_exact --checkpoint runs/sparse/last.pt \\
         --format openvino --out exported/sparse
     """
     from detector.deploy.folder import MANIFEST, export_folder

@@ -6,10 +6,13 @@ import json
 
 import click
 
+from detector.commands import config_help
+
 
 @click.command("ops")
-@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
-              help="Experiment YAML (dense or sparse: the other variant is the same config with another backbone).")
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
+              help=config_help("Experiment config (dense or sparse: the other variant is the same config with another "
+                             "backbone)"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
               help="KITTI-format dataset folder (training/ + ImageSets/).")
 @click.option("--split", default="test", show_default=True, help="ImageSets split.")
@@ -29,7 +32,7 @@ def ops(config_path: str, data_dir: str, split: str, frames: int, start: int, as
     (input, output, tap) triples x C_in x C_out, from the sparse backbone's own index tables on the frame's real
     pillars), the paper's Table I upper bound at that frame's density D, and what detector.sparse computes with its
     zero taps. Example:
-      detector ops --config configs/models/mpchair_sparse.yaml --data dataset/ --frames 50
+      detector ops --config mpchair_sparse --data dataset/ --frames 50
     """
     from detector.opcount import count_dataset, format_counts
     from mpchair.core.atomic import check_writable, write_text

@@ -7,14 +7,17 @@ from pathlib import Path
 
 import click
 
+from detector.commands import PRETRAINED_HELP, config_help
 from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
 
 @click.command("stream-eval", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Stream folder (mpchair stream).")
-@click.option("--config", type=click.Path(path_type=Path), help="Experiment config of the model.")
-@click.option("--checkpoint", type=click.Path(path_type=Path), help="Trained checkpoint of the model.")
+@click.option("--config", type=click.Path(path_type=Path), metavar="NAME|YAML",
+              help=config_help("Experiment config of the model"))
+@click.option("--checkpoint", type=click.Path(path_type=Path),
+              help=f"Trained checkpoint of the model ({PRETRAINED_HELP}).")
 @click.option("--results", type=click.Path(path_type=Path),
               help="Offline outputs of any detector: RESULTS/NN/NNNNNN.txt, 16-column KITTI result files.")
 @click.option("--oracle", is_flag=True, help="A perfect detector: each frame's own labels with score 1.")
@@ -59,7 +62,7 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
 
     \b
     Examples:
-      detector stream-eval --data stream/ --config configs/models/mpchair_sparse_cpu.yaml \\
+      detector stream-eval --data stream/ --config mpchair_sparse_cpu \\
                            --checkpoint runs/sparse/last.pt --threads 2 --json-out sparse-ego.json
       detector stream-eval --data stream/ --oracle --latency-ms 300 --mode raw
       detector stream-eval --data stream/ --results offline/ --latency-ms 120 --rerun stream.rrd

@@ -7,6 +7,8 @@ import sys
 
 import click
 
+from detector.commands import config_help
+
 
 def _say(line: str) -> None:
     """One line on stdout, above any progress bar, flushed at once (a parent such as tools/reproduce.py passes it
@@ -38,8 +40,8 @@ def _resume_command(ctx: click.Context) -> str:
 
 
 @click.command("train")
-@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
-              help="Experiment YAML (configs/models/*.yaml).")
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
+              help=config_help())
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
               help="KITTI-format dataset folder (training/ + ImageSets/).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),

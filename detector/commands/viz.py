@@ -6,12 +6,13 @@ import json
 
 import click
 
+from detector.commands import config_help
 from mpchair.core.clitools import FRAME_ID
 
 
 @click.command("viz-sparsity")
-@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False),
-              help="Experiment YAML: its geometry is used for both the dense and the sparse backbone.")
+@click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), metavar="NAME|YAML",
+              help=config_help("Experiment config: its geometry is used for both the dense and the sparse backbone"))
 @click.option("--data", "data_dir", required=True, type=click.Path(file_okay=False),
               help="KITTI-format dataset folder (training/ + ImageSets/).")
 @click.option("--frame", "frame_id", type=FRAME_ID, default=None,
@@ -33,8 +34,8 @@ def viz_sparsity(config_path: str, data_dir: str, frame_id: str | None, index: i
     Writes OUT/{dense,sparse}_{input,block1,block2,block3}.png (ny x nx, white = any non-zero channel, +x right,
     +y up; the dense backbone runs without BatchNorm, as in the paper) and OUT/panel.png (both rows together).
     Example:
-      detector viz-sparsity --config configs/models/mpchair_sparse.yaml --data dataset/ --out figs/
-      detector viz-sparsity --config configs/models/mpchair_sparse.yaml --data dataset/ --frame 12 --out figs/
+      detector viz-sparsity --config mpchair_sparse --data dataset/ --out figs/
+      detector viz-sparsity --config mpchair_sparse --data dataset/ --frame 12 --out figs/
     """
     from detector.viz import STAGES
     from detector.viz import viz_sparsity as run

@@ -4,7 +4,7 @@ training and AP on Matterport-Chair (step ``ablations``, ``make reproduce-ablati
 the session of the main run).
 
 The paper trained its ablations on KITTI Car; there is no KITTI training set here, so they are trained on this run's
-Matterport-Chair data with the sparse model's CPU schedule (``configs/models/mpchair_<ablation>_cpu.yaml``:
+Matterport-Chair data with the sparse model's CPU schedule (``detector/configs/mpchair_<ablation>_cpu.yaml``:
 ``mpchair_sparse_cpu.yaml`` with another ``backbone``), and their AP is compared with this run's dense model as the
 paper's Table III compares its own (delta to dense). Their KITTI-geometry runtime uses random weights on the vendored
 KITTI frames (``tests/data/kitti``); at the Matterport geometry the trained weights of all six models once every

@@ -83,7 +83,7 @@ from detector.reproduce.record import (
 )
 from detector.reproduce.report import write_report
 from detector.reproduce.results import ABLATIONS
-from detector.reproduce.runner import ROOT, Runner
+from detector.reproduce.runner import ROOT, Runner, checkout_problem
 from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
 from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate, step_outputs
@@ -206,6 +206,9 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
     args = _parser().parse_args(argv)
+    if checkout_problem():
+        print(f"error: {checkout_problem()}", file=sys.stderr)
+        return 2
     scale_given, args.scale = args.scale is not None, args.scale or "full"
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     bad = [s for s in steps if s not in (*STEPS, *OPT_IN_STEPS)]

@@ -528,13 +528,13 @@ def _not_in_this_run() -> list[str]:
         "## Not in this run",
         "",
         "- **GPU column** of the runtime table and a full-geometry (768 x 512) training: this run times the CPU only. "
-        "On a GPU: `detector bench --config configs/models/mpchair_dense.yaml --config "
-        "configs/models/mpchair_sparse.yaml --data DATASET --split test --device cuda --markdown` (with "
+        "On a GPU: `detector bench --config detector/configs/mpchair_dense.yaml --config "
+        "detector/configs/mpchair_sparse.yaml --data DATASET --split test --device cuda --markdown` (with "
         "`--checkpoint` per model for trained weights) and `detector train --config "
-        "configs/models/mpchair_{dense,sparse}.yaml`.",
+        "detector/configs/mpchair_{dense,sparse}.yaml`.",
         "- **The paper's KITTI results** (Car AP and runtime on KITTI): they need the KITTI object training set "
         "(7,481 frames, not redistributable; not on this machine). With it (KITTI layout plus OpenPCDet's "
-        "`ImageSets/{train,val}.txt`): `detector train --config configs/models/kitti_car_{dense,sparse}.yaml "
+        "`ImageSets/{train,val}.txt`): `detector train --config detector/configs/kitti_car_{dense,sparse}.yaml "
         "--data KITTI --out runs/kitti_{dense,sparse}`, then `detector eval` and `detector bench` with the same "
         "configs.",
         "",

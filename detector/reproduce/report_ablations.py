@@ -102,7 +102,7 @@ def ablations_section(res: Path) -> list[str]:
             "The paper trained and timed its ablations on KITTI Car. There is no KITTI training set here (only six "
             "vendored frames, enough to time at the KITTI geometry), so their AP comes from training them on this "
             "run's Matterport-Chair data with the sparse model's CPU schedule "
-            "(`configs/models/mpchair_<ablation>_cpu.yaml`); the paper's KITTI deltas are beside ours as a shape to "
+            "(`detector/configs/mpchair_<ablation>_cpu.yaml`); the paper's KITTI deltas are beside ours as a shape to "
             "compare, not as a target. Sparse+WideConv comes in two variants: the paper's text (the first SubM of "
             "every block 9x9) and its released code (a 9x9 stride-2 down-conv opening every block), which produced "
             "the paper's numbers. Each AP row is one training (one seed) of that short schedule, far from converged: "

@@ -11,6 +11,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from detector.config import CONFIG_DIR
 from detector.reproduce import deploy
 from detector.reproduce.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
@@ -21,8 +22,9 @@ STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops
          "ablation-bench", "report", "record")
 #: Steps that run only when asked for (``--steps``): the ablations' trainings (``make reproduce-ablations``).
 OPT_IN_STEPS = ("ablations",)
-#: The experiment configs the commands name (read when a command line is built, so a test may point it elsewhere).
-CONFIGS = ROOT / "configs" / "models"
+#: The experiment configs the commands name: the packaged ones (read when a command line is built, so a test may
+#: point it elsewhere).
+CONFIGS = CONFIG_DIR
 
 
 def house_ids(houses_dir: Path) -> list[str]:
@@ -112,7 +114,7 @@ def _tool(name: str) -> str:
 
 
 def _config(name: str) -> str:
-    """Path of ``configs/models/<name>.yaml`` (``mpchair_dense_cpu``, ...)."""
+    """Path of ``detector/configs/<name>.yaml`` (``mpchair_dense_cpu``, ...)."""
     return str(CONFIGS / f"{name}.yaml")
 
 

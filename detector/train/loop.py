@@ -12,7 +12,7 @@ import contextlib
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import NamedTuple, get_args
 
@@ -21,7 +21,7 @@ from torch import nn
 from tqdm import tqdm
 
 from detector.checkpoint import Checkpoint, save_checkpoint
-from detector.config import ExperimentConfig, Precision, load_experiment
+from detector.config import ExperimentConfig, Precision, experiment_from_dict, load_experiment
 from detector.data import GTDatabase, KittiDataset, TrainingSet
 from detector.data.experiment import augment_options, open_split
 from detector.device import pin_memory
@@ -61,6 +61,7 @@ from detector.train.resume import (
 from detector.train.run_folder import DATABASE_FILE, load_or_build_database, shared_database, write_run_files
 from detector.train.schedule import build_scheduler, check_warmup
 from detector.train.step import ModelAndOptimiser, StepSettings, train_step
+from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
 from mpchair.kitti import imageset_path
@@ -142,7 +143,7 @@ class RunPlan:
 
 
 def train(
-    config_path: str | Path,
+    config: str | Path | ExperimentConfig,
     data_dir: str | Path,
     out_dir: str | Path,
     *,
@@ -157,9 +158,12 @@ def train(
     eval_split: str = "val",
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    overrides: Mapping | None = None,
 ) -> TrainResult:
-    """Train the experiment ``config_path`` on ``data_dir`` (KITTI layout) into the run folder ``out_dir``.
+    """Train the experiment ``config`` on ``data_dir`` (KITTI layout) into the run folder ``out_dir``.
 
+    ``config`` is a YAML path, a packaged config's name or an :class:`ExperimentConfig` built in memory (checked like
+    a file); ``overrides`` (a nested mapping like the YAML's) goes on top of a path or name (:func:`load_experiment`).
     ``epochs`` overrides ``train.epochs`` and ``precision`` ``train.precision``; ``max_steps`` stops after that many
     global steps (counted over the whole run, resumed parts included) and saves ``last.pt``, ``max_minutes`` does the
     same after that much wall time (at the next step boundary); ``resume`` continues
@@ -183,7 +187,8 @@ def train(
     if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
         raise InputError(f"--max-minutes must be a finite number > 0, got {max_minutes}")
     deadline = None if max_minutes is None else time.monotonic() + 60.0 * max_minutes
-    cfg = _experiment(config_path, epochs=epochs, precision=precision, device=dev)
+    config_path = str(config) if not isinstance(config, ExperimentConfig) else "<experiment in memory>"
+    cfg = _experiment(config, overrides, epochs=epochs, precision=precision, device=dev)
     out = Path(out_dir)
     checkpoint = read_resume_checkpoint(out / "last.pt", cfg, resume=resume, config_path=config_path)
     frames = open_split(cfg, data_dir, split)
@@ -210,11 +215,18 @@ def train(
             return _run(run, checkpoint, database, new_database)
 
 
-def _experiment(config_path: str | Path, *, epochs: int | None, precision: str | None,
-                device: torch.device) -> ExperimentConfig:
-    """The experiment of ``config_path`` with ``--epochs`` / ``--precision`` applied (bf16 refused on a CUDA device
-    without it)."""
-    cfg = load_experiment(config_path)
+def _experiment(config: str | Path | ExperimentConfig, overrides: Mapping | None, *, epochs: int | None,
+                precision: str | None, device: torch.device) -> ExperimentConfig:
+    """The experiment of ``config`` (+ ``overrides``) with ``--epochs`` / ``--precision`` applied (bf16 refused on a
+    CUDA device without it)."""
+    if isinstance(config, ExperimentConfig):
+        if overrides:
+            raise InputError("overrides apply to a config file or name; change an in-memory experiment directly")
+        config_path = "<experiment in memory>"
+        cfg = experiment_from_dict(to_dict(config), source=config_path)  # the same checks as a file gets
+    else:
+        config_path = str(config)
+        cfg = load_experiment(config, overrides)
     if epochs is not None:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, epochs=epochs))
     if precision is not None:

@@ -217,7 +217,7 @@ def long_run_warning(todo: int, first_step_s: float) -> str | None:
         return None
     return (f"warning: the first step took {first_step_s:.0f} s: even at half that pace the {todo:,} steps take "
             f"~{lower / 86400:.0f} days on this machine; on a CPU, train the "
-            "configs/models/*_cpu.yaml configs (sized for 2 cores) or pass --max-steps")
+            "*_cpu configs (e.g. --config mpchair_sparse_cpu, sized for 2 cores) or pass --max-steps")
 
 
 def estimate_line(todo: int, per_step: float, validation: str, total: float | None = None) -> str:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from mpchair.commands import sensor_help
 from mpchair.core.errors import InputError
 
 
@@ -28,7 +29,7 @@ def _parse_shard(value: str) -> tuple[int, int]:
 @click.option("--frames", required=True, type=int, help="Frames per house.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Dataset folder.")
 @click.option("--sensor", default="mp3d-depth90", show_default=True,
-              help="Sensor profile: a name in configs/sensors/ (mp3d-depth90, lidar64, lidar16) or a YAML path.")
+              help=sensor_help())
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed: same seed, same bytes.")
 @click.option("--height", default=1.0, show_default=True, type=float,
               help="Sensor height above the floor, metres (1.0 = paper, 1.25 = original code).")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import click
 
+from mpchair.commands import sensor_help
+
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--root", required=True, type=click.Path(path_type=Path),
@@ -32,7 +34,7 @@ import click
               help="Where the robot may drive: the house's floor polygons (regions) or its habitat navmesh; auto: the "
                    "navmesh when the house has one.")
 @click.option("--sensor", default="mp3d-depth90", show_default=True,
-              help="Sensor profile: a name in configs/sensors/ (mp3d-depth90, lidar64, lidar16) or a YAML path.")
+              help=sensor_help())
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed: same seed, same bytes.")
 @click.option("--height", default=1.0, show_default=True, type=float, help="Sensor height above the floor, m.")
 @click.option("--robot-radius", default=0.25, show_default=True, type=float, help="Clearance radius, m.")

@@ -9,10 +9,12 @@ hashable and immutable.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 import re
 import types
 import typing
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -137,6 +139,108 @@ def at_key_line(e: InputError, path: str | Path) -> InputError:
                     best = (n, line)
                 break
     return e if best is None else InputError(e.message, e.path, best[1])
+
+
+#: Suffixes that make a ``--config`` / ``--sensor`` value a file name rather than a packaged name.
+YAML_SUFFIXES = (".yaml", ".yml")
+
+
+def package_folder(package: str, name: str) -> Path:
+    """The folder ``name`` shipped inside ``package`` as package data (found through :mod:`importlib.resources`, so
+    the same in a checkout, an editable install and an installed wheel)."""
+    folder = importlib.resources.files(package) / name
+    # pip unpacks wheels, so the package data are real files; a zip import would need as_file() for every read.
+    if not isinstance(folder, Path):
+        raise RuntimeError(f"{package} is installed as a zip archive; install it unpacked (pip does) to read {name}/")
+    return folder
+
+
+def packaged_names(folder: Path) -> list[str]:
+    """Names (file stems) of the YAML files shipped in the package folder ``folder``, sorted."""
+    return sorted(p.stem for p in Path(folder).iterdir() if p.suffix in YAML_SUFFIXES and p.is_file())
+
+
+def resolve_named_file(name_or_path: str | Path, folder: Path, what: str) -> Path:
+    """The YAML file meant by ``name_or_path``: an existing file (a path wins), else a name packaged in ``folder``.
+
+    ``what`` names the kind in errors (``sensor``, ``config``). A value that looks like a path (a folder separator or
+    a ``.yaml`` suffix) but names no file, or an unknown name, is an :class:`InputError` listing the packaged names.
+    """
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    text = str(name_or_path)
+    names = packaged_names(folder)
+    looks_like_path = p.suffix in YAML_SUFFIXES or "/" in text or "\\" in text
+    if not looks_like_path and text in names:
+        return Path(folder) / f"{text}.yaml"
+    listed = ", ".join(names) or "none"
+    if looks_like_path:
+        raise InputError(f"{what} file not found (packaged {what}s, available by name: {listed})", p)
+    # the name of neither a file nor a packaged one (the wording docs/generate.md lists for --sensor)
+    raise InputError(f"unknown {what} {text!r} (available: {listed})")
+
+
+#: The key with which a YAML file names the file it derives from (OpenPCDet's spelling).
+BASE_KEY = "_BASE_CONFIG_"
+
+
+def load_derived_yaml(
+    path: str | Path,
+    *,
+    named_base: Callable[[str], Path | None] | None = None,
+    check_base: Callable[[dict, Path], None] | None = None,
+    _chain: tuple[Path, ...] = (),
+) -> dict:
+    """:func:`load_yaml` of ``path`` with the file it derives from merged underneath: a top-level ``_BASE_CONFIG_``
+    names one base, either a YAML path (relative to ``path``'s folder) or a name that ``named_base`` turns into a file
+    (the detector's packaged configs); the file's own keys go on top (:func:`merge_config`). Bases may derive in turn.
+
+    ``check_base(data, base_path)`` validates each base's merged mapping on its own, so that a bad key is reported
+    against the file that holds it. A missing base, a base value of the wrong type or a cycle of bases is an
+    :class:`InputError` naming ``path``.
+    """
+    path = Path(path)
+    data = load_yaml(path)
+    if BASE_KEY not in data:
+        return data
+    base = _base_file(data.pop(BASE_KEY), path, named_base)
+    chain = (*_chain, path.resolve())
+    if base.resolve() in chain:
+        loop = " -> ".join(p.name for p in (*chain, base))
+        raise InputError(f"{BASE_KEY} cycle: {loop}", path)
+    base_data = load_derived_yaml(base, named_base=named_base, check_base=check_base, _chain=chain)
+    if check_base is not None:
+        check_base(base_data, base)
+    return merge_config(base_data, data)
+
+
+def _base_file(value: object, path: Path, named_base: Callable[[str], Path | None] | None) -> Path:
+    """The file named by ``path``'s ``_BASE_CONFIG_`` value: a YAML path relative to ``path``'s folder, or a name."""
+    if not isinstance(value, str) or not value:
+        raise InputError(f"{BASE_KEY}: expected a YAML path or a config name, got {value!r}", path)
+    if Path(value).suffix in YAML_SUFFIXES or "/" in value:
+        base = path.parent / value
+        if not base.is_file():
+            raise InputError(f"{BASE_KEY}: base file {value!r} not found (looked for {base})", path)
+        return base
+    base = named_base(value) if named_base is not None else None
+    if base is None:
+        raise InputError(f"{BASE_KEY}: {value!r} is not a known config name (give a YAML path, relative to this "
+                         "file's folder)", path)
+    return base
+
+
+def merge_config(base: Mapping, changes: Mapping) -> dict:
+    """``base`` with ``changes`` on top: nested mappings merge key by key, any other value (a list included) replaces
+    the base's."""
+    out = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge_config(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def load_config(cls: type[T], path: str | Path) -> T:

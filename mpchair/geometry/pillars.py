@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.config import at_key_line, from_dict, load_yaml
+from mpchair.core.config import at_key_line, from_dict, load_derived_yaml
 from mpchair.core.errors import InputError
 
 
@@ -125,8 +125,9 @@ def geometry_from_model_yaml(path: str | Path) -> PseudoimageGeometry:
     """The pseudoimage geometry of a detector model YAML: ``model.point_cloud_range``, ``model.voxel_size`` (first
     two used) and ``model.output_shape`` (``[ny, nx]``). Only these keys are read (``detector`` validates the rest
     when it loads the file); a missing or mistyped one, or a canvas smaller than the range's grid, is an
-    :class:`InputError` naming the file and the key."""
-    data = load_yaml(path)
+    :class:`InputError` naming the file and the key. A file that derives from another (``_BASE_CONFIG_``) reads its
+    base's keys, which must be a YAML path relative to the file (the detector's packaged configs name theirs so)."""
+    data = load_derived_yaml(path)
     try:
         return _grid_of(data, path)
     except InputError as e:  # with the line of the key at fault

@@ -1,5 +1,5 @@
-"""Scanning a house mesh: sensor profiles (``configs/sensors/*.yaml`` → :class:`SensorConfig`, their scan ray patterns
-and the virtual camera's dense pixel grid), raycasting backends behind one :class:`Raycaster` protocol (Embree
+"""Scanning a house mesh: sensor profiles (``mpchair/scan/profiles/*.yaml`` → :class:`SensorConfig`, their scan ray
+patterns and the virtual camera's dense pixel grid), raycasting backends behind one :class:`Raycaster` protocol (Embree
 through trimesh + embreex by default, Open3D's ``RaycastingScene`` as an alternative) and robot viewpoints sampled on
 free floor (inside region floor polygons, or on habitat navmesh islands: ``navmesh.py``). Rays are in the sensor
 frame (x forward, y left, z up, metres) until a pose moves them into the world frame (Matterport, z up, metres); hits

@@ -1,7 +1,8 @@
 """Sensor profiles: the scan's ray pattern, its range limits, and the virtual pinhole camera used for labels.
 
-A profile is a YAML file in ``configs/sensors/`` loaded into :class:`SensorConfig`. Every direction here is in the
-sensor frame (x forward, y left, z up); lengths are metres, angles degrees in configs and radians in code.
+A profile is a YAML file (the shipped ones in ``mpchair/scan/profiles/``, package data) loaded into
+:class:`SensorConfig`. Every direction here is in the sensor frame (x forward, y left, z up); lengths are metres,
+angles degrees in configs and radians in code.
 
 Two ray patterns:
 
@@ -27,13 +28,13 @@ from typing import Literal
 
 import numpy as np
 
-from mpchair.core.config import load_config
+from mpchair.core.config import load_config, package_folder, packaged_names, resolve_named_file
 from mpchair.core.errors import InputError
 from mpchair.geometry import make_tr_velo_to_cam
 from mpchair.kitti import Calib
 
-#: Folder of the shipped sensor profiles (``<repo>/configs/sensors``).
-SENSOR_DIR = Path(__file__).resolve().parents[2] / "configs" / "sensors"
+#: Folder of the shipped sensor profiles (``mpchair/scan/profiles``, package data: also in an installed wheel).
+SENSOR_DIR = package_folder("mpchair", "scan/profiles")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,7 +126,7 @@ class SpinningPattern:
 
 @dataclasses.dataclass(frozen=True)
 class SensorConfig:
-    """One sensor profile (``configs/sensors/<name>.yaml``).
+    """One sensor profile (``mpchair/scan/profiles/<name>.yaml``, or a YAML file of the user's).
 
     ``range_mode`` says what ``min_range`` / ``max_range`` (metres) limit: ``planar`` depth along +x (a depth camera)
     or ``euclidean`` range (a LiDAR). Hits outside the limits are dropped, as are rays that hit nothing (the
@@ -157,20 +158,15 @@ class SensorConfig:
 
 def available_sensors(sensor_dir: Path = SENSOR_DIR) -> list[str]:
     """Names of the shipped sensor profiles (YAML file stems), sorted."""
-    return sorted(p.stem for p in Path(sensor_dir).glob("*.yaml"))
+    return packaged_names(sensor_dir)
 
 
 def load_sensor(name_or_path: str | Path, sensor_dir: Path = SENSOR_DIR) -> SensorConfig:
-    """Load a sensor profile by name (``mp3d-depth90``) or by path to a YAML file.
+    """Load a sensor profile by path to a YAML file or by packaged name (``mp3d-depth90``); an existing file wins.
 
     An unknown name is an :class:`InputError` listing the available profiles; a malformed file names the file.
     """
-    p = Path(name_or_path)
-    if p.suffix not in (".yaml", ".yml"):
-        p = Path(sensor_dir) / f"{name_or_path}.yaml"
-        if not p.is_file():
-            names = ", ".join(available_sensors(sensor_dir))
-            raise InputError(f"unknown sensor {str(name_or_path)!r} (available: {names})")
+    p = resolve_named_file(name_or_path, sensor_dir, "sensor")
     try:
         return load_config(SensorConfig, p)
     except ValueError as e:  # __post_init__ consistency checks

@@ -34,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from detector.reproduce.runner import REUSE_ENV, ROOT, Runner
+from detector.reproduce.runner import REUSE_ENV, ROOT, Runner, checkout_problem
 from detector.reproduce.steps import CONFIGS
 from detector.reproduce.stream.report import houses_text, logged_text, plot_curves, results_section, write_section
 from detector.reproduce.stream.results import check_houses, read_runs, stream_frames
@@ -165,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce_stream.py``: run the steps asked for in the work folder and write the results section; 2 on
     a bad option or a missing checkpoint."""
     args = _parser().parse_args(argv)
+    if checkout_problem():
+        print(f"error: {checkout_problem()}", file=sys.stderr)
+        return 2
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     if [s for s in steps if s not in STEPS]:
         print(f"error: unknown step(s) in {args.steps!r}; choose from {list(STEPS)}", file=sys.stderr)
