@@ -169,9 +169,7 @@ def write_run_config(run: str | Path, *, model: dict | None = None, train: dict 
     with the given per-section overrides), checked by reading it back (:func:`detector.config.load_run_config`)."""
     import yaml
 
-    from detector.config import load_run_config
-
-    from detector.config import config_file, experiment_yaml
+    from detector.config import config_file, experiment_yaml, load_run_config
 
     cfg = experiment_yaml(config_file(RUN_BASE_CONFIG))
     for section, values in (("model", model), ("train", train)):
