@@ -71,6 +71,7 @@ from detector.reproduce.record import (
     MAX_FILE_BYTES,
     RecordError,
     check_dataset,
+    check_record_dest,
     read_record,
     record_scale,
     restore_record,
@@ -180,6 +181,11 @@ def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool)
     return sc, [*meta.get("notes", []), *args.note, *later]
 
 
+def _record_dest(args: argparse.Namespace, out: Path) -> Path:
+    """Where the record step writes: ``--record``, else docs/results-data for the issue's scales, else OUT/record."""
+    return args.record or (ROOT / "docs" / "results-data" if args.scale in ("full", "recipe") else out / "record")
+
+
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
     args = _parser().parse_args(argv)
@@ -215,6 +221,12 @@ def main(argv: list[str] | None = None) -> int:
         sc, notes = _scale(args), list(args.note)
         if isinstance(sc, str):
             print(f"error: {sc}", file=sys.stderr)
+            return 2
+    if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
+        try:
+            check_record_dest(_record_dest(args, out))
+        except RecordError as e:
+            print(f"error: {e}", file=sys.stderr)
             return 2
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
@@ -253,8 +265,13 @@ def main(argv: list[str] | None = None) -> int:
                     return 2
             print(f"wrote its like-for-like table into {', '.join(LIKE_FOR_LIKE_DOCS)}")
     if "record" in steps and not args.dry_run:
-        dest = args.record or (ROOT / "docs" / "results-data" if full else out / "record")
-        for rel in save_record(out, dest, args.scale, sc, notes):
+        dest = _record_dest(args, out)
+        try:
+            too_big = save_record(out, dest, args.scale, sc, notes)
+        except RecordError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        for rel in too_big:
             print(f"record: left out {rel} (over {MAX_FILE_BYTES >> 20} MB)")
         print(f"wrote the run record {dest}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")

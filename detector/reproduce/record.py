@@ -27,6 +27,11 @@ from pathlib import Path
 from detector.reproduce.runner import ROOT
 from detector.reproduce.scales import Scale
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.core.errors import InputError
+from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
+
+#: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
+COMMAND = "tools/reproduce.py --steps record"
 
 RECORD_JSON = "record.json"
 #: File kinds a record keeps (text and figures); anything else (checkpoints, ONNX / OpenVINO graphs) is left out.
@@ -47,6 +52,8 @@ class RecordError(Exception):
 def _kept(out: Path, rel: Path) -> bool:
     """Whether work-folder ``out``'s file ``rel`` (relative path) belongs in the record."""
     parts = rel.parts
+    if rel.name == MARKER:  # an output folder's ownership marker: a restored file is not the command's output
+        return False
     if parts[0] == "runs":
         # a finished training only (its ``done`` marker kept, so a restored run is not trained again); a training
         # still running or cut belongs to no step yet
@@ -92,25 +99,56 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
     return data
 
 
+def _legacy_record(folder: Path) -> set[str] | None:
+    """The files of a record written before ownership markers: its ``record.json`` lists them (None without one)."""
+    try:
+        meta = read_record(folder)
+    except RecordError:
+        return None
+    return {*(f for f in meta["files"] if isinstance(f, str)), RECORD_JSON}
+
+
+def check_record_dest(dest: Path) -> None:
+    """:class:`RecordError` unless the record step may write ``dest``: missing, empty, or a record it wrote before
+    (nothing added to it). A folder holding anything else is never replaced."""
+    try:
+        check_replaceable(dest, COMMAND, legacy=_legacy_record, option="--record")
+    except InputError as e:
+        raise RecordError(str(e)) from None
+
+
 def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) -> list[str]:
-    """Write work folder ``out``'s record into ``dest`` (replacing the files it had there; paths inside the checkout
-    made relative to it); the paths left out for their size."""
+    """Write work folder ``out``'s record into ``dest`` (paths inside the checkout made relative to it): filled
+    under a hidden name beside ``dest`` and swapped in whole, replacing an older record there (only a record: see
+    :func:`check_record_dest`). The paths left out for their size."""
+    check_record_dest(dest)
+    inside = dest.resolve()
     too_big, kept = [], {}
-    for p in sorted(q for q in out.rglob("*") if q.is_file()):
+    for p in sorted(q for q in out.rglob("*") if q.is_file() and not q.is_symlink()):
         rel = str(p.relative_to(out))
+        if inside in p.resolve().parents or Path(rel).parts[0].startswith(f".{dest.name}.work"):
+            continue  # the record itself (out/record by default) and its work folders
         if _kept(out, Path(rel)):
             data = _recorded_bytes(out, rel)
             if len(data) > MAX_FILE_BYTES:
                 too_big.append(rel)
             else:
                 kept[rel] = data
-    if dest.exists():
-        shutil.rmtree(dest)
-    for rel, data in kept.items():
-        write_bytes(dest / rel, data)
-    meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
-            "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept), "left_out_for_size": too_big}
-    write_text(dest / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
+    remove_leftovers(dest.parent, (f".{dest.name}.work",), COMMAND)
+    stage = work_dir(dest.parent, f".{dest.name}.work", COMMAND)
+    try:
+        for rel, data in kept.items():
+            write_bytes(stage / rel, data)
+        meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
+                "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept),
+                "left_out_for_size": too_big}
+        write_text(stage / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
+        try:
+            replace_folder(stage, dest, COMMAND, legacy=_legacy_record)
+        except InputError as e:
+            raise RecordError(str(e)) from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     return too_big
 
 
