@@ -16,6 +16,7 @@ import dataclasses
 import io
 import json
 import re
+import sys
 import warnings
 from pathlib import Path
 
@@ -114,10 +115,27 @@ def _from_file_dict(state: dict) -> Checkpoint:
         config=state.get("config"), format=state["format"])
 
 
+def _canonical(obj):
+    """``obj`` rebuilt with every container new and every string interned, so that pickle's memo (which writes an
+    object seen before as a back-reference) sees the same sharing whatever the objects' history: a resumed run's
+    optimiser state holds the keys it unpickled, an uninterrupted run's the interned literals, and without this the
+    same checkpoint pickled to different bytes (the ``step`` key once in full, once as a back-reference)."""
+    if isinstance(obj, str):
+        return sys.intern(obj)
+    if isinstance(obj, dict):
+        return {_canonical(k): _canonical(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_canonical(v) for v in obj)
+    return obj
+
+
 def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:
-    """Write ``checkpoint`` to ``path`` atomically, as the plain dict of tensors and plain data described above."""
+    """Write ``checkpoint`` to ``path`` atomically, as the plain dict of tensors and plain data described above; the
+    same state gives the same bytes, resumed or not (:func:`_canonical`)."""
     buf = io.BytesIO()
-    torch.save(_file_dict(checkpoint), buf)
+    torch.save(_canonical(_file_dict(checkpoint)), buf)
     write_bytes(path, buf.getbuffer())
 
 

@@ -6,6 +6,7 @@ end-of-epoch evaluation, bad settings and data. Each test asserts what is on dis
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import resource
@@ -99,6 +100,10 @@ def _finish(proc: subprocess.Popen) -> str:
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _reference(houses, tmp_path: Path, frames: int) -> dict[str, bytes]:
@@ -388,6 +393,10 @@ def test_a_kill_during_evaluation_or_a_checkpoint_write_resumes_to_the_uninterru
         a = torch.load(ref / "last.pt", weights_only=True)
         b = torch.load(run / "last.pt", weights_only=True)
         assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+        # byte-identical checkpoints (sha256), also after a resume from the epoch-1 checkpoint: the same pickle (no
+        # key memoised differently) and the same saved RNG state
+        for rel in ("last.pt", *(str(p.relative_to(ref)) for p in sorted(ref.glob("checkpoints/*.pt")))):
+            assert _sha256(run / rel) == _sha256(ref / rel), (target, rel)
         assert not [p for p in run.rglob("*") if ".tmp" in p.name or p.suffix == ".lock"]  # nothing left behind
 
 
