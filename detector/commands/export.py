@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from mpchair.core import limits
+
 
 @click.command("export")
 @click.option("--config", required=True, type=click.Path(dir_okay=False), help="Experiment YAML of the model.")
@@ -20,7 +22,7 @@ import click
               help="KITTI-format dataset whose frames calibrate int8.")
 @click.option("--calibration-split", default="train", show_default=True, help="Split of the calibration frames.")
 @click.option("--calibration-frames", type=int, default=8, show_default=True, help="Calibration frames (int8).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--seed", type=limits.SEED, default=0, show_default=True, help="Seed of the random weights.")
 def export(config: str, checkpoint: str | None, fmt: str, out_dir: str, precision: str, data_dir: str | None,
            calibration_split: str, calibration_frames: int, seed: int) -> None:
     """Export the network (backbone + neck + head, BatchNorm folded) to ONNX or OpenVINO IR.

@@ -7,6 +7,8 @@ import sys
 
 import click
 
+from mpchair.core import limits
+
 
 def _say(line: str) -> None:
     """One line on stdout, above any progress bar, flushed at once (a parent such as tools/reproduce.py passes it
@@ -51,7 +53,8 @@ def _resume_command(ctx: click.Context) -> str:
 @click.option("--resume", is_flag=True, help="Continue from OUT/last.pt (identical to an uninterrupted run).")
 @click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps (whole run) and save.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-@click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
+@click.option("--threads", type=limits.parallel_range(), default=None,
+              help="torch intra-op threads (default: torch's choice).")
 @click.option("--split", default="train", show_default=True, help="ImageSets split to train on.")
 @click.option("--eval-split", default="val", show_default=True,
               help="Split evaluated every train.eval_every epochs (skipped if the dataset lacks it).")

@@ -85,6 +85,7 @@ from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate
 from mpchair.core.doctable import write_doc_table
 from mpchair.core.errors import InputError
+from mpchair.core.limits import MAX_SEED, max_parallel
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -199,6 +200,11 @@ def main(argv: list[str] | None = None) -> int:
     if not ablations or [a for a in ablations if a not in ABLATIONS] or (args.ablation_epochs or 1) < 1:
         print(f"error: --ablations takes a comma-separated subset of {','.join(ABLATIONS)} and --ablation-epochs a "
               "number >= 1", file=sys.stderr)
+        return 2
+    most = max_parallel()
+    if not (1 <= args.threads <= most and 1 <= args.workers <= most and 0 <= args.seed <= MAX_SEED):
+        print(f"error: --threads and --workers take 1 to {most} (4 per core here), --seed 0 to {MAX_SEED}; got "
+              f"{args.threads}, {args.workers}, {args.seed}", file=sys.stderr)
         return 2
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     if args.status:
