@@ -6,6 +6,7 @@ used to segfault), non-finite or non-positive rates and durations, and ``DETECTO
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 from helpers_detector import detector_cli
@@ -84,3 +85,118 @@ def test_reproduce_bounds_threads_workers_and_seed(capsys, tmp_path):
         assert reproduce_main(["--scale", "small", "--out", str(tmp_path / "w"), "--dry-run", flag, value]) == 2
         assert "--threads and --workers take 1 to" in _one_line(capsys.readouterr().err)
     assert not (tmp_path / "w").exists()
+
+
+# --- special files, nesting and edited records -----------------------------------------------------------------------
+
+
+def _deep(n: int) -> str:
+    return '{"sequences": ' + "[" * n + "]" * n + "}"
+
+
+def test_special_files_and_deep_nesting_are_refused_not_read(tmp_path):
+    from detector.stream.data import read_stream
+    from mpchair.core.errors import InputError
+    from mpchair.core.text import load_json, read_regular
+    from mpchair.recording.sources import read_stream_meta
+
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)  # reading it would block forever
+    with pytest.raises(InputError, match=rf"^{fifo}: x is a FIFO, not a regular file"):
+        read_regular(fifo, "x")
+    (tmp_path / "dir.json").mkdir()
+    with pytest.raises(InputError, match="is a folder, not a regular file"):
+        load_json(tmp_path / "dir.json", "x")
+    (tmp_path / "zero").symlink_to("/dev/zero")  # reading it would grow without end
+    with pytest.raises(InputError, match="is a character device"):
+        read_regular(tmp_path / "zero", "x")
+    for n in (100, 100_000):
+        stream = tmp_path / f"s{n}"
+        stream.mkdir()
+        (stream / "stream.json").write_text(_deep(n))
+        with pytest.raises(InputError, match=rf"^{stream / 'stream.json'}: nested deeper than 64 levels"):
+            read_stream_meta(stream)
+        with pytest.raises(InputError, match="nested deeper than 64 levels"):
+            read_stream(stream)
+
+
+def _work_with_run(tmp_path: Path, config: str, metrics: str) -> Path:
+    run = tmp_path / "w" / "runs" / "dense"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(config)
+    (run / "metrics.jsonl").write_text(metrics)
+    return tmp_path / "w"
+
+
+def test_status_on_odd_work_folders_is_one_line_or_skips_odd_lines(tmp_path, capsys):
+    good = "train: {epochs: 2, batch_size: 2, samples_per_epoch: 4}\n"
+    odd_lines = '[1]\n{"kind": "step"}\n{"kind": "step", "step": "x", "time_s": 1}\n' + _deep(5000) + "\n"
+    work = _work_with_run(tmp_path / "a", good, odd_lines + '{"kind": "step", "step": 1, "epoch": 0, "time_s": 0.5}\n')
+    assert reproduce_main(["--status", "--out", str(work)]) == 0
+    assert "dense: step 1 / 4" in capsys.readouterr().out
+
+    step = '{"kind": "step", "step": 1, "epoch": 0, "time_s": 0.5}\n'
+    for name, config in (("zero", "train: {epochs: 2, batch_size: 0, samples_per_epoch: 4}\n"),
+                         ("yaml", "train: [1, 2\n"), ("fifo", good), ("dir", good)):
+        work = _work_with_run(tmp_path / name, config, step)
+        if name == "fifo":
+            (work / "runs/dense/metrics.jsonl").unlink()
+            os.mkfifo(work / "runs/dense/metrics.jsonl")
+        if name == "dir":
+            (work / "runs/dense/metrics.jsonl").unlink()
+            (work / "runs/dense/metrics.jsonl").mkdir()
+        assert reproduce_main(["--status", "--out", str(work)]) == 2, name
+        line = _one_line(capsys.readouterr().err)
+        assert str(work / "runs" / "dense") in line, (name, line)
+
+
+def _record(tmp_path: Path, **meta) -> Path:
+    import json
+
+    rec = tmp_path / "rec"
+    (rec / "results").mkdir(parents=True)
+    (rec / "results/a.json").write_text("{}")
+    base = {"scale": "small", "scale_sizes": {"houses": 2}, "notes": [], "dataset_sha256": None,
+            "files": ["results/a.json"]}
+    (rec / "record.json").write_text(json.dumps({**base, **meta}))
+    return rec
+
+
+@pytest.mark.parametrize("meta, needle", [
+    ({"files": [""]}, "files: expected relative paths"),
+    ({"files": [123]}, "files: expected relative paths"),
+    ({"scale_sizes": {"houses": 2, "gigantic": 1}}, "scale_sizes: unknown key 'gigantic'"),
+    ({"notes": 5}, "notes: expected a list"),
+    ({"notes": "hello"}, "notes: expected a list"),
+    ({"scale": "gigantic"}, "scale: expected one of"),
+    ({"scale_sizes": {"precision": "fp7"}}, "scale_sizes.precision"),
+    ({"scale_sizes": {"epochs": -3}}, "scale_sizes.epochs"),
+    ({"scale_sizes": {"houses": 10**12}}, "scale_sizes.houses"),
+    ({"scale_sizes": {"budget_seconds": float("nan")}}, "scale_sizes.budget_seconds"),
+    ({"files": ["results/a.json", "dataset/manifest.json"]}, "dataset_sha256: missing"),
+    ({"dataset_sha256": "abc"}, "dataset_sha256: expected 64 hex digits"),
+])
+def test_an_edited_record_is_refused_naming_the_field(meta, needle, tmp_path):
+    from detector.reproduce.record import RecordError, read_record
+
+    with pytest.raises(RecordError, match=needle):
+        read_record(_record(tmp_path, **meta))
+
+
+def test_a_record_is_restored_only_from_regular_files_inside_it(tmp_path):
+    from detector.reproduce.record import RecordError, restore_record, save_record
+    from detector.reproduce.scales import SCALES
+
+    rec = _record(tmp_path)
+    (rec / "results/a.json").unlink()
+    (rec / "results/a.json").symlink_to("/etc/passwd")
+    with pytest.raises(RecordError, match="a symbolic link"):
+        restore_record(rec, tmp_path / "out", with_dataset=False)
+    assert not (tmp_path / "out" / "results/a.json").exists()
+
+    work = tmp_path / "w"  # a link in a work folder is not saved into the next record either
+    (work / "results").mkdir(parents=True)
+    (work / "results/evil.json").symlink_to("/etc/passwd")
+    (work / "results/ok.json").write_text("{}")
+    save_record(work, tmp_path / "rec2", "small", SCALES["small"], [])
+    assert sorted(p.name for p in (tmp_path / "rec2/results").iterdir()) == ["ok.json"]

@@ -214,7 +214,12 @@ def main(argv: list[str] | None = None) -> int:
             ((scale, out),) = others.items()
             print(f"(no --scale given and no {args.scale}-scale work folder: the {scale}-scale one)")
             others = {}
-        print("\n".join(status_lines(out, others)))
+        try:
+            lines = status_lines(out, others)
+        except InputError as e:  # a file of the work folder that cannot be read: say which, never hang or trace
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print("\n".join(lines))
         return 0
     if args.from_record is not None:
         recorded = _recorded_run(args, steps, scale_given)

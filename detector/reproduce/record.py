@@ -21,19 +21,23 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
+import re
 import shutil
 from pathlib import Path
 
 from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import Scale
+from detector.reproduce.scales import SCALES, Scale
 from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.text import load_json
 
 #: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
 COMMAND = "tools/reproduce.py --steps record"
 
 RECORD_JSON = "record.json"
+SCALE_NAMES = tuple(sorted(SCALES))
 #: File kinds a record keeps (text and figures); anything else (checkpoints, ONNX / OpenVINO graphs) is left out.
 KEPT_SUFFIXES = (".json", ".jsonl", ".md", ".txt", ".log", ".yaml", ".png", ".csv")
 #: Kept files that are text: paths in them are written relative to the checkout (as the report writes them), so a
@@ -156,12 +160,56 @@ def read_record(record: Path) -> dict:
     """``record.json`` of a record folder (:class:`RecordError` when it is missing or not a record's)."""
     path = record / RECORD_JSON
     try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RecordError(f"{path}: not a run record ({e})") from None
+        meta = load_json(path, "run record", max_bytes=16 << 20)
+    except InputError as e:
+        raise RecordError(f"not a run record: {e}") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("files"), list) or "scale_sizes" not in meta:
         raise RecordError(f"{path}: not a run record (no 'files' / 'scale_sizes')")
+    _check_fields(meta, path)
     return meta
+
+
+def _check_fields(meta: dict, path: Path) -> None:
+    """:class:`RecordError` for a field of ``record.json`` that a record step never writes (checked like a config:
+    types, ranges, known keys), naming the field."""
+    def bad(field: str, why: str) -> RecordError:
+        return RecordError(f"{path}: {field}: {why}")
+
+    for rel in meta["files"]:
+        if not isinstance(rel, str) or not rel or rel.strip() != rel:
+            raise bad("files", f"expected relative paths, got {rel!r}")
+    if not isinstance(meta.get("notes", []), list) or not all(isinstance(n, str) for n in meta.get("notes", [])):
+        raise bad("notes", f"expected a list of sentences, got {meta.get('notes')!r}")
+    if not isinstance(meta.get("scale"), str) or meta["scale"] not in SCALE_NAMES:
+        raise bad("scale", f"expected one of {', '.join(SCALE_NAMES)}, got {meta.get('scale')!r}")
+    sha = meta.get("dataset_sha256")
+    if sha is None and any(isinstance(f, str) and f.startswith("dataset/") for f in meta["files"]):
+        raise bad("dataset_sha256", "missing, but the record holds a dataset: a regenerated one could not be checked")
+    if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+        raise bad("dataset_sha256", f"expected 64 hex digits, got {sha!r}")
+    sizes = meta["scale_sizes"]
+    if not isinstance(sizes, dict):
+        raise bad("scale_sizes", f"expected a mapping, got {type(sizes).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(Scale)}
+    unknown = sorted(set(sizes) - set(fields))
+    if unknown:
+        raise bad("scale_sizes", f"unknown key {unknown[0]!r} (known: {', '.join(fields)})")
+    for key, value in sizes.items():
+        if key == "precision":
+            ok = value is None or value in ("fp32", "bf16", "auto")
+        elif key == "curve_densities":
+            ok = value is None or (isinstance(value, list) and all(_number(v) and 0 < v <= 1 for v in value))
+        elif key == "budget_seconds":
+            ok = _number(value) and 0 < value <= 1e6
+        else:  # counts: houses, frames, epochs, trials
+            ok = (value is None and key == "epochs") or (
+                isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 1_000_000)
+        if not ok:
+            raise bad(f"scale_sizes.{key}", f"{value!r} is not a value a run can have")
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def record_scale(meta: dict) -> Scale:
@@ -187,6 +235,10 @@ def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
         src, dst = record / rel, out / rel
         if not src.is_file():
             raise RecordError(f"{record / RECORD_JSON}: lists {rel}, which the record does not have")
+        if any(p.is_symlink() for p in (src, *src.parents) if record in p.parents or p == src):
+            raise RecordError(f"{src}: a symbolic link; a record is restored only from regular files inside it")
+        if not src.resolve().is_relative_to(record.resolve()):
+            raise RecordError(f"{src}: lies outside the record")
         if not dst.exists():
             write_bytes(dst, src.read_bytes())
             restored.append(rel)
