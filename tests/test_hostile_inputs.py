@@ -200,3 +200,36 @@ def test_a_record_is_restored_only_from_regular_files_inside_it(tmp_path):
     (work / "results/ok.json").write_text("{}")
     save_record(work, tmp_path / "rec2", "small", SCALES["small"], [])
     assert sorted(p.name for p in (tmp_path / "rec2/results").iterdir()) == ["ok.json"]
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (("beams: 16", "beams: 100000000"), "one scan needs at least"),  # 1.8e11 rays; 100,000 beams used to hit the OOM
+    (("columns: 1800", "columns: 1e9"), "columns"),
+    (("beams: 16", "beams: 0"), "beams and columns must be whole numbers >= 1"),
+    (("width: 1024", "width: 10000000"), "one scan needs at least"),
+    (("height: 1024", "height: 10000000"), "one scan needs at least"),
+])
+def test_a_sensor_too_large_for_the_machine_is_refused_before_allocating(edit, needle, tmp_path):
+    from mpchair.core.errors import InputError
+    from mpchair.scan.sensors import load_sensor
+
+    text = (Path(__file__).resolve().parents[1] / "configs/sensors/lidar16.yaml").read_text()
+    assert edit[0] in text
+    path = tmp_path / "s.yaml"
+    path.write_text(text.replace(*edit))
+    with pytest.raises(InputError, match=needle) as e:
+        load_sensor(path)
+    assert str(e.value).startswith(str(path)) and "\n" not in str(e.value)
+
+
+def test_a_pinhole_row_step_of_zero_is_refused(tmp_path):
+    from mpchair.core.errors import InputError
+    from mpchair.scan.sensors import load_sensor
+
+    text = (Path(__file__).resolve().parents[1] / "configs/sensors/mp3d-depth90.yaml").read_text()
+    path = tmp_path / "s.yaml"
+    path.write_text(text.replace("row_step: 10", "row_step: 0"))
+    assert "row_step: 0" in path.read_text()
+    with pytest.raises(InputError, match="row_step and flat_step must be whole numbers >= 1"):
+        load_sensor(path)
+    assert load_sensor("mp3d-depth90").pinhole.row_step == 10  # the shipped sensors pass

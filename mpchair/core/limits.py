@@ -28,6 +28,11 @@ def max_parallel() -> int:
     return PER_CORE * (os.cpu_count() or 1)
 
 
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine (bytes)."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def parallel_range() -> click.IntRange:
     """``--threads`` / ``--workers``: 1 to :func:`max_parallel`."""
     return click.IntRange(1, max_parallel())
