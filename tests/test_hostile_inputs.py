@@ -233,3 +233,26 @@ def test_a_pinhole_row_step_of_zero_is_refused(tmp_path):
     with pytest.raises(InputError, match="row_step and flat_step must be whole numbers >= 1"):
         load_sensor(path)
     assert load_sensor("mp3d-depth90").pinhole.row_step == 10  # the shipped sensors pass
+
+
+def test_temporaries_of_a_killed_writer_are_removed_and_a_live_writers_kept(tmp_path):
+    import fcntl
+
+    from mpchair.core.atomic import atomic_path, remove_dead_temps
+
+    out = tmp_path / "x.rrd"
+    dead = tmp_path / ".x.rrd.0123456789ab.tmp"  # a killed `view --rerun`'s: nobody holds it
+    dead.write_bytes(b"x" * 1000)
+    mine = tmp_path / ".x.rrd.notes.tmp"  # not a temporary's name
+    mine.write_text("mine")
+    with atomic_path(out) as live:  # a live writer holds its temporary
+        Path(live).write_bytes(b"y")
+        assert remove_dead_temps(out) == [dead]
+        assert Path(live).exists() and mine.exists()
+        fd = os.open(live, os.O_RDONLY)
+        try:
+            with pytest.raises(BlockingIOError):
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        finally:
+            os.close(fd)
+    assert out.read_bytes() == b"y" and sorted(p.name for p in tmp_path.iterdir()) == [".x.rrd.notes.tmp", "x.rrd"]
