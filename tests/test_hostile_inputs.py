@@ -256,3 +256,27 @@ def test_temporaries_of_a_killed_writer_are_removed_and_a_live_writers_kept(tmp_
         finally:
             os.close(fd)
     assert out.read_bytes() == b"y" and sorted(p.name for p in tmp_path.iterdir()) == [".x.rrd.notes.tmp", "x.rrd"]
+
+
+def test_a_lone_distributed_rank_gives_up_with_one_line(tmp_path):
+    """WORLD_SIZE=2 RANK=0 with nobody else: an error after the join timeout, not a wait of the job's 6 hours."""
+    import socket
+    import subprocess
+    import sys
+
+    from helpers_detector import make_tiny_dataset, write_test_config
+
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2, seed=0)
+    cfg = write_test_config(tmp_path / "cfg.yaml", train=dict(batch_size=1, epochs=1))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "0",
+           "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "DETECTOR_JOIN_TIMEOUT_S": "2"}
+    env.pop("TORCHELASTIC_USE_AGENT_STORE", None)
+    res = subprocess.run([sys.executable, "-m", "detector", "train", "--config", str(cfg), "--data", str(data),
+                          "--out", str(tmp_path / "run"), "--threads", "1", "--no-progress"], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    assert "rank 0 of 2: the other ranks did not join" in _one_line(res.stderr)

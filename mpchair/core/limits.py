@@ -90,6 +90,17 @@ def check_environment() -> None:
         if missing:
             raise InputError(f"WORLD_SIZE={size} but {' and '.join(missing)} not set: start distributed runs with "
                              "torchrun (torchrun --nproc-per-node=N -m detector train ...), or unset WORLD_SIZE")
+        port = _int_env("MASTER_PORT", 1)
+        if port is not None and port > 65535:
+            raise InputError(f"environment variable MASTER_PORT={port} is not a port (1 to 65535)")
+    join = os.environ.get("DETECTOR_JOIN_TIMEOUT_S")
+    if join is not None:
+        try:
+            ok = 0 < float(join) <= 86400
+        except ValueError:
+            ok = False
+        if not ok:
+            raise InputError(f"environment variable DETECTOR_JOIN_TIMEOUT_S={join!r}: expected seconds in (0, 86400]")
     backend = os.environ.get("MPLBACKEND")
     if backend:
         _check_mpl_backend(backend)
