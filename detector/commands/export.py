@@ -14,7 +14,8 @@ from mpchair.core import limits
 @click.option("--format", "fmt", type=click.Choice(["onnx", "openvino"]), required=True,
               help="onnx: model.onnx; openvino: model.xml + model.bin (OpenVINO IR, converted from the ONNX graph).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Output folder (created; an older export there is replaced, any other non-empty folder refused).")
+              help="Output folder (created; an older export there, with nothing added, is replaced; any other "
+                   "non-empty folder is refused).")
 @click.option("--precision", type=click.Choice(["fp32", "int8"]), default="fp32", show_default=True,
               help="int8: post-training quantization over calibration frames (NNCF for openvino, ONNX Runtime's "
                    "quantizer for onnx); needs --data.")
