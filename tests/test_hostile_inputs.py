@@ -5,6 +5,7 @@ used to segfault), non-finite or non-positive rates and durations, and ``DETECTO
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -156,16 +157,19 @@ def _record(tmp_path: Path, **meta) -> Path:
     rec = tmp_path / "rec"
     (rec / "results").mkdir(parents=True)
     (rec / "results/a.json").write_text("{}")
-    base = {"scale": "small", "scale_sizes": {"houses": 2}, "notes": [], "dataset_sha256": None,
-            "files": ["results/a.json"]}
-    (rec / "record.json").write_text(json.dumps({**base, **meta}))
+    from detector.reproduce.scales import SCALES
+
+    sizes = dataclasses.asdict(SCALES["small"])
+    base = {"scale": "small", "notes": [], "dataset_sha256": None, "files": ["results/a.json"]}
+    meta = {**base, **meta, "scale_sizes": {**sizes, **meta.get("scale_sizes", {})}}
+    (rec / "record.json").write_text(json.dumps(meta))
     return rec
 
 
 @pytest.mark.parametrize("meta, needle", [
     ({"files": [""]}, "files: expected relative paths"),
     ({"files": [123]}, "files: expected relative paths"),
-    ({"scale_sizes": {"houses": 2, "gigantic": 1}}, "scale_sizes: unknown key 'gigantic'"),
+    ({"scale_sizes": {"gigantic": 1}}, "scale_sizes: unknown key 'gigantic'"),
     ({"notes": 5}, "notes: expected a list"),
     ({"notes": "hello"}, "notes: expected a list"),
     ({"scale": "gigantic"}, "scale: expected one of"),
@@ -280,3 +284,26 @@ def test_a_lone_distributed_rank_gives_up_with_one_line(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 2
     assert "rank 0 of 2: the other ranks did not join" in _one_line(res.stderr)
+
+
+def _small_sizes() -> dict:
+    from detector.reproduce.scales import SCALES
+
+    return dataclasses.asdict(SCALES["small"])
+
+
+@pytest.mark.parametrize("content", [b'{"a": ', b"\xff\xfe{}", b"[" * 100_000])
+def test_from_record_with_a_malformed_results_json_is_one_line(content, tmp_path, capsys):
+    """The record's report inputs are read like every work-folder file: malformed, non-UTF-8 or deeply nested JSON
+    is one line naming the file."""
+    import json
+
+    rec = tmp_path / "rec"
+    (rec / "results").mkdir(parents=True)
+    (rec / "results/eval_dense").mkdir()
+    (rec / "results/eval_dense/metrics.json").write_bytes(content)
+    (rec / "record.json").write_text(json.dumps({"scale": "small", "scale_sizes": _small_sizes(), "notes": [],
+                                                 "dataset_sha256": None, "files": ["results/eval_dense/metrics.json"]}))
+    code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 2 and "eval_dense/metrics.json" in line, line

@@ -5,6 +5,7 @@ and left byte for byte as it was. Covers the shared helper, ``tools/reproduce.py
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -136,7 +137,9 @@ def test_a_record_made_before_markers_is_still_replaced(tmp_path):
     old = tmp_path / "old"
     (old / "results").mkdir(parents=True)
     (old / "results/weights.json").write_text("{}")
-    (old / RECORD_JSON).write_text(json.dumps({"scale": "small", "scale_sizes": {}, "files": ["results/weights.json"]}))
+    sizes = dataclasses.asdict(SCALES["small"])
+    meta = {"scale": "small", "scale_sizes": sizes, "files": ["results/weights.json"]}
+    (old / RECORD_JSON).write_text(json.dumps(meta))
     save_record(work, old, "small", SCALES["small"], [])
     assert read_marker(old)["made_by"].startswith("tools/reproduce.py") and (old / "commands.log").is_file()
 

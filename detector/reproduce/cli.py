@@ -188,7 +188,16 @@ def _record_dest(args: argparse.Namespace, out: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
+    """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option
+    or a file of the work folder or record that cannot be read (one ``error:`` line naming it, no traceback)."""
+    try:
+        return _main(argv)
+    except (InputError, RecordError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     scale_given, args.scale = args.scale is not None, args.scale or "full"
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]

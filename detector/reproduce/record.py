@@ -194,6 +194,9 @@ def _check_fields(meta: dict, path: Path) -> None:
     unknown = sorted(set(sizes) - set(fields))
     if unknown:
         raise bad("scale_sizes", f"unknown key {unknown[0]!r} (known: {', '.join(fields)})")
+    missing = [k for k, f in fields.items() if k not in sizes and f.default is dataclasses.MISSING]
+    if missing:
+        raise bad("scale_sizes", f"missing key {missing[0]!r}")
     for key, value in sizes.items():
         if key == "precision":
             ok = value is None or value in ("fp32", "bf16", "auto")
