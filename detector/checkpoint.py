@@ -18,6 +18,7 @@ import json
 import re
 import sys
 import warnings
+from collections import OrderedDict
 from pathlib import Path
 
 import torch
@@ -122,6 +123,11 @@ def _canonical(obj):
     same checkpoint pickled to different bytes (the ``step`` key once in full, once as a back-reference)."""
     if isinstance(obj, str):
         return sys.intern(obj)
+    if isinstance(obj, OrderedDict):  # a state_dict: keep its type and the modules' versions in ``_metadata``
+        out = OrderedDict((_canonical(k), _canonical(v)) for k, v in obj.items())
+        if hasattr(obj, "_metadata"):
+            out._metadata = _canonical(obj._metadata)
+        return out
     if isinstance(obj, dict):
         return {_canonical(k): _canonical(v) for k, v in obj.items()}
     if isinstance(obj, list):

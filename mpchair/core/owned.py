@@ -98,8 +98,11 @@ def check_replaceable(out: Path, command: str, *, legacy: Legacy | None = None, 
     if not out.is_dir():
         raise InputError(f"exists and is not a folder; choose another {option}", out)
     real = Path(os.path.realpath(out))
-    here = Path.cwd().resolve()
-    if real == here or real in here.parents:
+    try:
+        here = Path.cwd().resolve()
+    except FileNotFoundError:  # the current folder was removed: it is nothing to protect
+        here = None
+    if here is not None and (real == here or real in here.parents):
         raise InputError(f"is the current folder or holds it, so {command} will not replace it; choose another "
                          f"{option}", out)
     if not any(real.iterdir()):
