@@ -307,3 +307,18 @@ def test_from_record_with_a_malformed_results_json_is_one_line(content, tmp_path
     code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
     line = _one_line(capsys.readouterr().err)
     assert code == 2 and "eval_dense/metrics.json" in line, line
+
+
+def test_a_checkpoint_of_another_format_says_so(tmp_path):
+    import torch
+
+    from detector.checkpoint import load_checkpoint
+    from mpchair.core.errors import InputError
+
+    path = tmp_path / "x.pt"
+    torch.save({"format": 999, "model": {}}, path)
+    with pytest.raises(InputError, match=rf"^{path}: checkpoint format 999, but this version reads format 1 only"):
+        load_checkpoint(path)
+    torch.save({"weights": {}}, path)
+    with pytest.raises(InputError, match="missing format/model keys"):
+        load_checkpoint(path)
