@@ -178,6 +178,8 @@ def _check_fields(meta: dict, path: Path) -> None:
     for rel in meta["files"]:
         if not isinstance(rel, str) or not rel or rel.strip() != rel:
             raise bad("files", f"expected relative paths, got {rel!r}")
+        if ".." in Path(rel).parts or Path(rel).is_absolute():
+            raise RecordError(f"{path}: file {rel!r} lies outside the record")
     if not isinstance(meta.get("notes", []), list) or not all(isinstance(n, str) for n in meta.get("notes", [])):
         raise bad("notes", f"expected a list of sentences, got {meta.get('notes')!r}")
     if not isinstance(meta.get("scale"), str) or meta["scale"] not in SCALE_NAMES:
