@@ -1,5 +1,10 @@
 """The run folder's own files besides checkpoints and metrics: the experiment as run (``config.yaml``), the cached
-GT-sampling database (``gt_database.npz``), and the clean-up of temp files a killed run left.
+GT-sampling database (``gt_database.npz``), the folder's ownership marker, and the clean-up of temp files a killed run
+left.
+
+A run folder is new, empty, or a run's (:mod:`mpchair.core.owned`'s marker, or an older run's ``last.pt``, or its
+``config.yaml`` beside ``metrics.jsonl``): ``detector train`` never takes over a folder that holds other files, and
+removes only temp files with the names its atomic writes give (``.<name>.<12 hex digits>.tmp``).
 
 Rank 0 writes them (the caller holds the folder's lock); the other ranks of a torchrun job read the database after a
 barrier.
@@ -30,15 +35,15 @@ _TEMP_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.tmp")
 
 def check_run_folder(out: Path) -> None:
     """Before anything is written: :class:`InputError` unless ``out`` is missing, an empty folder, or a training run's
-    folder (its marker, or an older run's ``config.yaml`` beside ``last.pt`` / ``metrics.jsonl``)."""
+    folder (its marker, or an older run's ``last.pt``, or its ``config.yaml`` beside ``metrics.jsonl``)."""
     if not out.exists():
         return
     if not out.is_dir():
         raise InputError("exists and is not a folder; choose another --out", out)
     if not any(out.iterdir()) or made_by(out, COMMAND):
         return
-    if (out / "config.yaml").is_file() and ((out / "last.pt").is_file() or (out / "metrics.jsonl").is_file()):
-        return
+    if (out / "last.pt").is_file() or ((out / "config.yaml").is_file() and (out / "metrics.jsonl").is_file()):
+        return  # a run from before markers (or its checkpoint alone: --resume reads and checks it)
     sample = sorted(p.name for p in out.iterdir())[0]
     raise InputError(f"folder is not empty and is not a training run (it holds {sample}, and no run marker); "
                      "choose another --out (an empty or new folder)", out)
