@@ -16,7 +16,9 @@ import dataclasses
 import io
 import json
 import re
+import sys
 import warnings
+from collections import OrderedDict
 from pathlib import Path
 
 import torch
@@ -115,10 +117,32 @@ def _from_file_dict(state: dict) -> Checkpoint:
         config=state.get("config"), format=state["format"])
 
 
+def _canonical(obj):
+    """``obj`` rebuilt with every container new and every string interned, so that pickle's memo (which writes an
+    object seen before as a back-reference) sees the same sharing whatever the objects' history: a resumed run's
+    optimiser state holds the keys it unpickled, an uninterrupted run's the interned literals, and without this the
+    same checkpoint pickled to different bytes (the ``step`` key once in full, once as a back-reference)."""
+    if isinstance(obj, str):
+        return sys.intern(obj)
+    if isinstance(obj, OrderedDict):  # a state_dict: keep its type and the modules' versions in ``_metadata``
+        out = OrderedDict((_canonical(k), _canonical(v)) for k, v in obj.items())
+        if hasattr(obj, "_metadata"):
+            out._metadata = _canonical(obj._metadata)
+        return out
+    if isinstance(obj, dict):
+        return {_canonical(k): _canonical(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_canonical(v) for v in obj)
+    return obj
+
+
 def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:
-    """Write ``checkpoint`` to ``path`` atomically, as the plain dict of tensors and plain data described above."""
+    """Write ``checkpoint`` to ``path`` atomically, as the plain dict of tensors and plain data described above; the
+    same state gives the same bytes, resumed or not (:func:`_canonical`)."""
     buf = io.BytesIO()
-    torch.save(_file_dict(checkpoint), buf)
+    torch.save(_canonical(_file_dict(checkpoint)), buf)
     write_bytes(path, buf.getbuffer())
 
 
@@ -144,8 +168,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         # torch's own text advises weights_only=False, which would run whatever the file holds: never repeat it
         raise InputError(f"not a detector checkpoint: torch.load cannot read it ({type(e).__name__}); a checkpoint "
                          "is the last.pt or checkpoints/epoch_NNN.pt of a detector train run", path) from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
+    if not isinstance(state, dict) or "format" not in state or "model" not in state:
         raise InputError("not a detector checkpoint (missing format/model keys)", path)
+    if state["format"] != CHECKPOINT_FORMAT:
+        raise InputError(f"checkpoint format {state['format']!r}, but this version reads format {CHECKPOINT_FORMAT} "
+                         "only (written by another version of detector?)", path)
     return _from_file_dict(state)
 
 

@@ -21,7 +21,6 @@ geometry; a config may also derive from another (``_BASE_CONFIG_: mpchair_sparse
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ from mpchair.core.config import (
     resolve_named_file,
 )
 from mpchair.core.errors import InputError
+from mpchair.core.limits import machine_memory_bytes
 from mpchair.geometry import PseudoimageGeometry, grid_size
 
 Backbone = Literal["dense", "sparse", "sparse1_dense23", "sparse12_dense3", "sparse_wide", "sparse_wide_down"]
@@ -341,11 +341,6 @@ def memory_floor_bytes(cfg: ModelConfig, batch_size: int = 1) -> int:
         c_prev = c
     pillars = max(cfg.max_pillars_train, cfg.max_pillars_test) * cfg.max_points_per_pillar * (c_in + cfg.pfn_channels)
     return 4 * (4 * weights + batch_size * (maps + pillars))
-
-
-def machine_memory_bytes() -> int:
-    """Physical memory of this machine (bytes)."""
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def check_memory(cfg: ModelConfig, source: str = "<config>", batch_size: int = 1) -> None:

@@ -10,7 +10,7 @@ the common frameworks. Every frame of the split gets a file, empty when nothing 
 
 from __future__ import annotations
 
-import os
+import re
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,10 +29,14 @@ from detector.device import use_device
 from detector.models import Detections
 from detector.pretrained import is_pretrained
 from mpchair.core.atomic import write_text
+from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
 
 RESULTS_SUBDIR = "data"  # result files go to OUT/data/<id>.txt (OpenPCDet's final_result/data layout)
+#: The writer named in the result folder's ownership marker (:mod:`mpchair.core.owned`): ``detector eval`` and the
+#: evaluations during ``detector train`` write the folder alike.
+RESULTS_COMMAND = "detector eval"
 
 
 def detections_to_labels(
@@ -146,6 +150,8 @@ def evaluate_model(
     from detector.eval.protocols import check_protocol, evaluate_protocol
 
     check_protocol(protocol)  # before the inference: an unknown protocol or a missing Open3D-ML fails at once
+    if out_dir is not None:
+        check_results_dir(out_dir)
 
     frames = KittiDataset(data_dir, split, classes=cfg.data.classes, name_map=dict(cfg.data.rename),
                           fov_crop=cfg.data.fov_crop)
@@ -169,27 +175,40 @@ def _json(result) -> str:
     return to_json(result) + "\n"
 
 
+def _legacy_results(folder: Path) -> set[str] | None:
+    """The files of a result folder written before ownership markers: nothing but ``<id>.txt`` files (None
+    otherwise)."""
+    names = [p.name for p in folder.iterdir()]
+    ok = all(re.fullmatch(r"[0-9]+\.txt", n) and (folder / n).is_file() and not (folder / n).is_symlink()
+             for n in names)
+    return set(names) if ok else None
+
+
+def check_results_dir(out_dir: str | Path) -> None:
+    """Before any inference: :class:`InputError` unless ``OUT/data`` may be (re)written: missing, empty, or result
+    files this command wrote (a folder holding anything else, such as a user's measurements, is never replaced)."""
+    check_replaceable(Path(out_dir) / RESULTS_SUBDIR, RESULTS_COMMAND, legacy=_legacy_results,
+                      option="--out (its data/ folder is replaced)")
+
+
 def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> Path:
     """Write ``OUT/data/<id>.txt`` for every id (16 columns; empty files for frames without detections).
 
-    The folder is filled under a temporary name and swapped in at the end (an older ``data`` folder is replaced).
+    The folder is filled under a hidden work name and swapped in at the end (an older ``data`` folder this command
+    wrote is replaced; any other is refused, :func:`check_results_dir`). A killed run's work folder is removed.
     """
     out = Path(out_dir)
     final = out / RESULTS_SUBDIR
-    if out.is_dir():  # what a killed run left (its pid is in the name)
-        for old in [*out.glob(f".{RESULTS_SUBDIR}.tmp*"), *out.glob(f".{RESULTS_SUBDIR}.old*")]:
-            shutil.rmtree(old, ignore_errors=True)
-    tmp = out / f".{RESULTS_SUBDIR}.tmp{os.getpid()}"
-    tmp.mkdir(parents=True)
-    for fid, lab in zip(ids, labels):
-        write_labels(tmp / f"{fid}.txt", lab)
-    if final.exists():
-        old = out / f".{RESULTS_SUBDIR}.old{os.getpid()}"
-        final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old)
-    else:
-        tmp.rename(final)
+    check_results_dir(out)
+    remove_leftovers(out, tuple(f".{RESULTS_SUBDIR}.{k}" for k in ("work", "old", "tmp")), RESULTS_COMMAND,
+                     legacy=_legacy_results)
+    stage = work_dir(out, f".{RESULTS_SUBDIR}.work", RESULTS_COMMAND)
+    try:
+        for fid, lab in zip(ids, labels):
+            write_labels(stage / f"{fid}.txt", lab)
+        replace_folder(stage, final, RESULTS_COMMAND, legacy=_legacy_results)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     return final
 
 

@@ -175,7 +175,7 @@ def test_export_cli_writes_the_folder_and_its_manifest(slim, tmp_path, capsys):
     out = tmp_path / "exported"
     code, stdout, _ = _cli(["export", "--config", slim["sparse"], "--format", "openvino", "--out", out], capsys)
     assert code == 0 and f"wrote {out}/" in stdout
-    assert sorted(p.name for p in out.iterdir()) == ["deploy.json", "model.bin", "model.xml"]
+    assert sorted(p.name for p in out.iterdir()) == [".mpchair-output.json", "deploy.json", "model.bin", "model.xml"]
     record = json.loads((out / "deploy.json").read_text())
     assert record["format"] == "openvino" and record["precision"] == "fp32" and record["backbone"] == "sparse"
     assert record["weights"].startswith("random") and record["output"]["name"] == "head"
@@ -196,12 +196,12 @@ def test_export_cli_writes_the_folder_and_its_manifest(slim, tmp_path, capsys):
 
     # a second export replaces the first; a folder that is not an export is refused, untouched
     code, _, _ = _cli(["export", "--config", slim["dense"], "--format", "onnx", "--out", out], capsys)
-    assert code == 0 and sorted(p.name for p in out.iterdir()) == ["deploy.json", "model.onnx"]
+    assert code == 0 and sorted(p.name for p in out.iterdir()) == [".mpchair-output.json", "deploy.json", "model.onnx"]
     other = tmp_path / "notes"
     other.mkdir()
     (other / "keep.txt").write_text("mine")
     code, _, err = _cli(["export", "--config", DENSE, "--format", "onnx", "--out", other], capsys)
-    assert code == 2 and err.count("\n") == 1 and "not an export" in err
+    assert code == 2 and err.count("\n") == 1 and "will not replace this folder" in err
     assert [p.name for p in other.iterdir()] == ["keep.txt"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp folder left behind
 

@@ -5,6 +5,8 @@ end-of-epoch evaluation, bad settings and data. Each test asserts what is on dis
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
 import resource
@@ -100,6 +102,10 @@ def _finish(proc: subprocess.Popen) -> str:
             os.killpg(proc.pid, signal.SIGKILL)
 
 
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def _reference(houses, tmp_path: Path, frames: int) -> dict[str, bytes]:
     """What an uninterrupted run writes (in this process)."""
     generate(_req(houses, tmp_path / "ref", frames))
@@ -176,6 +182,52 @@ def test_a_killed_pool_worker_stops_the_run_with_one_error_line_and_the_run_resu
     line = _one_error_line(err)
     assert f"worker process {workers[0]} was killed by SIGKILL" in line and "run the same command" in line
     assert not Path(f"/proc/{workers[1]}").exists()  # the other worker was stopped, not orphaned
+    res = _run(cmd + ["--json"])
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["complete"] and tree(out) == want
+
+
+def _gone(pid: int, within: float = 10.0) -> bool:
+    """Whether process ``pid`` ends (or is a zombie left for its new parent to reap) within ``within`` seconds."""
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state in ("Z", "X"):
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_a_killed_main_process_takes_its_workers_along_and_the_same_command_resumes(houses, tmp_path):
+    """SIGKILL to the main process alone (the out-of-memory killer's choice), not its group: its workers end within
+    moments instead of blocking on their pipes forever, they never held the folder lock, and the same command runs
+    at once and ends byte-identical."""
+    frames = 12
+    want = _reference(houses, tmp_path, frames)
+    out = tmp_path / "out"
+    cmd = _cmd(houses, out, frames, "--workers", "2")
+    proc = _start(cmd)
+    workers: list[int] = []
+    survivors: list[int] = []
+    try:
+        _wait_for(lambda: len(_children(proc.pid)) == 2 and any((out / ".frames").glob("*.json")), proc)
+        workers = _children(proc.pid)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        survivors = [w for w in workers if not _gone(w)]
+    finally:
+        for w in workers if proc.poll() is None or survivors else []:  # a failed test leaves no orphan either
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(w, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
+        proc.stderr.close()  # an orphan would hold the pipe open: never wait for its end
+        proc.wait()
+    assert not survivors, "workers outlived their killed parent"
+    assert len(list((out / ".frames").glob("*.json"))) < frames  # killed with frames still to make
     res = _run(cmd + ["--json"])
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["complete"] and tree(out) == want
@@ -367,6 +419,10 @@ def test_a_kill_during_evaluation_or_a_checkpoint_write_resumes_to_the_uninterru
         a = torch.load(ref / "last.pt", weights_only=True)
         b = torch.load(run / "last.pt", weights_only=True)
         assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+        # byte-identical checkpoints (sha256), also after a resume from the epoch-1 checkpoint: the same pickle (no
+        # key memoised differently) and the same saved RNG state
+        for rel in ("last.pt", *(str(p.relative_to(ref)) for p in sorted(ref.glob("checkpoints/*.pt")))):
+            assert _sha256(run / rel) == _sha256(ref / rel), (target, rel)
         assert not [p for p in run.rglob("*") if ".tmp" in p.name or p.suffix == ".lock"]  # nothing left behind
 
 

@@ -25,6 +25,7 @@ from detector.reproduce.report import write_report
 from detector.reproduce.runner import ROOT
 from detector.reproduce.scales import SCALES
 from mpchair.core.doctable import markers
+from mpchair.core.owned import MARKER
 
 
 def _work_folder(out: Path) -> Path:
@@ -58,9 +59,10 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     rec = tmp_path / "rec"
     assert save_record(out, rec, "full", SCALES["full"], ["a note."]) == []
     kept = sorted(str(p.relative_to(rec)) for p in rec.rglob("*") if p.is_file())
-    assert kept == sorted([RECORD_JSON, "commands.log", "results/weights.json", "results/eval_dense/metrics.json",
-                           "results/viz/panel.png", "runs/dense/metrics.jsonl", "runs/dense/config.yaml",
-                           "runs/dense/done", "dataset/manifest.json", "dataset/ImageSets/val.txt"])
+    assert kept == sorted([MARKER, RECORD_JSON, "commands.log", "results/weights.json",
+                           "results/eval_dense/metrics.json", "results/viz/panel.png", "runs/dense/metrics.jsonl",
+                           "runs/dense/config.yaml", "runs/dense/done", "dataset/manifest.json",
+                           "dataset/ImageSets/val.txt"])
     # paths inside the checkout are relative to it (the record reads the same in any clone)
     assert (rec / "commands.log").read_text() == "    1.0 s  .venv/bin/mpchair synth --out out/w/houses\n"
     assert json.loads((rec / "results/weights.json").read_text()) == {"weights": ["out/w/runs/dense/last.pt"]}

@@ -23,6 +23,7 @@ from detector.models import Losses, build_model
 from detector.train import epoch_frames, rank_batches, train
 from detector.train.step import all_reduce_losses
 from mpchair.core.errors import InputError
+from mpchair.core.owned import MARKER
 from mpchair.geometry import kitti_camera_to_boxes, project_boxes_to_image, wrap_angle
 from mpchair.kitti import frame_paths, read_calib, read_labels, read_velodyne, write_velodyne
 
@@ -546,7 +547,8 @@ def test_periodic_validation_logs_the_eval_of_that_epochs_weights(data, smoke_ru
         folder = run / "eval" / f"epoch_{epoch:03d}"
         assert json.loads((folder / "metrics.json").read_text()) == logged
         files = _files(folder / "data")
-        assert files == _files(tmp_path / f"epoch_{epoch}" / "data") and len(files) == 8
+        assert files == _files(tmp_path / f"epoch_{epoch}" / "data") and len(files) == 8 + 1  # + the folder's marker
+        assert MARKER in files
         detections += sum(len(b.splitlines()) for b in files.values())
     assert detections > 0  # the files compared hold detections, not only empty frames
 

@@ -7,6 +7,7 @@ import json
 import click
 
 from detector.commands import PRETRAINED_HELP, config_help
+from mpchair.core import limits
 
 
 @click.command("bench")
@@ -23,10 +24,10 @@ from detector.commands import PRETRAINED_HELP, config_help
 @click.option("--trials", type=int, default=3, show_default=True, help="Timed passes over the frames.")
 @click.option("--warmup", type=int, default=3, show_default=True, help="Untimed warm-up frames per model.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-@click.option("--threads", type=int, default=None,
+@click.option("--threads", type=limits.parallel_range(), default=None,
               help="torch intra-op threads (default: the free cores, i.e. the cores minus the 1-minute load, at "
                    "least 1; a warning when threads + load exceed the cores).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--seed", type=limits.SEED, default=0, show_default=True, help="Seed of the random weights.")
 @click.option("--peer", type=click.Choice(["open3d-ml"]), default=None,
               help="Also time Open3D-ML's own PointPillars, built like the first --config (a dense model) with its "
                    "weights, on the same frames, interleaved per frame (CPU; needs the open3d extra).")
@@ -40,10 +41,11 @@ from detector.commands import PRETRAINED_HELP, config_help
                    "compute natively (AMX / AVX512-BF16 / VNNI flags) is skipped with a note.")
 @click.option("--calibration-split", default="train", show_default=True, help="Split of the int8 calibration frames.")
 @click.option("--calibration-frames", type=int, default=8, show_default=True, help="int8 calibration frames.")
-@click.option("--rate", type=float, default=None,
+@click.option("--rate", type=limits.FiniteFloat(0.0, 1e4), default=None,
               help="CPU budget mode: run each model x runtime x precision on its own at this sensor rate (Hz) for "
                    "--duration s and report CPU share, deadline misses, latency p50 / p95 and peak RSS.")
-@click.option("--duration", type=float, default=30.0, show_default=True, help="Seconds per row in --rate mode.")
+@click.option("--duration", type=limits.FiniteFloat(0.0, 1e6), default=30.0, show_default=True,
+              help="Seconds per row in --rate mode.")
 @click.option("--json", "as_json", is_flag=True, help="Print the full result as JSON instead of the table.")
 @click.option("--json-out", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Also write the full result as JSON to this file (the table is still printed).")

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from detector.commands import PRETRAINED_HELP, config_help
+from mpchair.core import limits
 from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
@@ -59,7 +60,7 @@ def _ids_for(labels: Path, split: str | None) -> list[str]:
               help="Checkpoint mode: folder for result files and metrics.json (metrics_open3d_ml.json with "
               "--protocol open3d-ml; default: beside the checkpoint).")
 @click.option("--device", default="cpu", show_default=True, help="Checkpoint mode: cpu or cuda.")
-@click.option("--threads", type=int, help="Checkpoint mode: torch CPU threads.")
+@click.option("--threads", type=limits.parallel_range(), help="Checkpoint mode: torch CPU threads.")
 @click.option("--runtime", type=click.Choice(["torch", "onnxruntime", "openvino"]), default="torch", show_default=True,
               help="Checkpoint mode: run the network exported, in this runtime (detector export; the deploy extra).")
 @click.option("--precision", type=click.Choice(["fp32", "bf16", "int8"]), default="fp32", show_default=True,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from detector.commands import PRETRAINED_HELP, config_help
+from mpchair.core import limits
 
 
 @click.command("export")
@@ -15,7 +16,8 @@ from detector.commands import PRETRAINED_HELP, config_help
 @click.option("--format", "fmt", type=click.Choice(["onnx", "openvino"]), required=True,
               help="onnx: model.onnx; openvino: model.xml + model.bin (OpenVINO IR, converted from the ONNX graph).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Output folder (created; an older export there is replaced, any other non-empty folder refused).")
+              help="Output folder (created; an older export there, with nothing added, is replaced; any other "
+                   "non-empty folder is refused).")
 @click.option("--precision", type=click.Choice(["fp32", "int8"]), default="fp32", show_default=True,
               help="int8: post-training quantization over calibration frames (NNCF for openvino, ONNX Runtime's "
                    "quantizer for onnx); needs --data.")
@@ -23,7 +25,7 @@ from detector.commands import PRETRAINED_HELP, config_help
               help="KITTI-format dataset whose frames calibrate int8.")
 @click.option("--calibration-split", default="train", show_default=True, help="Split of the calibration frames.")
 @click.option("--calibration-frames", type=int, default=8, show_default=True, help="Calibration frames (int8).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--seed", type=limits.SEED, default=0, show_default=True, help="Seed of the random weights.")
 def export(config: str, checkpoint: str | None, fmt: str, out_dir: str, precision: str, data_dir: str | None,
            calibration_split: str, calibration_frames: int, seed: int) -> None:
     """Export the network (backbone + neck + head, BatchNorm folded) to ONNX or OpenVINO IR.

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from detector.commands import PRETRAINED_HELP, config_help
+from mpchair.core import limits
 from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
 
@@ -40,7 +41,7 @@ from mpchair.core.errors import InputError
               help="Measured latency: median of this many runs per frame.")
 @click.option("--warmup", default=10, show_default=True, type=click.IntRange(0),
               help="Measured latency: untimed runs before the first timed one.")
-@click.option("--threads", type=int, default=None, help="torch CPU threads.")
+@click.option("--threads", type=limits.parallel_range(), default=None, help="torch CPU threads.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON instead of the table.")
 @click.option("--json-out", "json_out", type=click.Path(path_type=Path), default=None,

@@ -8,6 +8,7 @@ import sys
 import click
 
 from detector.commands import config_help
+from mpchair.core import limits
 
 
 def _say(line: str) -> None:
@@ -56,7 +57,8 @@ def _resume_command(ctx: click.Context) -> str:
               help="Stop after this much wall time (at the next step), save last.pt and print how to resume: a "
                    "long training split over sessions.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-@click.option("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice).")
+@click.option("--threads", type=limits.parallel_range(), default=None,
+              help="torch intra-op threads (default: torch's choice).")
 @click.option("--split", default="train", show_default=True, help="ImageSets split to train on.")
 @click.option("--eval-split", default="val", show_default=True,
               help="Split evaluated every train.eval_every epochs (skipped if the dataset lacks it).")

@@ -7,6 +7,7 @@ import json
 import click
 
 from detector.commands import config_help
+from mpchair.core import limits
 from mpchair.core.clitools import FRAME_ID
 
 
@@ -24,7 +25,7 @@ from mpchair.core.clitools import FRAME_ID
 @click.option("--split", default="test", show_default=True, help="ImageSets split.")
 @click.option("--dense-checkpoint", default=None, help="Trained dense weights (default: random, seeded).")
 @click.option("--sparse-checkpoint", default=None, help="Trained sparse weights (default: random, seeded).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random weights.")
+@click.option("--seed", type=limits.SEED, default=0, show_default=True, help="Seed of the random weights.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def viz_sparsity(config_path: str, data_dir: str, frame_id: str | None, index: int | None, out_dir: str, split: str,
                  dense_checkpoint: str | None, sparse_checkpoint: str | None, seed: int, as_json: bool) -> None:

@@ -3,9 +3,11 @@
 ``DIR/model.onnx`` (``--format onnx``) or ``DIR/model.xml`` + ``model.bin`` (``--format openvino``), fp32 or int8
 (quantized over calibration frames, :mod:`detector.deploy.quantize`), and ``DIR/deploy.json``: the format, the
 precision, the model (config, backbone, head, weights), the graph's inputs and output (names, dtypes, shapes, with
-the dynamic site counts named ``n0``.. ``n3``) and the versions. The folder is filled under a temporary name and
-renamed into place when everything is written (an older export there is replaced), under a lock, so a failed or
-killed export leaves no partial folder.
+the dynamic site counts named ``n0``.. ``n3``) and the versions. The folder is filled under a hidden work name,
+checked (:func:`verify_export`: every file the graph refers to is inside it, and the graph loads) and swapped into
+place when everything is written, under a lock, so a failed or killed export leaves no partial folder (the next
+export removes a killed one's work folder). Only a folder ``detector export`` made (:mod:`mpchair.core.owned`'s
+marker, or an older export whose ``deploy.json`` lists every file it holds) is replaced; anything else is refused.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -28,8 +30,11 @@ from detector.deploy.extra import require
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
+from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
 
 MANIFEST = "deploy.json"
+#: The command named in the export folder's ownership marker.
+COMMAND = "detector export"
 EXPORT_PRECISIONS = ("fp32", "int8")
 
 
@@ -100,49 +105,125 @@ def export_folder(config: str | Path, checkpoint: str | Path | None, fmt: str, o
         raise InputError(f"cannot export this model: {e}", config) from None
     frames = ([f.points for f in load_eval_frames(cfg, data, calibration_split, calibration_frames)]
               if precision == "int8" else [])
-    out = Path(out_dir)
+    out = export_path(Path(out_dir))
     check_output(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(out.parent / f".{out.name}.export.lock", "detector export"), \
-            tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.work") as work:
-        graph = write_graph(eager, fmt, precision, work, calibration=frames, seed=seed)
-        inputs, output = _io_records(Path(work) / "fp32.onnx")
-        stage = Path(work) / "stage"
-        stage.mkdir()
-        files = [GRAPH_FILES[fmt]]
-        os.replace(graph, stage / files[0])
-        if fmt == "openvino":
-            files.append("model.bin")
-            os.replace(graph.with_suffix(".bin"), stage / files[1])
-        record = ExportRecord(
-            format=fmt, precision=precision, files=files, config=str(config), backbone=cfg.model.backbone,
-            head=cfg.model.head,
-            weights=str(checkpoint) if checkpoint else f"random (seed {seed}; untrained)", inputs=inputs,
-            output=output,
-            calibration=({"data": str(data), "split": calibration_split, "frames": len(frames)} if frames else None),
-            opset=OPSET, versions=_versions(fmt, precision))
-        write_text(stage / MANIFEST, json.dumps(asdict(record), indent=2) + "\n")
-        _swap_in(stage, out)
+    with folder_lock(out.parent / f".{out.name}.export.lock", "detector export", folder=out):
+        remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), COMMAND, legacy=_legacy_export)
+        work = work_dir(out.parent, f".{out.name}.work", COMMAND)
+        try:
+            return _export_into(work, out, eager, cfg, fmt, precision, frames, config=config, checkpoint=checkpoint,
+                                data=data, calibration_split=calibration_split, seed=seed)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _export_into(work: Path, out: Path, eager, cfg, fmt: str, precision: str, frames: list, *, config, checkpoint,
+                 data, calibration_split: str, seed: int) -> ExportRecord:
+    """Write the graph in ``work``, gather it (with every file it refers to) and ``deploy.json`` in ``work/stage``,
+    verify them and swap the stage in at ``out``."""
+    graph = write_graph(eager, fmt, precision, work / "graph", calibration=frames, seed=seed)
+    inputs, output = _io_records(work / "graph" / "fp32.onnx")
+    stage = work / "stage"
+    stage.mkdir()
+    files = [GRAPH_FILES[fmt]]
+    for extra in _external_files(graph, fmt):  # ONNX weights stored outside the graph (a model over 2 GiB)
+        os.replace(graph.parent / extra, stage / extra)
+        files.append(extra)
+    os.replace(graph, stage / files[0])
+    if fmt == "openvino":
+        files.append("model.bin")
+        os.replace(graph.with_suffix(".bin"), stage / "model.bin")
+    record = ExportRecord(
+        format=fmt, precision=precision, files=files, config=str(config), backbone=cfg.model.backbone,
+        head=cfg.model.head, weights=str(checkpoint) if checkpoint else f"random (seed {seed}; untrained)",
+        inputs=inputs, output=output,
+        calibration=({"data": str(data), "split": calibration_split, "frames": len(frames)} if frames else None),
+        opset=OPSET, versions=_versions(fmt, precision))
+    write_text(stage / MANIFEST, json.dumps(asdict(record), indent=2) + "\n")
+    verify_export(stage, fmt, files)
+    replace_folder(stage, out, COMMAND, legacy=_legacy_export)
     return record
 
 
+def export_path(out: Path) -> Path:
+    """Where the export goes: ``out``, or the folder a symlink ``out`` names (the link then names the new export)."""
+    return Path(os.path.realpath(out)) if out.is_symlink() else out
+
+
+def _legacy_export(folder: Path) -> set[str] | None:
+    """The files of an export written before ownership markers: its ``deploy.json`` lists them. None when ``folder``
+    holds no such ``deploy.json``."""
+    try:
+        meta = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    files = meta.get("files") if isinstance(meta, dict) else None
+    if not isinstance(files, list) or not files or not all(isinstance(f, str) and "/" not in f for f in files):
+        return None
+    return {*files, MANIFEST}
+
+
 def check_output(out: Path) -> None:
-    """:class:`InputError` unless ``out`` can become an export folder: missing, empty, or an older export (it holds
-    ``deploy.json``), in a writable folder. Anything else is never replaced."""
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder", out)
-    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
-        raise InputError(f"folder is not empty and holds no {MANIFEST} (not an export to replace); choose another "
-                         "--out", out)
-    check_writable(out, folder=True)
+    """:class:`InputError` unless ``out`` can become an export folder: missing, empty, or an export this command made
+    (nothing added to it), in a writable folder. Anything else is never replaced."""
+    check_replaceable(export_path(out), COMMAND, legacy=_legacy_export)
+    check_writable(export_path(out), folder=True)
 
 
-def _swap_in(stage: Path, out: Path) -> None:
-    """Rename the finished ``stage`` folder to ``out``, replacing an older folder there."""
-    if out.exists():
-        old = out.parent / f".{out.name}.old{os.getpid()}"
-        out.rename(old)
-        stage.rename(out)
-        shutil.rmtree(old)
+def _external_files(graph: Path, fmt: str) -> list[str]:
+    """The files an ONNX graph keeps its weights in besides itself (relative to its folder; none below 2 GiB)."""
+    if fmt != "onnx":
+        return []
+    onnx = require("onnx", "ONNX export")
+    from onnx.external_data_helper import _get_all_tensors, uses_external_data
+
+    model = onnx.load(str(graph), load_external_data=False)
+    names = []
+    for t in _get_all_tensors(model):
+        if uses_external_data(t):
+            loc = next((e.value for e in t.external_data if e.key == "location"), "")
+            if loc and loc not in names:
+                names.append(loc)
+    return names
+
+
+def verify_export(folder: Path, fmt: str, files: list[str]) -> None:
+    """Check a written export before it is reported: every file it lists is a regular file inside ``folder``, every
+    file the graph refers to is one of them, and the graph loads (ONNX: the checker over the file, external data
+    included; OpenVINO: the weights file is not empty). A failure is an error naming the folder, never a ``wrote``
+    line; weights that are not all finite give a warning."""
+    for name in files:
+        path = folder / name
+        if path.is_symlink() or not path.is_file() or path.resolve().parent != folder.resolve():
+            raise InputError(f"the export did not produce {name} inside the folder; nothing was replaced", folder)
+    if fmt == "onnx":
+        onnx = require("onnx", "ONNX export")
+        graph = folder / files[0]
+        outside = [f for f in _external_files(graph, fmt) if f not in files]
+        if outside:
+            raise InputError(f"the graph refers to {outside[0]}, which is not in the export; nothing was replaced",
+                             folder)
+        try:
+            onnx.checker.check_model(str(graph))
+            model = onnx.load(str(graph), load_external_data=True)
+        except Exception as e:  # the checker's own error types differ by version
+            raise InputError(f"the written graph does not load ({type(e).__name__}: {str(e).splitlines()[0]}); "
+                             "nothing was replaced", folder) from None
+        from onnx.numpy_helper import to_array
+
+        bad = [t.name for t in model.graph.initializer if not _finite(to_array(t))]
     else:
-        stage.rename(out)
+        if (folder / "model.bin").stat().st_size == 0:
+            raise InputError("the written OpenVINO weights file model.bin is empty; nothing was replaced", folder)
+        bad = []
+    if bad:
+        warnings.warn(f"{folder}: the exported weights hold NaN or infinite values ({bad[0]}"
+                      + (f" and {len(bad) - 1} more tensors" if len(bad) > 1 else "") + "): the model will not "
+                      "detect anything; was the checkpoint trained with a diverging loss?", stacklevel=2)
+
+
+def _finite(a) -> bool:
+    import numpy as np
+
+    return a.dtype.kind not in "fc" or bool(np.isfinite(a).all())

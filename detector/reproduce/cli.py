@@ -76,6 +76,7 @@ from detector.reproduce.record import (
     MAX_FILE_BYTES,
     RecordError,
     check_dataset,
+    check_record_dest,
     read_record,
     record_scale,
     restore_record,
@@ -89,6 +90,7 @@ from detector.reproduce.status import other_scales, status_lines
 from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate, step_outputs
 from mpchair.core.doctable import write_doc_table
 from mpchair.core.errors import InputError
+from mpchair.core.limits import MAX_SEED, max_parallel
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -203,8 +205,22 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
     return estimate_lines(est, done)
 
 
+def _record_dest(args: argparse.Namespace, out: Path) -> Path:
+    """Where the record step writes: ``--record``, else docs/results-data for the issue's scales, else OUT/record."""
+    return args.record or (ROOT / "docs" / "results-data" if args.scale in ("full", "recipe") else out / "record")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option."""
+    """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option
+    or a file of the work folder or record that cannot be read (one ``error:`` line naming it, no traceback)."""
+    try:
+        return _main(argv)
+    except (InputError, RecordError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     if checkout_problem():
         print(f"error: {checkout_problem()}", file=sys.stderr)
@@ -220,6 +236,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --ablations takes a comma-separated subset of {','.join(ABLATIONS)} and --ablation-epochs a "
               "number >= 1", file=sys.stderr)
         return 2
+    most = max_parallel()
+    if not (1 <= args.threads <= most and 1 <= args.workers <= most and 0 <= args.seed <= MAX_SEED):
+        print(f"error: --threads and --workers take 1 to {most} (4 per core here), --seed 0 to {MAX_SEED}; got "
+              f"{args.threads}, {args.workers}, {args.seed}", file=sys.stderr)
+        return 2
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     if args.status:
         others = {} if args.out is not None else other_scales(out, args.scale, tuple(sorted(SCALES)))
@@ -228,7 +249,12 @@ def main(argv: list[str] | None = None) -> int:
             ((scale, out),) = others.items()
             print(f"(no --scale given and no {args.scale}-scale work folder: the {scale}-scale one)")
             others = {}
-        print("\n".join(status_lines(out, others)))
+        try:
+            lines = status_lines(out, others)
+        except InputError as e:  # a file of the work folder that cannot be read: say which, never hang or trace
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print("\n".join(lines))
         return 0
     if args.from_record is not None:
         recorded = _recorded_run(args, steps, scale_given)
@@ -241,6 +267,12 @@ def main(argv: list[str] | None = None) -> int:
         sc, notes = _scale(args), list(args.note)
         if isinstance(sc, str):
             print(f"error: {sc}", file=sys.stderr)
+            return 2
+    if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
+        try:
+            check_record_dest(_record_dest(args, out))
+        except RecordError as e:
+            print(f"error: {e}", file=sys.stderr)
             return 2
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
@@ -282,8 +314,13 @@ def main(argv: list[str] | None = None) -> int:
                     return 2
             print(f"wrote its like-for-like table into {', '.join(LIKE_FOR_LIKE_DOCS)}")
     if "record" in steps and not args.dry_run:
-        dest = args.record or (ROOT / "docs" / "results-data" if full else out / "record")
-        for rel in save_record(out, dest, args.scale, sc, notes):
+        dest = _record_dest(args, out)
+        try:
+            too_big = save_record(out, dest, args.scale, sc, notes)
+        except RecordError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        for rel in too_big:
             print(f"record: left out {rel} (over {MAX_FILE_BYTES >> 20} MB)")
         print(f"wrote the run record {dest}")
     print(f"total time {total / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")

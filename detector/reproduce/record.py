@@ -21,14 +21,23 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
+import re
 import shutil
 from pathlib import Path
 
 from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import Scale
+from detector.reproduce.scales import SCALES, Scale
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.core.errors import InputError
+from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.text import load_json
+
+#: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
+COMMAND = "tools/reproduce.py --steps record"
 
 RECORD_JSON = "record.json"
+SCALE_NAMES = tuple(sorted(SCALES))
 #: File kinds a record keeps (text and figures); anything else (checkpoints, ONNX / OpenVINO graphs) is left out.
 KEPT_SUFFIXES = (".json", ".jsonl", ".md", ".txt", ".log", ".yaml", ".png", ".csv")
 #: Kept files that are text: paths in them are written relative to the checkout (as the report writes them), so a
@@ -47,6 +56,8 @@ class RecordError(Exception):
 def _kept(out: Path, rel: Path) -> bool:
     """Whether work-folder ``out``'s file ``rel`` (relative path) belongs in the record."""
     parts = rel.parts
+    if rel.name == MARKER:  # an output folder's ownership marker: a restored file is not the command's output
+        return False
     if parts[0] == "runs":
         # a finished training only (its ``done`` marker kept, so a restored run is not trained again); a training
         # still running or cut belongs to no step yet
@@ -92,25 +103,56 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
     return data
 
 
+def _legacy_record(folder: Path) -> set[str] | None:
+    """The files of a record written before ownership markers: its ``record.json`` lists them (None without one)."""
+    try:
+        meta = read_record(folder)
+    except RecordError:
+        return None
+    return {*(f for f in meta["files"] if isinstance(f, str)), RECORD_JSON}
+
+
+def check_record_dest(dest: Path) -> None:
+    """:class:`RecordError` unless the record step may write ``dest``: missing, empty, or a record it wrote before
+    (nothing added to it). A folder holding anything else is never replaced."""
+    try:
+        check_replaceable(dest, COMMAND, legacy=_legacy_record, option="--record")
+    except InputError as e:
+        raise RecordError(str(e)) from None
+
+
 def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) -> list[str]:
-    """Write work folder ``out``'s record into ``dest`` (replacing the files it had there; paths inside the checkout
-    made relative to it); the paths left out for their size."""
+    """Write work folder ``out``'s record into ``dest`` (paths inside the checkout made relative to it): filled
+    under a hidden name beside ``dest`` and swapped in whole, replacing an older record there (only a record: see
+    :func:`check_record_dest`). The paths left out for their size."""
+    check_record_dest(dest)
+    inside = dest.resolve()
     too_big, kept = [], {}
-    for p in sorted(q for q in out.rglob("*") if q.is_file()):
+    for p in sorted(q for q in out.rglob("*") if q.is_file() and not q.is_symlink()):
         rel = str(p.relative_to(out))
+        if inside in p.resolve().parents or Path(rel).parts[0].startswith(f".{dest.name}.work"):
+            continue  # the record itself (out/record by default) and its work folders
         if _kept(out, Path(rel)):
             data = _recorded_bytes(out, rel)
             if len(data) > MAX_FILE_BYTES:
                 too_big.append(rel)
             else:
                 kept[rel] = data
-    if dest.exists():
-        shutil.rmtree(dest)
-    for rel, data in kept.items():
-        write_bytes(dest / rel, data)
-    meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
-            "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept), "left_out_for_size": too_big}
-    write_text(dest / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
+    remove_leftovers(dest.parent, (f".{dest.name}.work",), COMMAND)
+    stage = work_dir(dest.parent, f".{dest.name}.work", COMMAND)
+    try:
+        for rel, data in kept.items():
+            write_bytes(stage / rel, data)
+        meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
+                "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept),
+                "left_out_for_size": too_big}
+        write_text(stage / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
+        try:
+            replace_folder(stage, dest, COMMAND, legacy=_legacy_record)
+        except InputError as e:
+            raise RecordError(str(e)) from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     return too_big
 
 
@@ -118,12 +160,61 @@ def read_record(record: Path) -> dict:
     """``record.json`` of a record folder (:class:`RecordError` when it is missing or not a record's)."""
     path = record / RECORD_JSON
     try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RecordError(f"{path}: not a run record ({e})") from None
+        meta = load_json(path, "run record", max_bytes=16 << 20)
+    except InputError as e:
+        raise RecordError(f"not a run record: {e}") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("files"), list) or "scale_sizes" not in meta:
         raise RecordError(f"{path}: not a run record (no 'files' / 'scale_sizes')")
+    _check_fields(meta, path)
     return meta
+
+
+def _check_fields(meta: dict, path: Path) -> None:
+    """:class:`RecordError` for a field of ``record.json`` that a record step never writes (checked like a config:
+    types, ranges, known keys), naming the field."""
+    def bad(field: str, why: str) -> RecordError:
+        return RecordError(f"{path}: {field}: {why}")
+
+    for rel in meta["files"]:
+        if not isinstance(rel, str) or not rel or rel.strip() != rel:
+            raise bad("files", f"expected relative paths, got {rel!r}")
+        if ".." in Path(rel).parts or Path(rel).is_absolute():
+            raise RecordError(f"{path}: file {rel!r} lies outside the record")
+    if not isinstance(meta.get("notes", []), list) or not all(isinstance(n, str) for n in meta.get("notes", [])):
+        raise bad("notes", f"expected a list of sentences, got {meta.get('notes')!r}")
+    if not isinstance(meta.get("scale"), str) or meta["scale"] not in SCALE_NAMES:
+        raise bad("scale", f"expected one of {', '.join(SCALE_NAMES)}, got {meta.get('scale')!r}")
+    sha = meta.get("dataset_sha256")
+    if sha is None and any(isinstance(f, str) and f.startswith("dataset/") for f in meta["files"]):
+        raise bad("dataset_sha256", "missing, but the record holds a dataset: a regenerated one could not be checked")
+    if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+        raise bad("dataset_sha256", f"expected 64 hex digits, got {sha!r}")
+    sizes = meta["scale_sizes"]
+    if not isinstance(sizes, dict):
+        raise bad("scale_sizes", f"expected a mapping, got {type(sizes).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(Scale)}
+    unknown = sorted(set(sizes) - set(fields))
+    if unknown:
+        raise bad("scale_sizes", f"unknown key {unknown[0]!r} (known: {', '.join(fields)})")
+    missing = [k for k, f in fields.items() if k not in sizes and f.default is dataclasses.MISSING]
+    if missing:
+        raise bad("scale_sizes", f"missing key {missing[0]!r}")
+    for key, value in sizes.items():
+        if key == "precision":
+            ok = value is None or value in ("fp32", "bf16", "auto")
+        elif key == "curve_densities":
+            ok = value is None or (isinstance(value, list) and all(_number(v) and 0 < v <= 1 for v in value))
+        elif key == "budget_seconds":
+            ok = _number(value) and 0 < value <= 1e6
+        else:  # counts: houses, frames, epochs, trials
+            ok = (value is None and key == "epochs") or (
+                isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 1_000_000)
+        if not ok:
+            raise bad(f"scale_sizes.{key}", f"{value!r} is not a value a run can have")
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def record_scale(meta: dict) -> Scale:
@@ -149,6 +240,10 @@ def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
         src, dst = record / rel, out / rel
         if not src.is_file():
             raise RecordError(f"{record / RECORD_JSON}: lists {rel}, which the record does not have")
+        if any(p.is_symlink() for p in (src, *src.parents) if record in p.parents or p == src):
+            raise RecordError(f"{src}: a symbolic link; a record is restored only from regular files inside it")
+        if not src.resolve().is_relative_to(record.resolve()):
+            raise RecordError(f"{src}: lies outside the record")
         if not dst.exists():
             write_bytes(dst, src.read_bytes())
             restored.append(rel)

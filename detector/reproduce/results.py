@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from pathlib import Path
 from detector.bench.result import BenchResult
 from detector.config import ExperimentConfig, load_run_config
 from detector.device import Machine
+from mpchair.core.text import parse_json, read_regular
 from mpchair.dataset.manifest import Manifest
 from mpchair.dataset.manifest import read_manifest as read_dataset_manifest
 
@@ -31,14 +33,16 @@ ABLATIONS = ("sparse1_dense23", "sparse12_dense3", "sparse_wide", "sparse_wide_d
 
 
 def read_text(path: Path) -> str | None:
-    """The text of ``path``, None when it does not exist."""
-    return path.read_text() if path.exists() else None
+    """The text of ``path``, None when it does not exist; a FIFO, a device or a folder in its place, an oversized or
+    non-UTF-8 file is an :class:`InputError` naming it (never a hang)."""
+    return read_regular(path, "a work-folder file") if path.exists() or path.is_symlink() else None
 
 
 def _read_json(path: Path) -> dict | None:
-    """The JSON object in ``path``, None when the file does not exist or is empty."""
+    """The JSON object in ``path``, None when the file does not exist or is empty; malformed or deeply nested JSON
+    is an :class:`InputError` naming it."""
     text = read_text(path)
-    return json.loads(text) if text else None
+    return parse_json(text, path) if text else None
 
 
 # --- detector eval: the KITTI protocol (metrics.json, and each validation record of a training's metrics.jsonl) -------
@@ -258,7 +262,9 @@ def read_run_config(run: Path) -> ExperimentConfig | None:
     """The experiment a run folder was trained with (``RUN/config.yaml``, read by
     :func:`detector.config.load_run_config`), None when it has none (not trained yet)."""
     path = run / "config.yaml"
-    return load_run_config(path) if path.exists() else None
+    if not read_text(path):  # (refuses a FIFO or a device in its place)
+        return None
+    return load_run_config(path)
 
 
 @dataclass(frozen=True)
@@ -303,11 +309,23 @@ def _records(run: Path, kind: str) -> list[dict]:
     last line a killed run may leave."""
     found = []
     for line in (read_text(run / "metrics.jsonl") or "").splitlines():
-        with contextlib.suppress(ValueError):
+        with contextlib.suppress(ValueError, RecursionError):
             record = json.loads(line)
-            if record.get("kind") == kind:
+            if isinstance(record, dict) and record.get("kind") == kind and _well_formed(record, kind):
                 found.append(record)
     return found
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _well_formed(record: dict, kind: str) -> bool:
+    """Whether a metrics.jsonl record has the fields its kind's reader takes (a hand-edited or foreign line is
+    skipped like a torn one)."""
+    if kind == "step":
+        return isinstance(record.get("step"), int) and _is_number(record.get("time_s"))
+    return True
 
 
 def step_records(run: Path) -> list[StepRecord]:

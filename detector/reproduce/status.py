@@ -9,6 +9,7 @@ from pathlib import Path
 from detector.reproduce.results import ABLATIONS, MODELS, read_run_config, step_records
 from detector.reproduce.steps import step_outputs
 from detector.reproduce.training import trained_schedules
+from mpchair.core.errors import InputError
 
 
 def train_status(out: Path, model: str) -> str:
@@ -25,7 +26,12 @@ def train_status(out: Path, model: str) -> str:
     if schedule is None or not steps:
         return f"{model}: not started"
     epochs, samples = schedule
-    total = epochs * (samples // read_run_config(run).train.batch_size)
+    batch = read_run_config(run).train.batch_size
+    if not isinstance(batch, int) or batch < 1 or not isinstance(epochs, int) or not isinstance(samples, int):
+        raise InputError(f"train: expected whole numbers, batch_size >= 1 (got batch_size {batch!r}, epochs "
+                         f"{epochs!r}, samples_per_epoch {samples!r}); not the config detector train wrote",
+                         run / "config.yaml")
+    total = epochs * (samples // batch)
     pace = statistics.median(r.time_s for r in steps[-200:])
     now = steps[-1]
     running = "running now" if held([run / ".train.lock"]) else "stopped (the same command resumes it)"

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mpchair.core.errors import InputError
+from mpchair.core.text import load_json
 from mpchair.kitti import Calib, Labels, read_calib, read_labels, read_poses, read_times
 
 
@@ -87,8 +88,8 @@ def read_stream(root: str | Path) -> Stream:
     meta_path = root / "stream.json"
     if not meta_path.is_file():
         raise InputError("not a complete stream folder (no stream.json; run or finish `mpchair stream`)", root)
+    meta = load_json(meta_path, "stream file")  # a FIFO, a device, nesting 100,000 deep: one line
     try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
         region = Region(float(meta["region"]["max_abs_dz"]), float(meta["region"]["max_distance"]),
                         None if meta["region"]["half_fov"] is None else float(meta["region"]["half_fov"]))
         size = (int(meta["image_size"][0]), int(meta["image_size"][1]))

@@ -62,7 +62,12 @@ def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int, pin:
     ``pin``: in page-locked memory, for a fast non-blocking copy to a GPU (:func:`detector.device.pin_memory`)."""
     if not keys:
         return iter(())
+    # Its own generator: every DataLoader iterator draws its workers' base seed from one, and the global one would
+    # then advance once per loader, so a resumed run (one more loader: the rest of the cut epoch) would save another
+    # RNG state in its checkpoints than the uninterrupted run. Samples never use it (slot k: generator (seed, epoch,
+    # k)).
     loader = torch.utils.data.DataLoader(
-        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers, pin_memory=pin
+        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers, pin_memory=pin,
+        generator=torch.Generator().manual_seed(0),
     )
     return iter(loader)

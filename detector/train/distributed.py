@@ -58,6 +58,29 @@ def resolve_device(device: str, info: DistInfo) -> torch.device:
     raise InputError(f"unknown device {device!r} (cpu or cuda)")
 
 
+#: How long the ranks of a job started by hand (not by torchrun) wait for each other before giving up.
+JOIN_TIMEOUT_S = 600.0
+
+
+def _join(info: DistInfo) -> dist.Store | None:
+    """The job's key-value store once every rank has joined it, for ranks started without torchrun's agent (which
+    rendezvouses itself: None then). A rank whose partners never come is an :class:`InputError` after
+    ``DETECTOR_JOIN_TIMEOUT_S`` seconds (default :data:`JOIN_TIMEOUT_S`) instead of a wait of the job's 6 h."""
+    if os.environ.get("TORCHELASTIC_USE_AGENT_STORE") == "True":
+        return None
+    host, port = os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"])
+    seconds = float(os.environ.get("DETECTOR_JOIN_TIMEOUT_S", JOIN_TIMEOUT_S))
+    try:  # the first rank hosts the store and waits for the others to connect; the others connect, retrying
+        store = dist.TCPStore(host, port, info.world_size, info.rank == 0, timeout=datetime.timedelta(seconds=seconds),
+                              wait_for_workers=True)
+    except RuntimeError as e:  # torch's DistStoreError / DistNetworkError
+        raise InputError(f"rank {info.rank} of {info.world_size}: the other ranks did not join at {host}:{port} "
+                         f"within {seconds:g} s ({' '.join(str(e).split())[:120]}); start every rank (torchrun "
+                         "--nproc-per-node=N -m detector train ... does)") from None
+    store.set_timeout(datetime.timedelta(hours=6))  # joined: later waits are the job's (see process_group)
+    return store
+
+
 @contextlib.contextmanager
 def process_group(info: DistInfo, device: torch.device) -> Iterator[None]:
     """Join torchrun's process group for the block (gloo on CPU, nccl on CUDA) and leave it afterwards; nothing in a
@@ -67,7 +90,8 @@ def process_group(info: DistInfo, device: torch.device) -> Iterator[None]:
         if device.type == "cuda":
             torch.cuda.set_device(device)
         # Rank 0 may evaluate or build the GT database while the others wait at a barrier: allow hours, not minutes.
-        dist.init_process_group(backend=backend, timeout=datetime.timedelta(hours=6))
+        dist.init_process_group(backend=backend, timeout=datetime.timedelta(hours=6), store=_join(info),
+                                rank=info.rank, world_size=info.world_size)
     try:
         yield
     finally:

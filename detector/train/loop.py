@@ -58,7 +58,13 @@ from detector.train.resume import (
     read_resume_checkpoint,
     restore,
 )
-from detector.train.run_folder import DATABASE_FILE, load_or_build_database, shared_database, write_run_files
+from detector.train.run_folder import (
+    DATABASE_FILE,
+    check_run_folder,
+    load_or_build_database,
+    shared_database,
+    write_run_files,
+)
 from detector.train.schedule import build_scheduler, check_warmup
 from detector.train.step import ModelAndOptimiser, StepSettings, train_step
 from mpchair.core.config import to_dict
@@ -190,6 +196,7 @@ def train(
     config_path = str(config) if not isinstance(config, ExperimentConfig) else "<experiment in memory>"
     cfg = _experiment(config, overrides, epochs=epochs, precision=precision, device=dev)
     out = Path(out_dir)
+    check_run_folder(out)  # a non-empty folder that is not a run is never taken over
     checkpoint = read_resume_checkpoint(out / "last.pt", cfg, resume=resume, config_path=config_path)
     frames = open_split(cfg, data_dir, split)
     tc = cfg.train

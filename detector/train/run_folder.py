@@ -1,5 +1,10 @@
 """The run folder's own files besides checkpoints and metrics: the experiment as run (``config.yaml``), the cached
-GT-sampling database (``gt_database.npz``), and the clean-up of temp files a killed run left.
+GT-sampling database (``gt_database.npz``), the folder's ownership marker, and the clean-up of temp files a killed run
+left.
+
+A run folder is new, empty, or a run's (:mod:`mpchair.core.owned`'s marker, or an older run's ``last.pt``, or its
+``config.yaml`` beside ``metrics.jsonl``): ``detector train`` never takes over a folder that holds other files, and
+removes only temp files with the names its atomic writes give (``.<name>.<12 hex digits>.tmp``).
 
 Rank 0 writes them (the caller holds the folder's lock); the other ranks of a torchrun job read the database after a
 barrier.
@@ -8,6 +13,7 @@ barrier.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import yaml
@@ -18,8 +24,29 @@ from detector.train.distributed import DistInfo, barrier
 from mpchair.core.atomic import write_text
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
+from mpchair.core.owned import made_by, write_marker
 
 DATABASE_FILE = "gt_database.npz"
+#: The command named in a run folder's ownership marker.
+COMMAND = "detector train"
+#: The temp files :mod:`mpchair.core.atomic` names (``.<name>.<12 hex digits>.tmp``): the only ones a run removes.
+_TEMP_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.tmp")
+
+
+def check_run_folder(out: Path) -> None:
+    """Before anything is written: :class:`InputError` unless ``out`` is missing, an empty folder, or a training run's
+    folder (its marker, or an older run's ``last.pt``, or its ``config.yaml`` beside ``metrics.jsonl``)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise InputError("exists and is not a folder; choose another --out", out)
+    if not any(out.iterdir()) or made_by(out, COMMAND):
+        return
+    if (out / "last.pt").is_file() or ((out / "config.yaml").is_file() and (out / "metrics.jsonl").is_file()):
+        return  # a run from before markers (or its checkpoint alone: --resume reads and checks it)
+    sample = sorted(p.name for p in out.iterdir())[0]
+    raise InputError(f"folder is not empty and is not a training run (it holds {sample}, and no run marker); "
+                     "choose another --out (an empty or new folder)", out)
 
 
 def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) -> tuple[GTDatabase, bool]:
@@ -44,9 +71,10 @@ def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) 
 
 
 def remove_stale_temps(out: Path) -> None:
-    """Delete temp files (``.<name>.<random>.tmp``) a killed run left in the run folder (the caller holds its lock)."""
+    """Delete temp files (``.<name>.<12 hex digits>.tmp``) a killed run left in the run folder (the caller holds its
+    lock); other files, a user's ``.notes.tmp`` included, are left alone."""
     for p in out.rglob(".*.tmp"):
-        if p.is_file():
+        if _TEMP_NAME.fullmatch(p.name) and p.is_file() and not p.is_symlink():
             p.unlink(missing_ok=True)
 
 
@@ -54,6 +82,8 @@ def write_run_files(out: Path, cfg: ExperimentConfig, database: GTDatabase | Non
     """Rank 0 at the start of a run: remove stale temp files, write ``config.yaml`` (the experiment as run) and the
     database when it was (re)built."""
     remove_stale_temps(out)
+    if not made_by(out, COMMAND):
+        write_marker(out, COMMAND, list_files=False)
     write_text(out / "config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
     if new_database:
         database.save(out / DATABASE_FILE)

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from mpchair.commands import sensor_help
+from mpchair.core import limits
 from mpchair.core.errors import InputError
 
 
@@ -30,7 +31,7 @@ def _parse_shard(value: str) -> tuple[int, int]:
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Dataset folder.")
 @click.option("--sensor", default="mp3d-depth90", show_default=True,
               help=sensor_help())
-@click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed: same seed, same bytes.")
+@click.option("--seed", default=0, show_default=True, type=limits.SEED, help="Seed: same seed, same bytes.")
 @click.option("--height", default=1.0, show_default=True, type=float,
               help="Sensor height above the floor, metres (1.0 = paper, 1.25 = original code).")
 @click.option("--robot-radius", default=0.25, show_default=True, type=float, help="Clearance radius, metres.")
@@ -48,7 +49,8 @@ def _parse_shard(value: str) -> tuple[int, int]:
                    "house).")
 @click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree", show_default=True,
               help="Raycasting backend.")
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Worker processes.")
+@click.option("--workers", default=1, show_default=True, type=limits.parallel_range(),
+              help="Worker processes (at most 4 per core).")
 @click.option("--shard", default="0/1", show_default=True,
               help="Make only block i of N contiguous blocks of frames (cluster array jobs, one process per shard, "
                    "all into one --out); the shard that finds every frame made writes ImageSets and the manifest.")

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from mpchair.commands import sensor_help
+from mpchair.core import limits
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
@@ -35,14 +36,15 @@ from mpchair.commands import sensor_help
                    "navmesh when the house has one.")
 @click.option("--sensor", default="mp3d-depth90", show_default=True,
               help=sensor_help())
-@click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed: same seed, same bytes.")
+@click.option("--seed", default=0, show_default=True, type=limits.SEED, help="Seed: same seed, same bytes.")
 @click.option("--height", default=1.0, show_default=True, type=float, help="Sensor height above the floor, m.")
 @click.option("--robot-radius", default=0.25, show_default=True, type=float, help="Clearance radius, m.")
 @click.option("--category", "categories", multiple=True, default=("chair",), show_default=True,
               help="mpcat40 class to label; repeat for several.")
 @click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree", show_default=True,
               help="Raycasting backend.")
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Worker processes.")
+@click.option("--workers", default=1, show_default=True, type=limits.parallel_range(),
+              help="Worker processes (at most 4 per core).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def stream(root: Path, houses: tuple[str, ...], episodes: int, out: Path, rate: float, speed: float,

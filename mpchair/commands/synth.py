@@ -9,12 +9,14 @@ from pathlib import Path
 
 import click
 
+from mpchair.core import limits
+
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output root; houses go to OUT/v1/scans/<id>/house_segmentations/ (habitat: OUT/mp3d/<id>/).")
 @click.option("--houses", "n", default=3, show_default=True, type=click.IntRange(1, 1000), help="Number of houses.")
-@click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed (same seed: same bytes).")
+@click.option("--seed", default=0, show_default=True, type=limits.SEED, help="Seed (same seed: same bytes).")
 @click.option("--layout", type=click.Choice(["release", "habitat"]), default="release", show_default=True,
               help="release: house_segmentations files; habitat: mp3d/<id>/<id>_semantic.ply, .house and .navmesh.")
 @click.option("--zip", "zip_files", is_flag=True,

@@ -7,7 +7,10 @@ run after SIGKILL) never sees a half-written file.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
+import re
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -18,13 +21,14 @@ def _create_temp(path: Path) -> tuple[int, Path]:
 
     Named ``.<name>.<random>.tmp`` (so a resumed run can find and delete what a killed one left) and created with
     mode 0o666, which the kernel narrows by the umask exactly as ``open(path, "w")`` would. (``tempfile.mkstemp``
-    creates 0o600 and needs a chmod and two umask calls after it, per file.)
+    creates 0o600 and needs a chmod and two umask calls after it, per file.) The descriptor holds an exclusive
+    ``flock`` on the file while it is open: :func:`remove_dead_temps` removes only temporaries nobody holds.
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     for _ in range(100):
         tmp = path.with_name(f".{path.name}.{os.urandom(6).hex()}.tmp")
         try:
-            return os.open(tmp, flags, 0o666), tmp
+            fd = os.open(tmp, flags, 0o666)
         except FileExistsError:
             continue
         except FileNotFoundError:
@@ -32,7 +36,40 @@ def _create_temp(path: Path) -> tuple[int, Path]:
         except OSError as e:
             e.filename = str(path.parent)  # name the folder that refused, not the hidden temp name nobody asked for
             raise
+        else:
+            with contextlib.suppress(OSError):  # a file system without flock: the temp is simply not claimed
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd, tmp
     raise FileExistsError(f"no free temporary name beside {path}")
+
+
+def remove_dead_temps(path: str | Path) -> list[Path]:
+    """Remove the temporaries of ``path`` that a killed writer left beside it (``.<name>.<12 hex digits>.tmp``, a
+    regular file whose writer no longer holds its lock); a temporary a live writer holds, and any other file, stay.
+    The paths removed."""
+    path = Path(path)
+    name = re.compile(re.escape(f".{path.name}.") + r"[0-9a-f]{12}\.tmp")
+    removed = []
+    try:
+        candidates = [p for p in path.parent.iterdir() if name.fullmatch(p.name)]
+    except OSError:
+        return removed
+    for p in candidates:
+        try:
+            fd = os.open(p, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        except OSError:
+            continue
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                continue
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held: a live writer's
+            os.unlink(p)
+            removed.append(p)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
 
 
 def temp_glob(name: str) -> str:
@@ -86,14 +123,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     when the block succeeds, removed when it fails. The writer must have finished writing when the block ends."""
     path = Path(path)
     fd, tmp = _create_temp(path)
-    os.close(fd)
-    try:
+    try:  # the descriptor stays open (and the temp claimed, see _create_temp) while the writer writes by name
         yield tmp
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    finally:
+        os.close(fd)
 
 
 def check_writable(path: str | Path, *, folder: bool = False) -> None:

@@ -113,6 +113,9 @@ def run_cli(group: click.Group, args: list[str] | None = None) -> None:
 def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | None]:
     """``(exit status, error line or None)`` of one run of ``group``."""
     try:
+        from mpchair.core.limits import check_environment
+
+        check_environment()  # a variable a command reads, with a value it cannot use: one line, before any work
         rv = group.main(args=args, standalone_mode=False)
     except InputError as e:
         return 2, str(e)

@@ -5,13 +5,24 @@ SIGKILL) and then waits forever for the chunk it held. Here the parent waits on 
 sentinel at once, so a death is seen within milliseconds: the remaining workers are killed and :class:`WorkerDied`
 is raised. An exception inside a worker stops the pool the same way and is re-raised in the parent. Workers are
 ``fork``ed, so ``initializer`` / ``initargs`` and ``fn`` are inherited, never pickled; tasks and results are.
+
+A worker dies with its parent, however the parent dies (SIGKILL from the out-of-memory killer included): it closes
+every pipe end it inherited but its own, so its ``recv`` sees the end of its pipe once the parent is gone; on Linux
+the kernel also sends it SIGKILL when the parent exits (``PR_SET_PDEATHSIG``), elsewhere a watchdog thread polls the
+parent. Folder locks (:mod:`mpchair.core.lock`) are closed in every forked child, so a worker never holds one.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import multiprocessing
+import os
 import signal
+import sys
+import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from multiprocessing.connection import Connection, wait
@@ -37,8 +48,43 @@ class WorkerDied(Exception):
         super().__init__(f"worker process {pid} {how}")
 
 
-def _serve(conn: Connection, fn: Callable, initializer: Callable | None, initargs: tuple) -> None:
-    """Worker loop: receive chunks of tasks, send ``(True, result)`` per task or ``(False, exception)`` and stop."""
+#: Linux's ``prctl`` option that makes the kernel signal this process when its parent exits (<linux/prctl.h>).
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int) -> None:
+    """Make this (forked) process end when process ``parent`` ends: the kernel's parent-death signal on Linux, a
+    watchdog thread polling ``getppid`` elsewhere (or where ``prctl`` cannot be called)."""
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            armed = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent:  # the parent died before the signal was armed: it will never come
+        os._exit(1)
+    if armed:
+        return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="parent-watchdog").start()
+
+
+def _serve(conn: Connection, others: list[Connection], parent: int, fn: Callable, initializer: Callable | None,
+           initargs: tuple) -> None:
+    """Worker loop: receive chunks of tasks, send ``(True, result)`` per task or ``(False, exception)`` and stop.
+
+    ``others``: the pipe ends this worker inherited from the fork (the parent's ends of every pipe so far): closed
+    first, or the worker's own ``recv`` would never see the end of its pipe when ``parent`` dies."""
+    _die_with_parent(parent)
+    for c in others:
+        with contextlib.suppress(OSError):
+            c.close()
     try:
         if initializer is not None:
             initializer(*initargs)
@@ -82,7 +128,8 @@ def imap_unordered(fn: Callable[[Any], Any], tasks: Iterable, workers: int, *, i
     try:
         for _ in range(max(1, min(workers, len(todo)))):
             parent_end, child_end = ctx.Pipe()
-            p = ctx.Process(target=_serve, args=(child_end, fn, initializer, initargs), daemon=True)
+            p = ctx.Process(target=_serve, args=(child_end, [*conns, parent_end], os.getpid(), fn, initializer,
+                                                 initargs), daemon=True)
             p.start()
             child_end.close()
             procs.append(p)

@@ -36,7 +36,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from mpchair.core.atomic import atomic_open
+from mpchair.core.atomic import atomic_open, remove_dead_temps
 from mpchair.core.errors import InputError
 from mpchair.geometry import invert_rigid, yaw_matrix
 from mpchair.kitti import frame_paths, read_poses, read_velodyne
@@ -119,6 +119,7 @@ class Bag:
 @contextlib.contextmanager
 def bag_file(out: str | Path) -> Iterator[Bag]:
     """A :class:`Bag` whose file appears at ``out`` only once the block has succeeded (``mpchair.core.atomic``)."""
+    remove_dead_temps(out)  # what a killed recording of the same file left
     with atomic_open(out, "wb") as f:
         bag = Bag(f)
         yield bag

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.atomic import atomic_path, check_writable
+from mpchair.core.atomic import atomic_path, check_writable, remove_dead_temps
 from mpchair.core.errors import InputError
 from mpchair.kitti import frame_paths, read_poses, read_velodyne
 from mpchair.recording.sources import dataset_frame_ids, frame_boxes, read_sequence, read_stream_meta
@@ -160,6 +160,7 @@ def write_error(e: Exception, folder: Path, out: str | Path, what: str) -> OSErr
 def recording(out: str | Path) -> Iterator[Recorder]:
     """A :class:`Recorder` whose file appears at ``out`` only once the block has succeeded (``mpchair.core.atomic``:
     a failure, a full disk included, leaves neither the file nor a temporary)."""
+    remove_dead_temps(out)  # what a killed recording of the same file left (up to 15 MB each)
     with atomic_path(out) as tmp:
         try:
             rec = Recorder(tmp, out=out)

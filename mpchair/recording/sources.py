@@ -3,12 +3,12 @@ sequence's times and poses, one frame's boxes. Sensor frame (x forward, y left, 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from mpchair.core.errors import InputError
+from mpchair.core.text import load_json
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import read_calib, read_labels, read_poses, read_times
 
@@ -19,10 +19,7 @@ def read_stream_meta(root: Path) -> tuple[dict, Path]:
     path = root / "stream.json"
     if not path.is_file():
         raise InputError("not a complete stream folder (no stream.json)", root)
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(f"malformed stream file ({type(e).__name__})", path) from None
+    meta = load_json(path, "stream file")  # a FIFO, a device, nesting 100,000 deep: one line
     if not isinstance(meta, dict) or not isinstance(meta.get("sequences"), dict):
         raise InputError("malformed stream file (no 'sequences' object)", path)
     return meta, path
