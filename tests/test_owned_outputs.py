@@ -121,7 +121,9 @@ def test_the_record_step_never_replaces_a_folder_it_did_not_write(tmp_path, monk
 
     rec = tmp_path / "rec"
     assert reproduce_main([*args, "--record", str(rec)]) == 0
-    assert json.loads((rec / RECORD_JSON).read_text())["files"] == ["commands.log", "results/weights.json"]
+    # (results/probe.json: the machine probe every run writes for its duration estimate)
+    assert json.loads((rec / RECORD_JSON).read_text())["files"] == ["commands.log", "results/probe.json",
+                                                                     "results/weights.json"]
     (work / "commands.log").write_text("log 2\n")
     assert reproduce_main([*args, "--record", str(rec)]) == 0  # its own record: replaced whole
     assert (rec / "commands.log").read_text() == "log 2\n"

@@ -72,6 +72,16 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     assert record_scale(meta) == SCALES["full"]
     # a finished training keeps its done marker (a restored one is not trained again); one still running is left out
     assert (rec / "runs/dense/done").read_text() == "trained\n" and not (rec / "runs/sparse_wide").exists()
+    # the accuracy study's record inside it (another command's) is carried over, never judged or dropped
+    (rec / "accuracy" / "runs").mkdir(parents=True)
+    (rec / "accuracy" / "record.json").write_text("{}\n")
+    (rec / "accuracy" / "runs" / "last.pt").write_bytes(b"study checkpoint")
+    assert save_record(out, rec, "full", SCALES["full"], ["a note."]) == []
+    assert (rec / "accuracy" / "runs" / "last.pt").read_bytes() == b"study checkpoint"
+    assert (rec / "accuracy" / "record.json").read_text() == "{}\n"
+    (rec / "stray.txt").write_text("a user's file\n")  # anything else added is still refused
+    with pytest.raises(RecordError, match="stray.txt"):
+        save_record(out, rec, "full", SCALES["full"], ["a note."])
 
 
 def test_restore_fills_what_is_missing_and_keeps_the_dataset_out_when_it_is_regenerated(tmp_path: Path) -> None:

@@ -103,6 +103,11 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
     return data
 
 
+#: Subfolders of the run record that another command owns and the record step carries over unchanged: the accuracy
+#: study's record (tools/accuracy_study.py writes docs/results-data/accuracy/).
+NESTED = ("accuracy",)
+
+
 def _legacy_record(folder: Path) -> set[str] | None:
     """The files of a record written before ownership markers: its ``record.json`` lists them (None without one)."""
     try:
@@ -116,7 +121,7 @@ def check_record_dest(dest: Path) -> None:
     """:class:`RecordError` unless the record step may write ``dest``: missing, empty, or a record it wrote before
     (nothing added to it). A folder holding anything else is never replaced."""
     try:
-        check_replaceable(dest, COMMAND, legacy=_legacy_record, option="--record")
+        check_replaceable(dest, COMMAND, legacy=_legacy_record, option="--record", nested=NESTED)
     except InputError as e:
         raise RecordError(str(e)) from None
 
@@ -148,7 +153,7 @@ def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) 
                 "left_out_for_size": too_big}
         write_text(stage / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
         try:
-            replace_folder(stage, dest, COMMAND, legacy=_legacy_record)
+            replace_folder(stage, dest, COMMAND, legacy=_legacy_record, nested=NESTED)
         except InputError as e:
             raise RecordError(str(e)) from None
     finally:
@@ -204,6 +209,8 @@ def _check_fields(meta: dict, path: Path) -> None:
             ok = value is None or value in ("fp32", "bf16", "auto")
         elif key == "curve_densities":
             ok = value is None or (isinstance(value, list) and all(_number(v) and 0 < v <= 1 for v in value))
+        elif key == "split_mode":
+            ok = value in ("frame", "house", "paper")
         elif key == "budget_seconds":
             ok = _number(value) and 0 < value <= 1e6
         else:  # counts: houses, frames, epochs, trials

@@ -69,10 +69,13 @@ def read_marker(folder: Path) -> dict | None:
     return meta
 
 
-def foreign_entry(folder: Path, command: str, *, legacy: Legacy | None = None) -> str | None:
+def foreign_entry(folder: Path, command: str, *, legacy: Legacy | None = None,
+                  nested: tuple[str, ...] = ()) -> str | None:
     """None when ``folder`` is ``command``'s own (its marker names ``command`` and lists every file in it, or
-    ``legacy`` recognises it), else the reason it is not, naming a file it holds that ``command`` did not write."""
-    entries = _entries(folder)
+    ``legacy`` recognises it), else the reason it is not, naming a file it holds that ``command`` did not write.
+    ``nested``: top-level subfolders that another command owns inside this one (left out of the comparison; see
+    :func:`replace_folder`)."""
+    entries = [e for e in _entries(folder) if Path(e).parts[0] not in nested]
     meta = read_marker(folder)
     if meta is not None and meta["made_by"] == command:
         listed = set(meta["files"]) | {MARKER}
@@ -90,7 +93,8 @@ def foreign_entry(folder: Path, command: str, *, legacy: Legacy | None = None) -
     return None
 
 
-def check_replaceable(out: Path, command: str, *, legacy: Legacy | None = None, option: str = "--out") -> None:
+def check_replaceable(out: Path, command: str, *, legacy: Legacy | None = None, option: str = "--out",
+                      nested: tuple[str, ...] = ()) -> None:
     """Before any work: :class:`InputError` naming ``out`` unless it is missing, an empty folder, or ``command``'s own
     folder (see :func:`foreign_entry`). The current folder and the folders above it are never replaced."""
     if not out.exists() and not out.is_symlink():
@@ -107,7 +111,7 @@ def check_replaceable(out: Path, command: str, *, legacy: Legacy | None = None, 
                          f"{option}", out)
     if not any(real.iterdir()):
         return
-    why = foreign_entry(real, command, legacy=legacy)
+    why = foreign_entry(real, command, legacy=legacy, nested=nested)
     if why is not None:
         raise InputError(f"will not replace this folder: {why}; choose another {option} (or empty it yourself)", out)
 
@@ -173,17 +177,23 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def replace_folder(stage: Path, out: Path, command: str, *, legacy: Legacy | None = None) -> None:
+def replace_folder(stage: Path, out: Path, command: str, *, legacy: Legacy | None = None,
+                   nested: tuple[str, ...] = ()) -> None:
     """Mark the complete folder ``stage`` (beside ``out``, same file system) as ``command``'s and put it at ``out``;
     an ``out`` already there must be ``command``'s own (checked again here: :class:`InputError` otherwise) and is
-    removed once swapped out. A symlink ``out`` keeps pointing at the new folder (the folder it names is replaced)."""
-    write_marker(stage, command)
+    removed once swapped out. A symlink ``out`` keeps pointing at the new folder (the folder it names is replaced).
+    ``nested`` subfolders of the old ``out`` belong to another command (e.g. the accuracy study's record inside the
+    run record): they are copied into the new folder unchanged, never judged or dropped."""
     if out.is_symlink():
         out = Path(os.path.realpath(out))
+    for name in nested:
+        if (out / name).is_dir() and not (out / name).is_symlink() and not (stage / name).exists():
+            shutil.copytree(out / name, stage / name, symlinks=True)
+    write_marker(stage, command)
     if not out.exists():
         stage.rename(out)
         return
-    check_replaceable(out, command, legacy=legacy)
+    check_replaceable(out, command, legacy=legacy, nested=nested)
     if _exchange(stage, out):
         shutil.rmtree(stage)  # now the old folder, checked above to be ours
         return
