@@ -50,15 +50,12 @@ from detector.bench.spconv_peer import (
 )
 from detector.checkpoint import load_model
 from detector.config import load_experiment
-from detector.device import load_1m, machine_info, oversubscription_warning, use_device, usable_cores
+from detector.device import load_1m, machine_info, oversubscription_warning, usable_cores, use_device
 from detector.models.sparse_backbone import SparseBackboneNeck
 from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.clitools import run_holding_warnings
 from mpchair.core.errors import InputError
-
-PARTS = ("blocks", "backbone_neck")
-ENGINES = ("ours", "spconv")
 
 
 def _calls(ours: SparseBackboneNeck, peer: SpconvBackboneNeck, shape: tuple[int, int], ws: Workspace,
@@ -110,7 +107,7 @@ def time_threads(calls: dict, frames: list[SiteFrame], trials: int) -> dict:
             "mean_ms": float(ms[j].mean()), "median_ms": float(np.median(ms[j])),
             "trial_means_ms": [float(v) for v in ms[j].mean(axis=1)],
             "deterministic": equal[(engine, part)], "max_run_to_run_diff": worst[(engine, part)]}
-    for part, r in rows.items():
+    for r in rows.values():
         trial_ratio = np.asarray(r["spconv"]["trial_means_ms"]) / np.asarray(r["ours"]["trial_means_ms"])
         r["spconv_over_ours"] = r["spconv"]["mean_ms"] / r["ours"]["mean_ms"]
         r["spconv_over_ours_trials"] = [float(trial_ratio.min()), float(trial_ratio.max())]

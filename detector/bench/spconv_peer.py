@@ -214,8 +214,8 @@ def dataset_frames(net: PointPillars, cfg: ExperimentConfig, data: str, split: s
 
 def synthetic_frames(shape: tuple[int, int], density: float, frames: int, channels: int,
                      seed: int = 0) -> list[SiteFrame]:
-    """``frames`` clustered site sets at ``density`` with features in [0, 1) (:func:`detector.bench.density.site_frames`,
-    frame k seeded ``seed + k``)."""
+    """``frames`` clustered site sets at ``density`` with features in [0, 1)
+    (:func:`detector.bench.density.site_frames`, frame k seeded ``seed + k``)."""
     return [SiteFrame(f"synthetic-{k}", f, c) for k, (f, c) in enumerate(site_frames(shape, density, frames, channels,
                                                                                      seed))]
 
