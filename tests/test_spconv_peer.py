@@ -172,7 +172,7 @@ def test_missing_spconv_is_one_line(monkeypatch, capsys) -> None:
 def test_tool_bad_arguments(args: list[str], match: str, capsys, tmp_path: Path) -> None:
     tool = load_tool("bench_spconv")
     base = ["--config", str(SMOKE), "--density", "0.05"]
-    assert tool.main([*base, *args, "--json", str(tmp_path / "r.json")]) == 2
+    assert tool.main([*base, *args, "--json-out", str(tmp_path / "r.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0]
     assert not (tmp_path / "r.json").exists()
@@ -198,7 +198,7 @@ def test_tool_end_to_end(threads, tmp_path: Path, capsys) -> None:
     tool = load_tool("bench_spconv")
     out = tmp_path / "r.json"
     assert tool.main(["--config", str(SMOKE), "--density", "0.03", "--frames", "2", "--trials", "2", "--threads", "1",
-                      "--json", str(out)]) == 0
+                      "--json-out", str(out)]) == 0
     text = capsys.readouterr().out
     for word in ("runtime eager PyTorch", "precision float32", "threads [1]", "allocator", "density D"):
         assert word in text

@@ -3,7 +3,7 @@ per frame, exactness and run-to-run determinism, side by side in one process.
 
     PYTHONPATH=. .venv/bin/python tools/bench_spconv.py --config configs/models/mpchair_sparse.yaml \\
         [--checkpoint SPARSE.pt] (--data DATASET --split test | --density 0.0075) [--frames 10] [--trials 3] \\
-        [--threads 1,2] [--exact-frames 1] [--json out.json]
+        [--threads 1,2] [--exact-frames 1] [--json-out out.json]
 
 Needs the ``spconv`` extra (``pip install -c constraints.txt -e '.[spconv]'``). The network is the config's sparse
 backbone + neck with the checkpoint's weights (random, seeded, with seeded BatchNorm statistics, without one), rebuilt
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", default="1,2", help="thread counts, comma-separated (default 1,2)")
     p.add_argument("--exact-frames", type=int, default=1, help="frames whose exactness is measured (float64 dense)")
     p.add_argument("--seed", type=int, default=0, help="random weights' and synthetic sites' seed")
-    p.add_argument("--json", type=Path, default=None, help="also write the result here")
+    p.add_argument("--json-out", dest="json", type=Path, default=None, help="also write the result as JSON to this file")
     args = p.parse_args(argv)
     return run_holding_warnings(lambda: _run(args))
 
