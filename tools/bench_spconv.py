@@ -177,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", default="1,2", help="thread counts, comma-separated (default 1,2)")
     p.add_argument("--exact-frames", type=int, default=1, help="frames whose exactness is measured (float64 dense)")
     p.add_argument("--seed", type=int, default=0, help="random weights' and synthetic sites' seed")
-    p.add_argument("--json-out", dest="json", type=Path, default=None, help="also write the result as JSON to this file")
+    p.add_argument("--json-out", dest="json", type=Path, default=None,
+                   help="also write the result as JSON to this file")
     args = p.parse_args(argv)
     return run_holding_warnings(lambda: _run(args))
 
