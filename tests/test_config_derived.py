@@ -116,7 +116,7 @@ def test_a_bad_key_is_named_by_the_file_that_holds_it(tmp_path):
         load_experiment(child)
     base.write_text("_BASE_CONFIG_: mpchair_dense_smoke\n")
     child.write_text("_BASE_CONFIG_: base.yaml\ntrain: {epoch: 1}\n")
-    with pytest.raises(InputError, match=rf"^{child}: unknown key 'train.epoch'"):
+    with pytest.raises(InputError, match=rf"^{child}:2: unknown key 'train.epoch'"):  # with the key's line
         load_experiment(child)
 
 
