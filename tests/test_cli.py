@@ -60,9 +60,11 @@ def test_detector_help_trains_the_cpu_configs() -> None:
     joined = out.replace("\\\n", " ")
     examples = [" ".join(line.split()) for line in joined.splitlines() if line.strip().startswith("detector ")]
     trains = [e for e in examples if e.split()[1] in ("train", "eval", "stream-eval")]
-    assert len(trains) == 3 and all("_cpu.yaml" in e for e in trains), trains
-    named = {w for e in examples for w in e.split() if w.endswith(".yaml")}
-    assert named and all((Path(__file__).resolve().parents[1] / w).is_file() for w in named), named
+    assert len(trains) == 3 and all("--config mpchair_sparse_cpu " in e + " " for e in trains), trains
+    from detector.config import available_configs
+
+    named = {e.split()[e.split().index("--config") + 1] for e in examples if "--config" in e.split()}
+    assert named and named <= set(available_configs()), named  # packaged configs, by name
 
 
 def test_a_config_error_names_the_file_and_the_line_of_the_key(tmp_path: Path, capsys) -> None:

@@ -130,14 +130,17 @@ def _work_with_run(tmp_path: Path, config: str, metrics: str) -> Path:
 
 
 def test_status_on_odd_work_folders_is_one_line_or_skips_odd_lines(tmp_path, capsys):
-    good = "train: {epochs: 2, batch_size: 2, samples_per_epoch: 4}\n"
+    from helpers_detector import write_run_config
+
+    # a whole config.yaml as detector train writes it (its readers check it as a config)
+    good = write_run_config(tmp_path / "cfg", train=dict(epochs=2, batch_size=2, samples_per_epoch=4)).read_text()
     odd_lines = '[1]\n{"kind": "step"}\n{"kind": "step", "step": "x", "time_s": 1}\n' + _deep(5000) + "\n"
     work = _work_with_run(tmp_path / "a", good, odd_lines + '{"kind": "step", "step": 1, "epoch": 0, "time_s": 0.5}\n')
     assert reproduce_main(["--status", "--out", str(work)]) == 0
     assert "dense: step 1 / 4" in capsys.readouterr().out
 
     step = '{"kind": "step", "step": 1, "epoch": 0, "time_s": 0.5}\n'
-    for name, config in (("zero", "train: {epochs: 2, batch_size: 0, samples_per_epoch: 4}\n"),
+    for name, config in (("zero", good.replace("batch_size: 2", "batch_size: 0")),
                          ("yaml", "train: [1, 2\n"), ("fifo", good), ("dir", good)):
         work = _work_with_run(tmp_path / name, config, step)
         if name == "fifo":
@@ -217,7 +220,7 @@ def test_a_sensor_too_large_for_the_machine_is_refused_before_allocating(edit, n
     from mpchair.core.errors import InputError
     from mpchair.scan.sensors import load_sensor
 
-    text = (Path(__file__).resolve().parents[1] / "configs/sensors/lidar16.yaml").read_text()
+    text = (Path(__file__).resolve().parents[1] / "mpchair/scan/profiles/lidar16.yaml").read_text()
     assert edit[0] in text
     path = tmp_path / "s.yaml"
     path.write_text(text.replace(*edit))
@@ -230,7 +233,7 @@ def test_a_pinhole_row_step_of_zero_is_refused(tmp_path):
     from mpchair.core.errors import InputError
     from mpchair.scan.sensors import load_sensor
 
-    text = (Path(__file__).resolve().parents[1] / "configs/sensors/mp3d-depth90.yaml").read_text()
+    text = (Path(__file__).resolve().parents[1] / "mpchair/scan/profiles/mp3d-depth90.yaml").read_text()
     path = tmp_path / "s.yaml"
     path.write_text(text.replace("row_step: 10", "row_step: 0"))
     assert "row_step: 0" in path.read_text()
