@@ -24,8 +24,10 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from detector.reproduce.results import ABLATIONS
 from detector.reproduce.runner import logged_commands
 from detector.reproduce.scales import Scale, model_epochs
+from detector.train.metrics import format_duration
 
 #: Where a reproduction writes this machine's probe time (inside ``results/``, so that the record keeps it).
 PROBE_FILE = Path("results") / "probe.json"
@@ -94,11 +96,10 @@ def command_step(line: str) -> tuple[str, str] | None:
         return "generate", "frames"
     if "stats" in words:
         return "stats", "frames"
+    ablation = any(a in line for a in ABLATIONS)
     if "train" in words:
-        ablation = any(a in line for a in ("sparse1_dense23", "sparse12_dense3", "sparse_wide"))
         return ("ablations" if ablation else "train"), "train"
     if "eval" in words:
-        ablation = any(a in line for a in ("sparse1_dense23", "sparse12_dense3", "sparse_wide"))
         if ablation:
             return "ablations", "frames"
         return ("deploy" if "--runtime" in words else "eval"), "frames"
@@ -270,24 +271,15 @@ def estimate(rec: RecordedTimes, planned: Scale, steps: list[str], here: dict, p
     return Estimate(seconds, basis)
 
 
-def format_minutes(seconds: float) -> str:
-    """``"42 s"``, ``"12 min"`` or ``"3.4 h"``."""
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 90 * 60:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def estimate_lines(est: Estimate, done: set[str]) -> list[str]:
     """The lines printed before a reproduction starts: the total of the steps still to run, each step's share, and
     where the numbers come from."""
     todo = {s: v for s, v in est.seconds.items() if s not in done}
     if not todo:
         return ["estimate: every step asked for is done already (--force redoes them)"]
-    parts = ", ".join(f"{s} {'?' if v is None else format_minutes(v)}" for s, v in todo.items())
+    parts = ", ".join(f"{s} {'?' if v is None else format_duration(v)}" for s, v in todo.items())
     unknown = [s for s, v in todo.items() if v is None]
     total = sum(v for v in todo.values() if v is not None)
-    return [f"estimate: ~{format_minutes(total)} on this machine" + (f" plus {', '.join(unknown)}" if unknown else "")
+    return [f"estimate: ~{format_duration(total)} on this machine" + (f" plus {', '.join(unknown)}" if unknown else "")
             + f" ({parts})", f"  {est.basis}; an estimate: sizes scale linearly, so a small scale's fixed costs "
             "(start-up, model builds, exports) and a loaded machine make it longer"]
