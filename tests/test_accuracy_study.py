@@ -44,6 +44,7 @@ def test_bootstrap_gap_of_a_model_that_misses_boxes(tmp_path):
     g = bootstrap_gap(gt, [perfect], [missing], ap, resamples=40, seed=1)
     assert g.mean == pytest.approx(ap(gt, missing) - ap(gt, perfect))
     assert g.mean < 0 and g.ci95[0] <= g.mean <= g.ci95[1] and g.ci95[1] < 0
+    assert g.ci95[1] - g.ci95[0] > 1.0  # resampling the frames spreads the gap: an interval, not a point
     assert g == bootstrap_gap(gt, [perfect], [missing], ap, resamples=40, seed=1)
     same = bootstrap_gap(gt, [perfect, perfect], [perfect], ap, resamples=10)
     assert (same.mean, same.ci95, same.seeds, len(same.pair_gaps)) == (0.0, (0.0, 0.0), (2, 1), 2)
