@@ -22,7 +22,8 @@ from mpchair.paper import MATTERPORT_CHAIR_AP
 #: The paper's sparse - dense 3D AP gap on Matterport-Chair (Open3D-ML mAP; mpchair.paper cites where).
 PAPER_GAP_3D = MATTERPORT_CHAIR_AP.sparse_3d_delta
 #: Bootstrap resamples of the test frames (per resample every tested seed of both models is evaluated). The KITTI
-#: evaluator takes ~0.06 s for the 800 test frames, Open3D-ML's mAP (pure Python) ~2.9 s, so its gaps draw fewer.
+#: evaluator takes ~0.06 s for the 800 test frames, Open3D-ML's mAP (pure Python) ~2.9 s (a one-off timing loop on the
+#: AVX2 EPYC, 2026-12-06, not a repository tool), so its gaps draw fewer.
 RESAMPLES = 200
 RESAMPLES_OPEN3D_ML = 40
 CLASS = "Chair"
