@@ -242,6 +242,13 @@ def guard_note(rows: list[DeployRow]) -> str:
     return text + "."
 
 
+def like_for_like_pairs(rows: list[DeployRow]) -> list[tuple[str, DeployRow | None, DeployRow | None]]:
+    """(label, the fastest dense row, the fastest sparse row) of each of :data:`PAIRS`, AP-guarded; None where a side
+    has no row to pick."""
+    return [(label, _fastest(rows, ("dense",), fp32, deployed), _fastest(rows, sparse, fp32, deployed))
+            for label, sparse, fp32, deployed in PAIRS]
+
+
 def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     """The like-for-like table: the fastest dense deployment against the fastest sparse one (either head), at fp32 (the
     fair comparison on a CPU without native bf16 / int8, such as the paper's AVX2 robot CPU) and at any precision
@@ -251,8 +258,7 @@ def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     ``rows``: :func:`read_deploy`'s, when the caller has them."""
     rows = read_deploy(res) if rows is None else rows
     bench = read_bench(res / "deploy_bench.json")
-    pairs = [(label, _fastest(rows, ("dense",), fp32, deployed), _fastest(rows, sparse, fp32, deployed))
-             for label, sparse, fp32, deployed in PAIRS]
+    pairs = like_for_like_pairs(rows)
     if not all(d and sp for _, d, sp in pairs[:2]):  # the paper's-architecture rows need a sparse model with its dense
         return []                                    # head timed (and deployed): without them their rows are left out
     mach = bench.machine if bench else None
