@@ -259,8 +259,10 @@ def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     rows = read_deploy(res) if rows is None else rows
     bench = read_bench(res / "deploy_bench.json")
     pairs = like_for_like_pairs(rows)
-    if not all(d and sp for _, d, sp in pairs[:2]):  # the paper's-architecture rows need a sparse model with its dense
-        return []                                    # head timed (and deployed): without them their rows are left out
+    # the first two pairs are the headline's; a paper's-architecture pair with no timed (or no deployed) sparse model
+    # with the dense head is left out of the table
+    if not all(d and sp for _, d, sp in pairs[:2]):
+        return []
     mach = bench.machine if bench else None
     flags = sorted(mach.native_flags()) if mach else []
     median = bench.density.median if bench and bench.density else None
