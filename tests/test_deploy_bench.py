@@ -138,6 +138,35 @@ def test_the_headline_compares_the_fastest_rows_of_each_kind():
     assert headline_record(_result([("dense", "dense", "torch", "fp32", 1.0)]).models) is None
 
 
+def test_the_headline_picks_only_rows_within_one_ap_point_of_their_eager_fp32():
+    """Given the rows' 3D AP, a row more than 1.0 from its own model's eager fp32 row (the name without its runtime /
+    precision suffix) is no side's fastest and is named with why; a row without AP is picked on speed; the headline
+    written to JSON and read back keeps the exclusions, and one without any keeps the keys it always had."""
+    res = _result([("dense", "dense", "torch", "fp32", 450.0), ("dense (openvino fp32)", "dense", "openvino", "fp32",
+                                                                 440.0),
+                   ("dense (openvino bf16)", "dense", "openvino", "bf16", 150.0),
+                   ("dense (openvino int8)", "dense", "openvino", "int8", 90.0),
+                   ("sparse", "sparse", "torch", "fp32", 45.0),
+                   ("sparse (openvino int8)", "sparse", "openvino", "int8", 15.0),
+                   ("sparse (openvino bf16)", "sparse", "openvino", "bf16", 20.0)])
+    ap = {"dense": 50.0, "dense (openvino fp32)": 50.0, "dense (openvino bf16)": 49.2, "dense (openvino int8)": 48.5,
+          "sparse": 47.0, "sparse (openvino int8)": 48.01}
+    h = headline_record(res.models, ap)
+    assert (h.fastest_dense, h.fastest_sparse, h.fastest_fp32_dense) == (
+        "dense (openvino bf16)", "sparse (openvino bf16)", "dense (openvino fp32)")
+    assert h.speedup == pytest.approx(150 / 20) and h.speedup_vs_fp32_dense == pytest.approx(440 / 20)
+    assert h.excluded == ("dense (openvino int8): 3D AP 48.50 is -1.50 from its eager fp32 50.00 (more than 1 3D AP)",
+                          "sparse (openvino int8): 3D AP 48.01 is +1.01 from its eager fp32 47.00 (more than 1 3D AP)")
+    line = headline_line(dataclasses.replace(res, headline=h))
+    assert line.endswith("; left out of the picks (AP guard): " + "; ".join(h.excluded))
+    assert type(h).from_json(json.loads(json.dumps(h.to_json()))) == h
+    # without AP (a bench alone) the same rows are picked on speed, as before, and the JSON has no "excluded" key
+    plain = headline_record(res.models)
+    assert (plain.fastest_dense, plain.fastest_sparse, plain.excluded) == (
+        "dense (openvino int8)", "sparse (openvino int8)", ())
+    assert "excluded" not in plain.to_json() and type(plain).from_json(plain.to_json()) == plain
+
+
 class SimClock:
     """A simulated clock: ``run`` takes ``costs[i]`` seconds of wall and of CPU, ``sleep`` advances wall only."""
 

@@ -1,6 +1,8 @@
-"""The figures docs/results.md, benchmarks.md, sparse.md, evaluation.md and the README quote agree with the tables
-they come from (the Markdown tables in the same docs) and with the code that makes them (``detector.reproduce.report``
-for the metric notes, the KITTI protocol for the half-found example), so a number copied from an older run fails here.
+"""The figures docs/results.md, benchmarks.md, sparse.md, evaluation.md, deployment.md, streaming.md and the README
+quote agree with the tables they come from (the Markdown tables in the same docs), with the committed run record
+(docs/results-data: the deployed ratios and AP, the Open3D-ML example, the run's command times) and with the code that
+makes them (``detector.reproduce.report`` for the metric notes, the KITTI protocol for the half-found example), and a
+figure with no JSON in the record says it is a one-off, so a number copied from an older run fails here.
 
 Each ``check_*`` returns the problems it finds in the docs' text; every test runs it on the docs as they are (no
 problem) and on a copy with the stale figure the docs once quoted (a problem), so a check cannot pass vacuously."""
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from detector.reproduce.deploy import DeployRow, like_for_like_pairs, read_deploy
 from detector.reproduce.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
 from detector.reproduce.results import EvalOutputs, Open3dMlMetrics
 from mpchair.paper import MATTERPORT_CHAIR_AP
@@ -20,7 +23,10 @@ from mpchair.paper import MATTERPORT_CHAIR_AP
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = {name: ROOT / path for name, path in (("results", "docs/results.md"), ("benchmarks", "docs/benchmarks.md"),
                                               ("sparse", "docs/sparse.md"), ("evaluation", "docs/evaluation.md"),
-                                              ("readme", "README.md"))}
+                                              ("readme", "README.md"), ("deployment", "docs/deployment.md"),
+                                              ("streaming", "docs/streaming.md"))}
+#: The committed run record every runtime and AP figure of these docs comes from (or says it does not).
+RECORD = ROOT / "docs" / "results-data"
 Docs = Mapping[str, str]
 
 
@@ -244,15 +250,185 @@ def check_differences(d: Docs) -> list[str]:
 # --- README: what has been measured where -----------------------------------------------------------------------------
 def check_readme_machines(d: Docs) -> list[str]:
     """The README's opening promises no machine the docs have no measurement of: it names the CPUs benchmarks.md
-    measured on, and says "no GPU run yet" while benchmarks.md's GPU check says no GPU has been lent."""
+    measured on and the record's (the AVX512-BF16 AMD EPYC), and says "no GPU run yet" while benchmarks.md's GPU
+    check says no GPU has been lent."""
     top = flat(d["readme"].split("\n## ", 1)[0])
     problems = [f"README's opening does not name {cpu!r}" for cpu in ("Intel Xeon", "AMD EPYC") if cpu not in top]
+    # the machine of every current number: the record's deploy bench ran on an AMD EPYC with AVX512-BF16
+    import json
+
+    mach = json.loads((RECORD / "results" / "deploy_bench.json").read_text())["machine"]
+    if mach["cpu"] == "AMD EPYC" and "avx512_bf16" in mach["precision_flags"]["bf16"] and (
+            "AMD EPYC with AVX512-BF16" not in top.replace("*", "")):
+        problems.append("README's opening does not name the record's machine, the AMD EPYC with AVX512-BF16")
     problems += [f"benchmarks.md does not name {cpu!r}" for cpu in ("Xeon", "AMD EPYC") if cpu not in d["benchmarks"]]
     if "a robot CPU or a GPU" in top:
         problems.append("README promises 'a robot CPU or a GPU'")
     no_gpu = "No GPU has been lent to this project yet" in flat(section(d["benchmarks"], "GPU check"))
     if no_gpu != ("no GPU run yet" in top) or "tools/device_check.sh" not in top:
         problems.append("README's GPU sentence does not match benchmarks.md's GPU check section")
+    return problems
+
+
+# --- the committed record: deployed ratios, AP, run times -------------------------------------------------------------
+def same(quoted: str, value: float) -> bool:
+    """Whether ``quoted`` is ``value`` written to the quoted figure's own decimals (``12.7`` for 12.69...)."""
+    decimals = len(quoted.split(".", 1)[1]) if "." in quoted else 0
+    return f"{value:.{decimals}f}" == quoted
+
+
+def prose(text: str) -> str:
+    """``text`` without its table lines, whitespace flattened (a table row is checked by the record test)."""
+    return flat("\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("|")))
+
+
+def _rows() -> list[DeployRow]:
+    return read_deploy(RECORD / "results")
+
+
+def _ratio(pair: tuple[str, DeployRow | None, DeployRow | None]) -> float:
+    return pair[1].total_ms / pair[2].total_ms
+
+
+def _ap3d(rows: list[DeployRow], model: str, runtime: str, precision: str, kind: str = "3d") -> float:
+    (row,) = [r for r in rows if (r.model, r.runtime, r.precision) == (model, runtime, precision)]
+    return row.metrics.ap[kind].overall["R40"]
+
+
+def check_deployed_ratios(d: Docs) -> list[str]:
+    """Every ratio README, benchmarks.md and deployment.md set against "the fastest dense" (or "fastest fp32 dense")
+    deployment is the record's like-for-like one (fastest sparse / fastest dense, any precision; fastest sparse /
+    fastest fp32 dense, a mixed-precision pair), every "fp32 on both sides" ratio the record's fp32 pair, and every
+    ratio of "the paper's architecture (sparse backbone + dense head)" at its fastest / deployed the record's, each to
+    the decimals it is quoted with; the README opening quotes all three beside its headline."""
+    pairs = like_for_like_pairs(_rows())
+    fp32, anyp, _, paper, deployed = (_ratio(p) for p in pairs)
+    mixed, precision = pairs[0][1].total_ms / pairs[1][2].total_ms, pairs[1][2].precision
+    problems = []
+    for name in ("readme", "benchmarks", "deployment"):
+        text = prose(d[name])
+        # a target ("≥ 5x against the fastest dense") is no measurement
+        for m in re.finditer(r"(?<!≥ )(?<![\d.])([\d.]+)x(?:\*\*)? (?:faster(?:\*\*)? )?(?:than|against|vs) the "
+                             r"fastest (fp32 )?dense", text):
+            if not same(m.group(1), mixed if m.group(2) else anyp):
+                problems.append(f"{name}: {m.group(0)!r}; the record gives {mixed if m.group(2) else anyp:.2f}x")
+            # a fastest sparse row that is not fp32 against the fastest fp32 dense one: say it mixes precisions
+            says = (f"{precision} against dense fp32", f"{precision} / dense fp32")
+            if m.group(2) and precision != "fp32" and not any(w in text[m.start(): m.end() + 200] for w in says):
+                problems.append(f"{name}: {m.group(0)!r} does not say it sets sparse {precision} against dense fp32")
+        for m in re.finditer(r"vs (?:the )?fastest (fp32 )?dense \([^)]*\): ([\d.]+)x", text):
+            if not same(m.group(2), mixed if m.group(1) else anyp):
+                    problems.append(f"{name}: {m.group(0)!r}; the record gives {mixed if m.group(1) else anyp:.2f}x")
+        for m in re.finditer(r"(?:fp32 on both sides|fp32 pair)\W.{0,160}?\**([\d.-]+)x", text):
+            if not same(m.group(1), fp32):
+                problems.append(f"{name}: {m.group(0)!r}; the record's fp32 pair is {fp32:.2f}x")
+        for m in re.finditer(r"paper's architecture\** \(sparse backbone \+ dense head\).{0,200}?\**([\d.]+)x\** "
+                             r"at its fastest.{0,80}?\**([\d.]+)x deployed", text):
+            if not (same(m.group(1), paper) and same(m.group(2), deployed)):
+                problems.append(f"{name}: {m.group(0)!r}; the record gives {paper:.2f}x / {deployed:.2f}x deployed")
+    top = prose(d["readme"].split("\n## ", 1)[0])
+    got = quoted(r"with the exact sparse head\*\* \(our addition to the paper's architecture\) is \*\*([\d.]+)x "
+                 r"faster\*\* than the fastest dense deployment.*?The paper's architecture\*\* \(sparse backbone \+ "
+                 r"dense head\).*?fp32 on both sides", top)
+    if got is None or not same(got[0], anyp):
+        problems.append(f"README's headline ({got}) does not name its row (the exact sparse head, the record's "
+                        f"{anyp:.2f}x) with the paper's architecture and the fp32 pair beside it")
+    return problems
+
+
+def check_deployed_ap(d: Docs) -> list[str]:
+    """deployment.md's int8 AP quote and sparse.md's bf16 AP sentence are the record's evaluations (3D AP Overall R40,
+    val), and deployment.md's test tolerance is the one tests/test_deploy_eval.py applies."""
+    rows, problems = _rows(), []
+    got = quoted(r"dense ONNX Runtime int8 (\d+\.\d+) and OpenVINO int8 (\d+\.\d+) against eager fp32 (\d+\.\d+)",
+                 d["deployment"])
+    want = [_ap3d(rows, "dense", r, p) for r, p in (("onnxruntime", "int8"), ("openvino", "int8"), ("torch", "fp32"))]
+    if got is None or not all(same(g, w) for g, w in zip(got, want)):
+        problems.append(f"deployment.md quotes int8 AP {got}; the record gives {[f'{w:.2f}' for w in want]}")
+    got = quoted(r"sparse ([\d.]+) 3D / ([\d.]+) BEV against ([\d.]+) / ([\d.]+) in fp32 \(([-+\d.]+) / ([-+\d.]+)\), "
+                 r"dense ([\d.]+) / ([\d.]+) against ([\d.]+) / ([\d.]+) \(([-+\d.]+) / ([-+\d.]+)\)", d["sparse"])
+    want = []
+    for model in ("sparse", "dense"):
+        bf16 = [_ap3d(rows, model, "torch", "bf16", k) for k in ("3d", "bev")]
+        fp = [_ap3d(rows, model, "torch", "fp32", k) for k in ("3d", "bev")]
+        want += [*bf16, *fp, *(b - f for b, f in zip(bf16, fp))]
+    if got is None or not all(same(g.lstrip("+"), w) for g, w in zip(got, want)):
+        problems.append(f"sparse.md's bf16 AP {got}; the record gives {[f'{w:.2f}' for w in want]}")
+    (boxes,) = re.findall(r"^BOXES_OF_SLACK = (\d+)$", (ROOT / "tests" / "test_deploy_eval.py").read_text(), re.M)
+    if f"is within {boxes} ground-truth boxes of eager fp32" not in flat(d["deployment"]):
+        problems.append(f"deployment.md does not give the test's tolerance ({boxes} ground-truth boxes)")
+    return problems
+
+
+def check_record_examples(d: Docs) -> list[str]:
+    """evaluation.md's "dense 3D above BEV" example is the record's Open3D-ML mAP of the dense model; sparse.md's
+    allocator sentence quotes the dense backbone of its own 2026-12-03 table."""
+    import json
+
+    o3d = json.loads((RECORD / "results" / "eval_dense" / "open3d_ml.json").read_text())["Chair"]
+    problems = []
+    got = quoted(r"\(results\.md: dense 3D ([\d.]+) above BEV ([\d.]+)\)", d["evaluation"])
+    if got is None or not (same(got[0], o3d["3d"]) and same(got[1], o3d["bev"])):
+        problems.append(f"evaluation.md's example {got}; the record gives {o3d['3d']:.2f} / {o3d['bev']:.2f}")
+    got = quoted(r"the dense backbone measured ([\d.,-]+) ms with the default allocator and ([\d.,-]+) ms with the "
+                 r"reuse allocator in the 2026-12-03 runs below", d["sparse"])
+    (table,) = [t for t in tables(d["sparse"]) if t[0][:2] == ["run", "dense backbone"]]
+    want = [cell(table, f"this branch, 2 threads, {a}", "dense backbone") for a in (
+        "default (load 0.8 / 1.3)", "reuse allocator (load 1.3 / 1.5)")]
+    if got is None or list(got) != want:
+        problems.append(f"sparse.md's allocator sentence {got}; its table gives {want}")
+    return problems
+
+
+def check_run_times(d: Docs) -> list[str]:
+    """README's and benchmarks.md's "its steps up to the record took M min, training dense D / sparse S min, the first
+    N lines of commands.log": M the sum of those lines' seconds, D / S results.md's training times."""
+    lines = (RECORD / "commands.log").read_text().splitlines()
+    (dense, sparse), problems = quoted(r"training took dense ([\d.]+) min, sparse ([\d.]+) min", d["results"]), []
+    for name in ("readme", "benchmarks"):
+        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, training dense ([\d.]+) / "
+                     r"sparse ([\d.]+) min,? \(?the first (\d+) lines of `docs/results-data/commands.log`", d[name])
+        if got is None:
+            problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' sentence")
+            continue
+        minutes = sum(float(ln.split()[0]) for ln in lines[: int(got[3])]) / 60
+        if not same(got[0], minutes) or (got[1], got[2]) != (dense, sparse):
+            problems.append(f"{name}: {got[0]} min, training {got[1]} / {got[2]}; the record gives {minutes:.1f}, "
+                            f"{dense} / {sparse}")
+    return problems
+
+
+#: Figures with no JSON in the record: (doc, a string of the figure); its paragraph or the one before it (a table's
+#: caption) says it is a one-off.
+ONE_OFFS = (("sparse", "| sparse SubM block 1 (1200 x 576 x 64) |"), ("sparse", "| **3.15x** |"),
+            ("benchmarks", "3.14-3.35x at fp32"), ("benchmarks", "1.92x faster dense steps"),
+            ("readme", "1.92x faster dense steps"), ("deployment", "4.9x its fp32"),
+            ("deployment", "| dense | 754 | 718 |"), ("sparse", "lost -0.98 3D in bf16"))
+
+
+def check_one_offs(d: Docs) -> list[str]:
+    """Each of :data:`ONE_OFFS` sits in (or right under) a paragraph that says "one-off"; streaming.md, whose run has
+    no JSON in the record, says so, says what sAP cannot see, and quotes the 288 x 144 outcome as its block has it."""
+    problems = []
+    for name, figure in ONE_OFFS:
+        paras = d[name].split("\n\n")
+        (i,) = [j for j, para in enumerate(paras) if figure in para]
+        if not any("one-off" in para.lower() for para in paras[max(0, i - 1): i + 1]):
+            problems.append(f"{name}: {figure!r} is not marked as a one-off")
+    text = d["streaming"]
+    if not any("stream" in p.name for p in RECORD.rglob("*")):
+        if "No committed record yet" not in text or "every figure of this section" not in flat(text):
+            problems.append("streaming.md does not say its results block has no committed record")
+    if "latency below one sensor period" not in flat(text):
+        problems.append("streaming.md does not say what sAP cannot see (latency below one sensor period)")
+    (table,) = [t for t in tables(text) if t[0][:3] == ["model", "grid, threads", "offline AP 3D / BEV"]]
+    row = {r[0]: r for r in table[1:] if r[1] == "288 x 144, 2 threads"}
+    raw, ego = (table[0].index(c) for c in ("sAP raw 3D / BEV", "sAP ego 3D / BEV"))
+    want = tuple(row[m][k].split(" / ")[0] for k in (raw, ego) for m in ("dense", "sparse"))
+    got = quoted(r"wins both raw sAP \(([\d.]+) against the sparse model's ([\d.]+), 3D\) and ego sAP \(([\d.]+) "
+                 r"against ([\d.]+)\)", text)
+    if got != (want[0], want[1], want[2], want[3]):
+        problems.append(f"streaming.md's 288 x 144 outcome {got}; its table gives {want}")
     return problems
 
 
@@ -284,6 +460,43 @@ CHECKS = [
     (check_differences, _swap("results", "## Targets and this run", "## Targets (issue) and this run")),
     (check_readme_machines, _swap("readme", "yet: `tools/device_check.sh` is the", "yet: a script is the")),
     (check_readme_machines, _swap("readme", "no robot CPU and no GPU run yet", "a robot CPU or a GPU")),
+    (check_readme_machines, _swap("readme", "**AMD EPYC with AVX512-BF16 / VNNI**", "**AMD EPYC**")),
+    # issue 48's stale figures, each as the docs quoted it
+    (check_deployed_ratios, _swap("benchmarks", "is 12.69x faster than the fastest dense", "is 22.4x faster than the "
+                                  "fastest dense")),
+    (check_deployed_ratios, _swap("benchmarks", "33.36x faster than the fastest fp32", "63.6x faster than the fastest "
+                                  "fp32")),
+    (check_deployed_ratios, _swap("deployment", "The fastest rows were the ones", "**Headline: fastest sparse (exact "
+                                  "head, ONNX Runtime int8, 10.2 ms) vs fastest dense (OpenVINO int8, 227 ms):\n22.4x; "
+                                  "vs the fastest fp32 dense (OpenVINO fp32, 646 ms): 63.6x.** The fastest rows were "
+                                  "the ones")),
+    (check_deployed_ratios, _swap("deployment", "the same fastest rows.", "headline 25.6x against the fastest dense "
+                                  "(OpenVINO int8), 66.9x against the fastest fp32 dense (OpenVINO fp32).")),
+    (check_deployed_ratios, _swap("deployment", "OpenVINO fp32, 261.1 ms: 20.25x", "OpenVINO fp32, 646 ms: 33-44x")),
+    (check_deployed_ratios, _swap("readme", "33.4x faster than the fastest fp32 dense one (OpenVINO, 261.1 ms), but\n"
+                                  "that sets sparse int8 against dense fp32:", "about 33x faster than the fastest fp32 "
+                                  "dense one (OpenVINO, 261.1 ms);")),
+    (check_deployed_ratios, _swap("readme", "is **12.7x faster** than", "is **22.4x faster** than")),
+    (check_deployed_ratios, _swap("readme", "**5.7x** at its fastest", "**12.7x** at its fastest")),
+    (check_deployed_ratios, _swap("readme", "**The paper's architecture** (sparse backbone + dense head) against the "
+                                  "same dense row", "The dense row")),
+    (check_deployed_ap, _swap("deployment", "dense ONNX Runtime int8 53.85", "dense ONNX Runtime int8 51.32")),
+    (check_deployed_ap, _swap("deployment", "against eager fp32\n  53.75", "against eager fp32\n  51.73")),
+    (check_deployed_ap, _swap("deployment", "is within 3 ground-truth boxes", "is within 5 points")),
+    (check_deployed_ap, _swap("sparse", "sparse 51.28 3D / 53.06 BEV", "sparse 51.44 3D / 52.95 BEV")),
+    (check_deployed_ap, _swap("sparse", "dense 53.78 / 55.44", "dense 51.62 / 53.56")),
+    (check_record_examples, _swap("evaluation", "dense 3D 77.68 above BEV 77.28", "dense 3D 78.54 above BEV 77.93")),
+    (check_record_examples, _swap("sparse", "measured 475.9 ms", "measured 458-502 ms")),
+    (check_record_examples, _swap("sparse", "and 436.9 ms with the reuse", "and 522 ms with the reuse")),
+    (check_run_times, _swap("benchmarks", "took 76.7 min, training dense 19.0 / sparse 15.8 min",
+                            "took 113 min, training dense 30.8 / sparse 29.2 min")),
+    (check_run_times, _swap("readme", "took 76.7 min of wall time", "took 113 min of wall time")),
+    (check_one_offs, _swap("deployment", "a one-off measurement filed with", "a measurement filed with")),
+    (check_one_offs, _swap("sparse", "A one-off: the tool printed these tables", "The tool printed these tables")),
+    (check_one_offs, _swap("readme", "in a one-off `tools/bench_train_step.py`", "in a `tools/bench_train_step.py`")),
+    (check_one_offs, _swap("streaming", "**No committed record yet.**", "**The record.**")),
+    (check_one_offs, _swap("streaming", "latency below one sensor period.", "latency.")),
+    (check_one_offs, _swap("streaming", "raw sAP (22.60 against", "raw sAP (18.40 against")),
 ]
 
 

@@ -85,7 +85,10 @@ def headline_line(result: BenchResult) -> str | None:
     if h.fastest_fp32_dense != h.fastest_dense:
         line += (f"; vs the fastest fp32 dense {h.fastest_fp32_dense} ({_fmt(h.fp32_dense_total_ms)} ms): "
                  f"{h.speedup_vs_fp32_dense:.2f}x")
-    return line + " (total ms per frame; > 1: sparse faster)"
+    line += " (total ms per frame; > 1: sparse faster)"
+    if h.excluded:
+        line += "; left out of the picks (AP guard): " + "; ".join(h.excluded)
+    return line
 
 
 def _notes(result: BenchResult) -> list[str]:

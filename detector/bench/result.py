@@ -130,7 +130,9 @@ class Skipped:
 @dataclass(frozen=True)
 class Headline:
     """The like-for-like headline: the fastest sparse row against the fastest dense row (any runtime and precision)
-    and against the fastest fp32 dense row, by name; their mean total ms and the two speed-ups (dense / sparse)."""
+    and against the fastest fp32 dense row, by name; their mean total ms and the two speed-ups (dense / sparse).
+    ``excluded``: ``"<row>: <reason>"`` of every row the AP guard kept out of the picks (:mod:`detector.bench.pick`;
+    only where the caller knew the rows' AP), written to JSON only when there is one."""
 
     fastest_dense: str
     fastest_sparse: str
@@ -140,13 +142,20 @@ class Headline:
     fp32_dense_total_ms: float
     speedup: float
     speedup_vs_fp32_dense: float
+    excluded: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        if self.excluded:
+            d["excluded"] = list(self.excluded)
+        else:  # files of a bench without AP keep the keys they always had
+            del d["excluded"]
+        return d
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Headline:
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__})
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k != "excluded"},
+                   excluded=tuple(d.get("excluded", ())))
 
 
 @dataclass(frozen=True)

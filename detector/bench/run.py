@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import copy
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
@@ -49,6 +49,7 @@ import torch
 from tqdm import tqdm
 
 from detector.bench import peer as open3d_peer
+from detector.bench.pick import ap_exclusion, fastest_within_ap
 from detector.bench.result import (
     BenchDensity,
     BenchMachine,
@@ -310,23 +311,35 @@ def variant_name(name: str, runtime: str, precision: str) -> str:
     return name if (runtime, precision) == ("torch", "fp32") else f"{name} ({runtime} {precision})"
 
 
-def headline_record(models: Sequence[ModelResult]) -> Headline | None:
+def headline_record(models: Sequence[ModelResult], ap_3d: Mapping[str, float] | None = None) -> Headline | None:
     """The like-for-like headline: the fastest sparse row against the fastest dense row (mean total ms, our rows of
-    any runtime and precision), and against the fastest fp32 dense row; None without both kinds."""
+    any runtime and precision), and against the fastest fp32 dense row; None without both kinds.
+
+    ``ap_3d``: 3D AP (Overall R40) by row name, where the caller has evaluated the rows (a bench alone has not). A row
+    whose AP and whose model's eager fp32 AP (its torch fp32 row: the name without the `` (runtime precision)``
+    suffix, :func:`variant_name`) are both known is picked only within :data:`detector.bench.pick.AP_TOLERANCE` of
+    it; the rows left out are the headline's ``excluded``."""
+    ap_3d = ap_3d or {}
+    ours = [m for m in models if not m.peer]
+
+    def eager_ap(m: ModelResult) -> float | None:
+        return ap_3d.get(m.name.removesuffix(f" ({m.runtime} {m.precision})"))
+
+    reasons = {m.name: ap_exclusion(ap_3d.get(m.name), eager_ap(m)) for m in ours}
 
     def fastest(rows: list[ModelResult]) -> ModelResult | None:
-        return min(rows, key=lambda m: m.components["total"].mean_ms, default=None)
+        return fastest_within_ap(rows, lambda m: m.components["total"].mean_ms, lambda m: reasons[m.name])
 
-    ours = [m for m in models if not m.peer]
     dense = fastest([m for m in ours if m.backbone == "dense"])
     sparse = fastest([m for m in ours if m.backbone != "dense"])
-    if dense is None or sparse is None:
-        return None
     fp32 = fastest([m for m in ours if m.backbone == "dense" and m.precision == "fp32"])
+    if dense is None or sparse is None or fp32 is None:
+        return None
     ms = {k: m.components["total"].mean_ms for k, m in (("dense", dense), ("sparse", sparse), ("fp32", fp32))}
     return Headline(fastest_dense=dense.name, fastest_sparse=sparse.name, fastest_fp32_dense=fp32.name,
                     dense_total_ms=ms["dense"], sparse_total_ms=ms["sparse"], fp32_dense_total_ms=ms["fp32"],
-                    speedup=ms["dense"] / ms["sparse"], speedup_vs_fp32_dense=ms["fp32"] / ms["sparse"])
+                    speedup=ms["dense"] / ms["sparse"], speedup_vs_fp32_dense=ms["fp32"] / ms["sparse"],
+                    excluded=tuple(f"{n}: {r}" for n, r in reasons.items() if r is not None))
 
 
 def _check_peer(peer: str | None, device: str) -> None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from detector.bench.pick import AP_TOLERANCE, ap_exclusion, fastest_within_ap
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
 from detector.reproduce.runner import BIN, REUSE_ENV, Runner
@@ -161,11 +162,38 @@ def _cell(v: float | None, fmt: str) -> str:
     return "–" if v is None else format(v, fmt)
 
 
-def _fastest(rows: list[DeployRow], models: tuple[str, ...], fp32_only: bool) -> DeployRow | None:
-    """The row of ``models`` with the lowest bench total (fp32 rows only when ``fp32_only``); None if none was timed."""
+#: The like-for-like table's rows: (label, the sparse side's models, fp32 only on both sides, deployed runtimes only on
+#: both sides). The sparse side of the first two is either head (the fastest is the exact sparse head, our addition);
+#: the last three are the paper's architecture, the sparse backbone with the dense head.
+PAIRS: tuple[tuple[str, tuple[str, ...], bool, bool], ...] = (
+    ("fp32 (the fair pair on a CPU without native bf16 / int8, e.g. the paper's AVX2 robot)",
+     ("sparse", "sparse+sparse_head"), True, False),
+    ("any precision this CPU computes natively", ("sparse", "sparse+sparse_head"), False, False),
+    ("the paper's architecture (sparse backbone + dense head), fp32", ("sparse",), True, False),
+    ("the paper's architecture, any precision", ("sparse",), False, False),
+    ("the paper's architecture, deployed (ONNX Runtime / OpenVINO), any precision", ("sparse",), False, True),
+)
+#: What the headline sentence calls each sparse model.
+SPARSE_NAMES = {"sparse+sparse_head": "the sparse model with the exact sparse head, our addition to the paper's "
+                                      "architecture",
+                "sparse": "the sparse model with the paper's dense head"}
+
+
+def _exclusion(r: DeployRow, rows: list[DeployRow]) -> str | None:
+    """Why ``r`` may not be its side's fastest: its 3D AP against its own model's eager fp32 evaluation
+    (:func:`detector.bench.pick.ap_exclusion`); None when it may (within the tolerance, or either not evaluated)."""
+    eager = next((e for e in rows if e.model == r.model and (e.runtime, e.precision) == ("torch", "fp32")), None)
+    return ap_exclusion(_ap(r.metrics, "3d"), _ap(eager.metrics if eager else None, "3d"))
+
+
+def _fastest(rows: list[DeployRow], models: tuple[str, ...], fp32_only: bool,
+             deployed_only: bool = False) -> DeployRow | None:
+    """The row of ``models`` with the lowest bench total (fp32 rows only when ``fp32_only``, ONNX Runtime / OpenVINO
+    rows only when ``deployed_only``) among those the AP guard keeps (:func:`_exclusion`); None if none is left."""
     timed = [r for r in rows if r.model in models and r.total_ms is not None and (r.precision == "fp32" or not
-                                                                                  fp32_only)]
-    return min(timed, key=lambda r: r.total_ms) if timed else None
+                                                                                  fp32_only)
+             and (r.runtime != "torch" or not deployed_only)]
+    return fastest_within_ap(timed, lambda r: r.total_ms, lambda r: _exclusion(r, rows))
 
 
 def _row_text(r: DeployRow) -> str:
@@ -173,17 +201,67 @@ def _row_text(r: DeployRow) -> str:
     return f"{r.model}, {r.runtime} {r.precision}: {r.total_ms:.1f} ms, 3D AP {_cell(ap, '.2f')}"
 
 
+def _where(r: DeployRow) -> str:
+    return f"{r.runtime} {r.precision}, {r.total_ms:.1f} ms"
+
+
+def headline_sentence(pairs: list[tuple[str, DeployRow | None, DeployRow | None]], threads: int | None = None,
+                      cpu: str | None = None) -> str:
+    """The headline the README quotes, from the like-for-like ``pairs`` (:data:`PAIRS`' order; the first two picked)
+    timed on ``threads`` threads of ``cpu``: which sparse model the fastest sparse row is, the paper's architecture
+    against the same dense row beside it (where picked), and, where the fastest sparse row is not fp32, the fp32 pair
+    (a ratio against the fastest fp32 dense row would set that precision against fp32)."""
+    (_, fp32_d, fp32_s), (_, dense, sparse), _, (_, _, paper), (_, paper_d, paper_deployed) = pairs
+    on = f" on {threads or '?'} threads of the {cpu or 'CPU'} above" if threads or cpu else ""
+    text = (f"Headline: {SPARSE_NAMES[sparse.model]}, at its fastest ({_where(sparse)}), is "
+            f"{dense.total_ms / sparse.total_ms:.2f}x faster than the fastest dense deployment ({_where(dense)}){on}. ")
+    if sparse.model != "sparse" and paper is not None:
+        text += (f"The paper's architecture (sparse backbone + dense head) against the same dense row: "
+                 f"{dense.total_ms / paper.total_ms:.2f}x at its fastest ({_where(paper)})")
+        if paper_d is not None and paper_deployed is not None:
+            against = "" if paper_d == dense else f" against {_where(paper_d)}"
+            text += (f", {paper_d.total_ms / paper_deployed.total_ms:.2f}x deployed ({_where(paper_deployed)}"
+                     f"{against})")
+        text += ". "
+    if sparse.precision != "fp32":
+        text += (f"Against the fastest fp32 dense row ({_where(fp32_d)}) the same sparse row is "
+                 f"{fp32_d.total_ms / sparse.total_ms:.2f}x, but that sets sparse {sparse.precision} against dense "
+                 f"fp32; fp32 on both sides it is {fp32_d.total_ms / fp32_s.total_ms:.2f}x (the first row).")
+    return text.rstrip()
+
+
+def guard_note(rows: list[DeployRow]) -> str:
+    """Which timed rows the AP guard left out of every pick, and which had no evaluation to guard them by."""
+    timed = [r for r in rows if r.total_ms is not None]
+    out = [f"{r.model} {r.runtime} {r.precision} ({_exclusion(r, rows)})" for r in timed if _exclusion(r, rows)]
+    blind = [f"{r.model} {r.runtime} {r.precision}" for r in timed if _ap(r.metrics, "3d") is None]
+    text = (f"AP guard: a row is its side's fastest only within {AP_TOLERANCE:.1f} 3D AP of its own model's eager fp32 "
+            "evaluation; left out: " + ("; ".join(out) if out else "none (every evaluated row is within it)"))
+    if blind:
+        text += "; not evaluated, so picked on speed alone: " + ", ".join(blind)
+    return text + "."
+
+
+def like_for_like_pairs(rows: list[DeployRow]) -> list[tuple[str, DeployRow | None, DeployRow | None]]:
+    """(label, the fastest dense row, the fastest sparse row) of each of :data:`PAIRS`, AP-guarded; None where a side
+    has no row to pick."""
+    return [(label, _fastest(rows, ("dense",), fp32, deployed), _fastest(rows, sparse, fp32, deployed))
+            for label, sparse, fp32, deployed in PAIRS]
+
+
 def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     """The like-for-like table: the fastest dense deployment against the fastest sparse one (either head), at fp32 (the
     fair comparison on a CPU without native bf16 / int8, such as the paper's AVX2 robot CPU) and at any precision
-    this CPU computes natively, with what both sides ran under; no lines before the deploy step has run. ``rows``:
-    :func:`read_deploy`'s, when the caller has them."""
+    this CPU computes natively, then the paper's architecture (sparse backbone + dense head) against the fastest dense
+    at fp32, at any precision and deployed (:data:`PAIRS`); every pick AP-guarded (:func:`guard_note`); with what both
+    sides ran under and the headline sentence (:func:`headline_sentence`); no lines before the deploy step has run.
+    ``rows``: :func:`read_deploy`'s, when the caller has them."""
     rows = read_deploy(res) if rows is None else rows
     bench = read_bench(res / "deploy_bench.json")
-    pairs = [(label, _fastest(rows, ("dense",), fp32), _fastest(rows, ("sparse", "sparse+sparse_head"), fp32))
-             for label, fp32 in (("fp32 (the fair pair on a CPU without native bf16 / int8, e.g. the paper's AVX2 "
-                                  "robot)", True), ("any precision this CPU computes natively", False))]
-    if not all(d and sp for _, d, sp in pairs):
+    pairs = like_for_like_pairs(rows)
+    # the first two pairs are the headline's; a paper's-architecture pair with no timed (or no deployed) sparse model
+    # with the dense head is left out of the table
+    if not all(d and sp for _, d, sp in pairs[:2]):
         return []
     mach = bench.machine if bench else None
     flags = sorted(mach.native_flags()) if mach else []
@@ -191,7 +269,7 @@ def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
     cpu, threads, cpus = (mach.machine.cpu, mach.machine.torch_threads, mach.machine.logical_cpus) if mach else (
         None, None, None)
     lines = ["| fastest of each side | dense | sparse | dense / sparse |", "|---|---|---|---|"]
-    for label, d, sp in pairs:
+    for label, d, sp in (p for p in pairs if p[1] and p[2]):
         lines.append(f"| {label} | {_row_text(d)} | {_row_text(sp)} | {d.total_ms / sp.total_ms:.2f}x |")
     lines += ["", f"Both sides: {cpu or 'this CPU'}, {threads or '?'} threads of {cpus or '?'} CPUs, allocator reuse, "
               "768 x 512 test frames"
@@ -200,7 +278,8 @@ def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
               "--precision`); 3D AP Overall R40 on val. Native bf16 / int8 flags of this CPU: "
               + (", ".join(flags) if flags else "none")
               + ": AMX (and, less, AVX512-BF16 / VNNI) is what makes the dense bf16 / int8 rows fast; where a CPU "
-              "has none of them the fp32 row is the fair one."]
+              "has none of them the fp32 row is the fair one. " + guard_note(rows),
+              "", headline_sentence(pairs, threads, cpu)]
     return lines
 
 
