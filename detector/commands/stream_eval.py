@@ -29,7 +29,8 @@ from mpchair.core.errors import InputError
               help="With measured latency: write the per-frame latencies (and the machine) to this JSON file.")
 @click.option("--save-results", type=click.Path(path_type=Path), default=None,
               help="Write the outputs as result files (the --results layout; with --no-offline only the processed "
-                   "frames'), to rescore without the model.")
+                   "frames'), to rescore without the model. A folder this option saved before is replaced; any other "
+                   "non-empty folder is refused.")
 @click.option("--offline/--no-offline", default=True, show_default=True,
               help="Run the model on every frame for the offline AP; --no-offline runs it only on processed frames.")
 @click.option("--latency-ms", type=float, default=None, help="A constant latency for every frame, milliseconds.")
@@ -94,7 +95,9 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         if output is not None:
             check_writable(output)
     if save_results is not None:
-        check_writable(save_results, folder=True)
+        from detector.stream.run import check_save_results
+
+        check_save_results(save_results, results)  # missing, empty or this command's own; never --results itself
     source = source_from_options(config, checkpoint, results, oracle, device, threads)
     stream = read_stream(data)
     prep = prepare(stream, source, latency_ms=latency_ms, latency_log=replay, schedule=schedule, repeats=repeats,
