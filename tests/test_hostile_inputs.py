@@ -322,6 +322,9 @@ def test_a_checkpoint_of_another_format_says_so(tmp_path):
     torch.save({"format": 999, "model": {}}, path)
     with pytest.raises(InputError, match=rf"^{path}: checkpoint format 999, but this version reads format 1 only"):
         load_checkpoint(path)
+    torch.save({"format": 999}, path)  # another format's keys are its own: the format is what is refused
+    with pytest.raises(InputError, match=rf"^{path}: checkpoint format 999, but this version reads format 1 only"):
+        load_checkpoint(path)
     torch.save({"weights": {}}, path)
     with pytest.raises(InputError, match="missing format/model keys"):
         load_checkpoint(path)

@@ -5,15 +5,15 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_recordings import small_stream
 
 from detector.stream.data import read_stream
 from mpchair.core.errors import InputError
-from mpchair.kitti import read_velodyne, write_poses, write_times, write_velodyne
+from mpchair.kitti import read_velodyne, write_velodyne
 
 GOOD = {"rate_hz": 10.0, "region": {"max_abs_dz": 1.5, "max_distance": 10.0, "half_fov": 0.78},
         "image_size": [640, 480], "sequences": {}}
@@ -51,27 +51,6 @@ def test_non_utf8_stream_file_is_one_line(tmp_path):
 
 # --- one check of a stream for every command that reads one (issue 47) ---------------------------------------------
 
-KITTI = Path(__file__).resolve().parent / "data" / "kitti" / "training"
-
-
-def _small_stream(root: Path, rate: object = 10.0) -> Path:
-    """A two-frame stream folder (the vendored KITTI frames 000000 and 000001 as sequence 00, still sensor) whose
-    ``stream.json`` declares ``rate``; real enough for every reader to get through it."""
-    seq = root / "sequences" / "00"
-    for sub, ext in (("velodyne", "bin"), ("label_2", "txt"), ("calib", "txt")):
-        (seq / sub).mkdir(parents=True)
-        for fid in ("000000", "000001"):
-            shutil.copy(KITTI / sub / f"{fid}.{ext}", seq / sub / f"{fid}.{ext}")
-    (seq / "label_dontcare").mkdir()
-    for fid in ("000000", "000001"):
-        (seq / "label_dontcare" / f"{fid}.txt").write_text("")
-    write_times(seq / "times.txt", np.array([0, 100_000]))
-    write_poses(seq / "poses.txt", np.stack([np.eye(4), np.eye(4)]))
-    meta = {**GOOD, "rate_hz": rate, "image_size": [1242, 375], "sequences": {"00": {}}}
-    (root / "stream.json").write_text(json.dumps(meta))  # json writes NaN as NaN, which Python's reader accepts
-    return root
-
-
 #: Every command that reads a whole stream: ``(program, arguments before the output, output file name)``.
 READERS = {
     "view --mcap": ("mpchair", ["view", "{data}", "--mcap"], "out.mcap"),
@@ -99,7 +78,7 @@ def test_every_stream_reader_refuses_the_same_rate(tmp_path, capsys, command, ra
     """The third audit: ``view --mcap`` accepted rate_hz 1e300, ``view --rerun`` 0, NaN and 1e300 (stream-eval
     refused them); one check now refuses them in all three, naming the file, before any output is opened."""
     pytest.importorskip("rerun" if "rerun" in command else "mcap")
-    data = _small_stream(tmp_path / "st", rate)
+    data = small_stream(tmp_path / "st", rate)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
     code, err, _ = _read_with(command, data, out_dir, capsys)
@@ -114,7 +93,7 @@ def test_every_stream_reader_reads_the_sane_stream_and_refuses_a_nan_point(tmp_p
     """The same small stream is read whole by each command (so the refusals above are the rate's); with one NaN in a
     scan each refuses it with one line naming that scan (NaN points passed ``view`` and ``stream-eval`` before)."""
     pytest.importorskip("rerun" if "rerun" in command else "mcap")
-    data = _small_stream(tmp_path / "st")
+    data = small_stream(tmp_path / "st")
     code, err, out = _read_with(command, data, tmp_path, capsys)
     assert code == 0 and out.stat().st_size > 0, err
     out.unlink()
@@ -134,7 +113,7 @@ def test_a_nan_point_is_refused_where_a_model_reads_its_frame(tmp_path):
     (an infinite reflectance too)."""
     from detector.data.kitti_dataset import load_frame
 
-    data = _small_stream(tmp_path / "st")
+    data = small_stream(tmp_path / "st")
     scan = data / "sequences" / "00" / "velodyne" / "000000.bin"
     args = dict(classes=("Chair",), fov_crop=False, split_dir="00", with_labels=False)  # as ModelRunner.frame
     assert len(load_frame(data / "sequences", "000000", **args).points) > 0
