@@ -61,6 +61,29 @@ def test_mpchair_numbers_out_of_range_are_one_line(args, capsys, tmp_path, monke
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("option, value, needle", [
+    ("--rate", "5000", "--rate must be a sensor rate in (0, 1000] Hz, got 5000.0"),  # every reader refused it
+    ("--rate", "1e300", "--rate must be a sensor rate"),  # "Maximum allowed size exceeded" before
+    ("--rate", "nan", "--rate must be a sensor rate"),
+    ("--speed", "nan", "--speed must be 0 (a robot that stays put) or a finite number >= 0.01 m/s, got nan"),
+    ("--speed", "1e-9", "--speed must be 0"),  # a drive simulated for 4 x path / speed: forever
+    ("--accel", "inf", "--accel must be a finite number > 0 m/s^2, got inf"),
+    ("--turn-rate", "-1", "--turn-rate must be a finite number >= 0 rad/s, got -1.0"),
+    ("--duration", "1e300", "--duration must be from 0 to 3600 seconds per episode, got 1e+300"),  # memory grew
+    ("--episodes", "100000000000", "--episodes must be from 1 to 10000 per house"),  # planned forever
+])
+def test_stream_motion_numbers_out_of_range_are_one_line(option, value, needle, capsys, tmp_path, monkeypatch):
+    """The third audit's families re-run on ``mpchair stream`` (issue 47): each of these was accepted (a stream at
+    5000 Hz that every reader refuses, a NaN speed written into stream.json, an infinite acceleration) or planned
+    without end; each is now one line naming the option, before any file or house is read."""
+    monkeypatch.chdir(tmp_path)
+    args = ["stream", "--root", "r", "--house", "h", "--episodes", "1", "--out", "o", "--speed", "0", "--duration",
+            "1", option, value]  # the last of a repeated option counts
+    code, err = _mpchair(args, capsys)
+    assert code == 2 and _one_line(err).startswith(f"error: {needle}"), err
+    assert os.listdir(tmp_path) == []
+
+
 @pytest.mark.parametrize("env, needle", [
     ({"DETECTOR_GEMM": "bogus"}, "DETECTOR_GEMM='bogus'"),
     ({"WORLD_SIZE": "abc"}, "WORLD_SIZE='abc' is not a whole number"),
