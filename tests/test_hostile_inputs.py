@@ -84,6 +84,20 @@ def test_stream_motion_numbers_out_of_range_are_one_line(option, value, needle, 
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("args, needle", [
+    (["--size", "100000", "100000"], "Invalid value for --size: pictures need from 64 x 64 to 8192 x 8192 pixels"),
+    (["--extent", "nan", "1", "2", "3"], "Invalid value for --extent: expected finite XMIN < XMAX and YMIN < YMAX"),
+    (["--extent", "5", "1", "2", "3"], "Invalid value for --extent"),
+])
+def test_view_picture_sizes_and_windows_out_of_range_are_one_line(args, needle, capsys, tmp_path, monkeypatch):
+    """The re-run of the third audit's families: ``--size 100000 100000`` ended in ``MemoryError: std::bad_alloc``
+    (a traceback), ``--extent nan ...`` drew an empty picture and exited 0."""
+    monkeypatch.chdir(tmp_path)
+    code, err = _mpchair(["view", "d", "--frame", "0", "--out", "x.png", *args], capsys)
+    assert code == 2 and _one_line(err).startswith(f"error: {needle}"), err
+    assert os.listdir(tmp_path) == []
+
+
 @pytest.mark.parametrize("env, needle", [
     ({"DETECTOR_GEMM": "bogus"}, "DETECTOR_GEMM='bogus'"),
     ({"WORLD_SIZE": "abc"}, "WORLD_SIZE='abc' is not a whole number"),

@@ -122,3 +122,16 @@ def test_a_nan_point_is_refused_where_a_model_reads_its_frame(tmp_path):
     write_velodyne(scan, points)
     with pytest.raises(InputError, match=rf"^{scan}: point 0 has a non-finite reflectance \(inf\)"):
         load_frame(data / "sequences", "000000", **args)
+
+
+@pytest.mark.parametrize("latency", ["inf", "1e300", "nan", "-1"])
+def test_a_latency_out_of_range_is_one_line(tmp_path, capsys, latency):
+    """``stream-eval --latency-ms inf`` and ``1e300`` ended in an OverflowError traceback (the schedule counts integer
+    microseconds); now one line, exit 2."""
+    from helpers_detector import detector_cli
+
+    data = small_stream(tmp_path / "st")
+    code, _, err = detector_cli(["stream-eval", "--data", data, "--oracle", "--latency-ms", latency, "--quiet"], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and lines == [f"error: --latency-ms must be >= 0 and at most 3.6e+06 (an hour), got "
+                                   f"{float(latency)}"], err

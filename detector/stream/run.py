@@ -52,6 +52,8 @@ class Source:
 
 
 LATENCY_LOG_FORMAT = "mpchair-stream-latency/1"
+#: The largest constant latency (ms): an hour, longer than any stream; the schedule counts integer microseconds.
+MAX_LATENCY_MS = 3_600_000.0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -132,8 +134,8 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
 
     if schedule not in SCHEDULES:
         raise InputError(f"unknown schedule {schedule!r} ({' or '.join(SCHEDULES)})")
-    if latency_ms is not None and not latency_ms >= 0:
-        raise InputError(f"--latency-ms must be >= 0, got {latency_ms}")
+    if latency_ms is not None and not 0 <= latency_ms <= MAX_LATENCY_MS:  # inf / 1e300 overflowed the int64 schedule
+        raise InputError(f"--latency-ms must be >= 0 and at most {MAX_LATENCY_MS:g} (an hour), got {latency_ms}")
     measured = latency_ms is None and latency_log is None
     if measured and source.kind != "model":
         raise InputError(f"--latency measured needs a model (--config and --checkpoint); for {source.kind} outputs "
