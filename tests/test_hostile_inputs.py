@@ -32,6 +32,8 @@ def _one_line(err: str) -> str:
 @pytest.mark.parametrize("args, needle", [
     (["eval", "--config", "c.yaml", "--data", "d", "--threads", "100000"], "--threads"),
     (["stream-eval", "--config", "c.yaml", "--data", "d", "--threads", "0"], "--threads"),
+    (["stream-eval", "--config", "c.yaml", "--data", "d", "--repeats", str(10**20)], "--repeats"),
+    (["stream-eval", "--config", "c.yaml", "--data", "d", "--warmup", "100000"], "--warmup"),
     (["bench", "--config", "c.yaml", "--threads", "100000"], "--threads"),
     (["train", "--config", "c.yaml", "--data", "d", "--out", "o", "--threads", "100000"], "--threads"),
     (["bench", "--config", "c.yaml", "--rate", "nan"], "--rate"),

@@ -38,10 +38,10 @@ from mpchair.core.errors import InputError
               help="ego: move stale boxes by the robot's relative pose (perfect odometry); raw: use them as they are.")
 @click.option("--schedule", type=click.Choice(["single", "unbounded"]), default="single", show_default=True,
               help="single: one worker takes the latest frame when idle; unbounded: every frame processed on arrival.")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1),
-              help="Measured latency: median of this many runs per frame.")
-@click.option("--warmup", default=10, show_default=True, type=click.IntRange(0),
-              help="Measured latency: untimed runs before the first timed one.")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000),
+              help="Measured latency: median of this many runs per frame (at most 1000).")
+@click.option("--warmup", default=10, show_default=True, type=click.IntRange(0, 10_000),
+              help="Measured latency: untimed runs before the first timed one (at most 10000).")
 @click.option("--threads", type=limits.parallel_range(), default=None, help="torch CPU threads.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON instead of the table.")
