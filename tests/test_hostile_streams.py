@@ -28,6 +28,8 @@ GOOD = {"rate_hz": 10.0, "region": {"max_abs_dz": 1.5, "max_distance": 10.0, "ha
     ({"region": {"max_abs_dz": -1, "max_distance": 10.0, "half_fov": None}}, "region: expected positive"),
     ({"image_size": [0, 480]}, "image_size: expected a positive width and height"),
     ({"rate_hz": "fast"}, "malformed stream file (ValueError"),
+    ({"image_size": [640.5, 480]}, "malformed stream file (ValueError: expected a whole number, got 640.5)"),
+    ({"sequences": {"../../etc": {}}}, "sequences: expected names of digits (00, 01, ...), got '../../etc'"),
 ])
 def test_impossible_stream_metadata_is_refused(tmp_path, edit, message):
     (tmp_path / "stream.json").write_text(json.dumps({**GOOD, **edit}))

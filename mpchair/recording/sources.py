@@ -72,6 +72,9 @@ def read_stream_meta(root: Path) -> StreamMeta:
         raise InputError(f"region: expected positive finite limits, got {meta['region']!r}", path)
     if min(size) < 1:
         raise InputError(f"image_size: expected a positive width and height, got {list(size)}", path)
+    odd = next((n for n in meta["sequences"] if not (n.isascii() and n.isdigit())), None)
+    if odd is not None:  # a name is a folder under sequences/: "../x" would read files outside the stream
+        raise InputError(f"sequences: expected names of digits (00, 01, ...), got {odd!r}", path)
     return StreamMeta(path=path, rate_hz=rate, region=region, image_size=size,
                       sequences=tuple(sorted(meta["sequences"])), data=meta)
 
