@@ -64,9 +64,10 @@ def test_mpchair_numbers_out_of_range_are_one_line(args, capsys, tmp_path, monke
 
 
 @pytest.mark.parametrize("option, value, needle", [
-    ("--rate", "5000", "--rate must be a sensor rate in (0, 1000] Hz, got 5000.0"),  # every reader refused it
-    ("--rate", "1e300", "--rate must be a sensor rate"),  # "Maximum allowed size exceeded" before
-    ("--rate", "nan", "--rate must be a sensor rate"),
+    ("--rate", "5000", "--rate must be a positive sensor rate of at most 1000 Hz (what every stream reader accepts), "
+                       "got 5000.0"),  # every reader refused the stream it wrote
+    ("--rate", "1e300", "--rate must be a positive sensor rate"),  # "Maximum allowed size exceeded" before
+    ("--rate", "nan", "--rate must be a positive sensor rate"),
     ("--speed", "nan", "--speed must be 0 (a robot that stays put) or a finite number >= 0.01 m/s, got nan"),
     ("--speed", "1e-9", "--speed must be 0"),  # a drive simulated for 4 x path / speed: forever
     ("--accel", "inf", "--accel must be a finite number > 0 m/s^2, got inf"),

@@ -164,7 +164,8 @@ def _check_request(req: StreamRequest) -> None:
     if not 1 <= req.episodes <= MAX_EPISODES:
         raise InputError(f"--episodes must be from 1 to {MAX_EPISODES} per house, got {req.episodes}")
     if not 0 < req.rate <= MAX_RATE_HZ:  # what every stream reader accepts (mpchair.recording.sources); NaN fails
-        raise InputError(f"--rate must be a sensor rate in (0, {MAX_RATE_HZ:g}] Hz, got {req.rate}")
+        raise InputError(f"--rate must be a positive sensor rate of at most {MAX_RATE_HZ:g} Hz (what every stream "
+                         f"reader accepts), got {req.rate}")
     if not (req.speed == 0 or MIN_SPEED <= req.speed < math.inf):
         raise InputError(f"--speed must be 0 (a robot that stays put) or a finite number >= {MIN_SPEED:g} m/s, got "
                          f"{req.speed}")
