@@ -168,11 +168,12 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         # torch's own text advises weights_only=False, which would run whatever the file holds: never repeat it
         raise InputError(f"not a detector checkpoint: torch.load cannot read it ({type(e).__name__}); a checkpoint "
                          "is the last.pt or checkpoints/epoch_NNN.pt of a detector train run", path) from None
-    if not isinstance(state, dict) or "format" not in state or "model" not in state:
-        raise InputError("not a detector checkpoint (missing format/model keys)", path)
-    if state["format"] != CHECKPOINT_FORMAT:
+    if isinstance(state, dict) and "format" in state and state["format"] != CHECKPOINT_FORMAT:
+        # before the keys: another format may hold other keys, and "missing keys" would hide why it is refused
         raise InputError(f"checkpoint format {state['format']!r}, but this version reads format {CHECKPOINT_FORMAT} "
                          "only (written by another version of detector?)", path)
+    if not isinstance(state, dict) or "format" not in state or "model" not in state:
+        raise InputError("not a detector checkpoint (missing format/model keys)", path)
     return _from_file_dict(state)
 
 

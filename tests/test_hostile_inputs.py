@@ -32,6 +32,8 @@ def _one_line(err: str) -> str:
 @pytest.mark.parametrize("args, needle", [
     (["eval", "--config", "c.yaml", "--data", "d", "--threads", "100000"], "--threads"),
     (["stream-eval", "--config", "c.yaml", "--data", "d", "--threads", "0"], "--threads"),
+    (["stream-eval", "--config", "c.yaml", "--data", "d", "--repeats", str(10**20)], "--repeats"),
+    (["stream-eval", "--config", "c.yaml", "--data", "d", "--warmup", "100000"], "--warmup"),
     (["bench", "--config", "c.yaml", "--threads", "100000"], "--threads"),
     (["train", "--config", "c.yaml", "--data", "d", "--out", "o", "--threads", "100000"], "--threads"),
     (["bench", "--config", "c.yaml", "--rate", "nan"], "--rate"),
@@ -58,6 +60,44 @@ def test_mpchair_numbers_out_of_range_are_one_line(args, capsys, tmp_path, monke
     monkeypatch.chdir(tmp_path)
     code, err = _mpchair(args, capsys)
     assert code == 2 and ("--workers" in _one_line(err) or "--seed" in err)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("option, value, needle", [
+    ("--rate", "5000", "--rate must be a positive sensor rate of at most 1000 Hz (what every stream reader accepts), "
+                       "got 5000.0"),  # every reader refused the stream it wrote
+    ("--rate", "1e300", "--rate must be a positive sensor rate"),  # "Maximum allowed size exceeded" before
+    ("--rate", "nan", "--rate must be a positive sensor rate"),
+    ("--speed", "nan", "--speed must be 0 (a robot that stays put) or a finite number >= 0.01 m/s, got nan"),
+    ("--speed", "1e-9", "--speed must be 0"),  # a drive simulated for 4 x path / speed: forever
+    ("--accel", "inf", "--accel must be a finite number > 0 m/s^2, got inf"),
+    ("--turn-rate", "-1", "--turn-rate must be a finite number >= 0 rad/s, got -1.0"),
+    ("--duration", "1e300", "--duration must be from 0 to 3600 seconds per episode, got 1e+300"),  # memory grew
+    ("--episodes", "100000000000", "--episodes must be from 1 to 10000 per house"),  # planned forever
+])
+def test_stream_motion_numbers_out_of_range_are_one_line(option, value, needle, capsys, tmp_path, monkeypatch):
+    """The third audit's families re-run on ``mpchair stream`` (issue 47): each of these was accepted (a stream at
+    5000 Hz that every reader refuses, a NaN speed written into stream.json, an infinite acceleration) or planned
+    without end; each is now one line naming the option, before any file or house is read."""
+    monkeypatch.chdir(tmp_path)
+    args = ["stream", "--root", "r", "--house", "h", "--episodes", "1", "--out", "o", "--speed", "0", "--duration",
+            "1", option, value]  # the last of a repeated option counts
+    code, err = _mpchair(args, capsys)
+    assert code == 2 and _one_line(err).startswith(f"error: {needle}"), err
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--size", "100000", "100000"], "Invalid value for --size: pictures need from 64 x 64 to 8192 x 8192 pixels"),
+    (["--extent", "nan", "1", "2", "3"], "Invalid value for --extent: expected finite XMIN < XMAX and YMIN < YMAX"),
+    (["--extent", "5", "1", "2", "3"], "Invalid value for --extent"),
+])
+def test_view_picture_sizes_and_windows_out_of_range_are_one_line(args, needle, capsys, tmp_path, monkeypatch):
+    """The re-run of the third audit's families: ``--size 100000 100000`` ended in ``MemoryError: std::bad_alloc``
+    (a traceback), ``--extent nan ...`` drew an empty picture and exited 0."""
+    monkeypatch.chdir(tmp_path)
+    code, err = _mpchair(["view", "d", "--frame", "0", "--out", "x.png", *args], capsys)
+    assert code == 2 and _one_line(err).startswith(f"error: {needle}"), err
     assert os.listdir(tmp_path) == []
 
 
@@ -320,6 +360,9 @@ def test_a_checkpoint_of_another_format_says_so(tmp_path):
 
     path = tmp_path / "x.pt"
     torch.save({"format": 999, "model": {}}, path)
+    with pytest.raises(InputError, match=rf"^{path}: checkpoint format 999, but this version reads format 1 only"):
+        load_checkpoint(path)
+    torch.save({"format": 999}, path)  # another format's keys are its own: the format is what is refused
     with pytest.raises(InputError, match=rf"^{path}: checkpoint format 999, but this version reads format 1 only"):
         load_checkpoint(path)
     torch.save({"weights": {}}, path)

@@ -238,19 +238,54 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(data, t
     code, out, _ = _cli(["train", "--config", cfg, "--data", root, "--out", run, "--threads", "1", "--no-progress"],
                         capsys)
     assert code == 0 and "trained 1 epoch(s), 4 step(s)" in out
+    # One weight of the checkpoint is now NaN, so the resumed run's first loss is. (A NaN in a scan no longer gets
+    # this far: the scan reader refuses it, see below; finite data cannot blow up a loss behind BatchNorm.)
+    ckpt = load_checkpoint(run / "last.pt")
+    name = next(k for k, v in ckpt.model.items() if k.endswith("weight") and v.is_floating_point())
+    ckpt.model[name].view(-1)[0] = float("nan")
+    save_checkpoint(run / "last.pt", ckpt)
     good = (run / "last.pt").read_bytes()
-    # One frame now carries a NaN reflectance: xyz is finite (the range filter keeps the point), the features are not.
+    code, _, err = _cli(["train", "--config", cfg, "--data", root, "--out", run, "--resume", "--epochs", "2",
+                         "--threads", "1", "--no-progress"], capsys)
+    assert code == 1
+    assert "error: non-finite loss" in err and "(frames 0000" in err and "Traceback" not in err
+    assert f"{run / 'last.pt'} keeps the last good state" in err
+    assert (run / "last.pt").read_bytes() == good
+    steps = _steps(run)
+    assert len(steps) == 4 and all(math.isfinite(s["loss_total"]) for s in steps)  # epoch 2 failed at its 1st step
+
+
+def test_a_nan_in_a_scan_is_refused_naming_the_file(data, tmp_path, capsys):
+    """A NaN reflectance (xyz finite: the range filter would keep the point) is bad input, refused where the scan is
+    read with one line naming the file, before any run folder is written."""
+    import shutil
+
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
     path = frame_paths(root, "000003").velodyne
     points = read_velodyne(path)
     points[0, 3] = np.nan
     write_velodyne(path, points)
-    code, _, err = _cli(["train", "--config", cfg, "--data", root, "--out", run, "--resume", "--epochs", "2",
-                         "--threads", "1", "--no-progress"], capsys)
-    assert code == 1
-    assert "error: non-finite loss" in err and "000003" in err and "Traceback" not in err
-    assert (run / "last.pt").read_bytes() == good
-    steps = _steps(run)
-    assert len(steps) == 5 and all(math.isfinite(s["loss_total"]) for s in steps)  # epoch 2 failed at its 2nd step
+    cfg = write_test_config(tmp_path / "cfg.yaml", model=dict(in_channels=4), train=dict(batch_size=2, epochs=1))
+    code, _, err = _cli(["train", "--config", cfg, "--data", root, "--out", tmp_path / "run", "--threads", "1",
+                         "--no-progress"], capsys)
+    assert code == 2 and err == (f"error: {path}: point 0 has a non-finite reflectance (nan); a scan holds finite x, "
+                                 "y, z, reflectance\n")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_diverging_run_without_a_checkpoint_does_not_point_at_one(data, tmp_path, capsys):
+    """``lr: 1e30`` diverges in the first epoch, before any checkpoint: the error says that nothing is kept instead
+    of naming a last.pt that does not exist (the third audit)."""
+    cfg = write_test_config(tmp_path / "cfg.yaml", model=dict(in_channels=4),
+                            train=dict(batch_size=2, epochs=1, lr=1e30))
+    run = tmp_path / "run"
+    code, _, err = _cli(["train", "--config", cfg, "--data", data, "--out", run, "--threads", "1", "--no-progress"],
+                        capsys)
+    lines = err.strip().splitlines()
+    assert code == 1 and len(lines) == 1 and lines[0].startswith("error: non-finite "), err
+    assert f"no checkpoint was written yet ({run / 'last.pt'} does not exist), so nothing is kept" in lines[0]
+    assert "keeps the last good state" not in lines[0] and not (run / "last.pt").exists()
 
 
 def test_ctrl_c_says_which_step_last_pt_holds_and_the_resume_command(data, tmp_path, capsys, monkeypatch):

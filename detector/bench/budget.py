@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import multiprocessing
-import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -43,6 +42,7 @@ from detector.bench.run import (
 )
 from detector.config import load_experiment
 from detector.deploy.cpu import cpu_flags, skip_reason
+from detector.deploy.deployed import graph_work_dir
 from detector.device import peak_memory_bytes, reset_peak_memory, usable_cores, use_device
 from detector.ops.gemm import current_backend, gemm_backend
 from mpchair.core.errors import InputError
@@ -116,8 +116,8 @@ def _row_record(model: BenchModel, runtime: str, precision: str, data_dir: str, 
     """One row in this (fresh) process: build it, warm up, run :func:`fixed_rate`; its record."""
     dev = use_device("cpu", threads)
     one = replace(variant, runtimes=(runtime,), precisions=(precision,))
-    with tempfile.TemporaryDirectory(prefix="detector-budget-") as work:
-        rows, nets, _ = build_rows([model], dev, data_dir, split, frames, seed, False, one, Path(work))
+    with graph_work_dir("detector-budget-") as work:
+        rows, nets, _ = build_rows([model], dev, data_dir, split, frames, seed, False, one, work)
         row, net = rows[0], nets[0]
         points = [f.points for f in row.frames]
 

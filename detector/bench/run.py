@@ -38,7 +38,6 @@ whole process).
 from __future__ import annotations
 
 import copy
-import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -66,6 +65,7 @@ from detector.checkpoint import load_model
 from detector.config import ExperimentConfig, load_experiment, pseudoimage_geometry
 from detector.data.experiment import EvalFrame, load_eval_frames
 from detector.deploy.cpu import PRECISIONS, RUNTIMES, cpu_flags, precision_flags, skip_reason
+from detector.deploy.deployed import graph_work_dir
 from detector.device import Machine, use_device
 from detector.models import PointPillars
 from detector.ops.gemm import library as gemm_library
@@ -196,8 +196,8 @@ def run_bench(
     check_variant(variant, device)
     dev = use_device(device, threads)
     _check_peer(peer, device)
-    with tempfile.TemporaryDirectory(prefix="detector-bench-") as work:  # the exported graphs, for this run only
-        rows, nets, skipped = build_rows(models, dev, data_dir, split, frames, seed, progress, variant, Path(work))
+    with graph_work_dir("detector-bench-") as work:  # the exported graphs, for this run only
+        rows, nets, skipped = build_rows(models, dev, data_dir, split, frames, seed, progress, variant, work)
         if peer is not None:
             first = next((j for j, r in enumerate(rows) if r.runtime == "torch"), None)
             if first is None:

@@ -164,11 +164,9 @@ def _deployed_mode(config, data, checkpoint, split, out, device, threads, protoc
                    calibration_frames):
     """The checkpoint deployed (:func:`detector.deploy.deployed.deploy_checkpoint`: exported, int8 calibrated on the
     train split) and evaluated like the eager one (:func:`detector.infer.evaluate_model`)."""
-    import tempfile
-
     from detector.config import load_experiment
     from detector.data.experiment import open_split
-    from detector.deploy.deployed import deploy_checkpoint
+    from detector.deploy.deployed import deploy_checkpoint, graph_work_dir
     from detector.device import use_device
     from detector.eval.protocols import check_protocol
     from detector.infer import evaluate_model
@@ -189,7 +187,7 @@ def _deployed_mode(config, data, checkpoint, split, out, device, threads, protoc
         model = load_model(cfg, checkpoint, "cpu")
         model.precision = precision
         return evaluate_model(model, cfg, data, split, out, device="cpu", protocol=protocol)
-    with tempfile.TemporaryDirectory(prefix="detector-eval-") as work:
+    with graph_work_dir("detector-eval-") as work:
         model = deploy_checkpoint(cfg, checkpoint, runtime, precision, work, threads=torch_threads(), data=data,
                                   calibration_frames=calibration_frames)
         return evaluate_model(model, cfg, data, split, out, device="cpu", protocol=protocol)

@@ -29,7 +29,8 @@ from mpchair.core.errors import InputError
               help="With measured latency: write the per-frame latencies (and the machine) to this JSON file.")
 @click.option("--save-results", type=click.Path(path_type=Path), default=None,
               help="Write the outputs as result files (the --results layout; with --no-offline only the processed "
-                   "frames'), to rescore without the model.")
+                   "frames'), to rescore without the model. A folder this option saved before is replaced; any other "
+                   "non-empty folder is refused.")
 @click.option("--offline/--no-offline", default=True, show_default=True,
               help="Run the model on every frame for the offline AP; --no-offline runs it only on processed frames.")
 @click.option("--latency-ms", type=float, default=None, help="A constant latency for every frame, milliseconds.")
@@ -37,10 +38,10 @@ from mpchair.core.errors import InputError
               help="ego: move stale boxes by the robot's relative pose (perfect odometry); raw: use them as they are.")
 @click.option("--schedule", type=click.Choice(["single", "unbounded"]), default="single", show_default=True,
               help="single: one worker takes the latest frame when idle; unbounded: every frame processed on arrival.")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1),
-              help="Measured latency: median of this many runs per frame.")
-@click.option("--warmup", default=10, show_default=True, type=click.IntRange(0),
-              help="Measured latency: untimed runs before the first timed one.")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 1000),
+              help="Measured latency: median of this many runs per frame (at most 1000).")
+@click.option("--warmup", default=10, show_default=True, type=click.IntRange(0, 10_000),
+              help="Measured latency: untimed runs before the first timed one (at most 10000).")
 @click.option("--threads", type=limits.parallel_range(), default=None, help="torch CPU threads.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON instead of the table.")
@@ -94,7 +95,9 @@ def stream_eval(data, config, checkpoint, results, oracle, latency_kind, latency
         if output is not None:
             check_writable(output)
     if save_results is not None:
-        check_writable(save_results, folder=True)
+        from detector.stream.run import check_save_results
+
+        check_save_results(save_results, results)  # missing, empty or this command's own; never --results itself
     source = source_from_options(config, checkpoint, results, oracle, device, threads)
     stream = read_stream(data)
     prep = prepare(stream, source, latency_ms=latency_ms, latency_log=replay, schedule=schedule, repeats=repeats,

@@ -20,7 +20,9 @@ Batch 1: a batch of B point clouds runs frame by frame.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import tempfile
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -146,6 +148,16 @@ def write_graph(eager: PointPillars, fmt: str, precision: str, work_dir: str | P
     quantized over the ``calibration`` frames (points (N, C) float32, sensor frame) for int8."""
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
+    try:
+        return _write_graph(eager, fmt, precision, work, calibration, seed)
+    except OSError as e:
+        if e.filename is None:  # torch.onnx / onnx write to an open file (a full disk) and name none: name the folder
+            e.filename = str(work)
+        raise
+
+
+def _write_graph(eager: PointPillars, fmt: str, precision: str, work: Path, calibration: Sequence[np.ndarray],
+                 seed: int) -> Path:
     onnx_path = work / "fp32.onnx"
     with torch.no_grad():
         write_onnx(eager, onnx_path, seed=seed)
@@ -161,6 +173,22 @@ def write_graph(eager: PointPillars, fmt: str, precision: str, work_dir: str | P
         write_openvino(onnx_path, path)
         return path
     return onnx_path
+
+
+@contextlib.contextmanager
+def graph_work_dir(prefix: str) -> Iterator[Path]:
+    """A temporary folder (in ``TMPDIR``) for the graphs a command exports for itself (``bench``, ``eval --runtime``),
+    removed afterwards. A write that fails in it (a full ``TMPDIR``) is an ``OSError`` naming the file or folder and
+    saying that it is the temporary folder, so the user knows which disk to free or which ``TMPDIR`` to set."""
+    with tempfile.TemporaryDirectory(prefix=prefix) as work:
+        try:
+            yield Path(work)
+        except OSError as e:
+            name = "" if e.filename is None else str(e.filename)
+            if name != work and not name.startswith(work + "/"):
+                raise
+            raise OSError(e.errno, f"{e.strerror or e} (a temporary folder for the exported graphs: free space there "
+                          "or set TMPDIR to a folder with room)", name) from None
 
 
 def build_deployed(eager: PointPillars, runtime: str, precision: str, work_dir: str | Path, *, threads: int,

@@ -15,6 +15,9 @@ converted from that ONNX file (``openvino.convert_model``), so both runtimes run
 
 from __future__ import annotations
 
+import errno
+import os
+import shutil
 import warnings
 from pathlib import Path
 
@@ -115,4 +118,14 @@ def write_openvino(onnx_path: Path, xml_path: Path) -> None:
     """Convert an ONNX graph to OpenVINO IR at ``xml_path`` (weights in the ``.bin`` beside it, fp32 kept: the
     precision is chosen when the model is compiled, :mod:`detector.deploy.runtimes`)."""
     ov = require("openvino", "OpenVINO export")
-    ov.save_model(ov.convert_model(str(onnx_path)), str(xml_path), compress_to_fp16=False)
+    model = ov.convert_model(str(onnx_path))
+    try:
+        ov.save_model(model, str(xml_path), compress_to_fp16=False)
+    except RuntimeError as e:
+        # OpenVINO's C++ writer reports a failed write as a bare "basic_ios::clear: iostream error" (no errno, no
+        # file); its .bin holds the weights, about the ONNX file's size, so less room than that is a full disk
+        room = shutil.disk_usage(xml_path.parent).free
+        if room < onnx_path.stat().st_size:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(xml_path)) from None
+        raise OSError(errno.EIO, f"OpenVINO could not write the model ({' '.join(str(e).split())[:200]})",
+                      str(xml_path)) from None

@@ -110,12 +110,18 @@ def export_folder(config: str | Path, checkpoint: str | Path | None, fmt: str, o
     out.parent.mkdir(parents=True, exist_ok=True)
     with folder_lock(out.parent / f".{out.name}.export.lock", "detector export", folder=out):
         remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), COMMAND, legacy=_legacy_export)
-        work = work_dir(out.parent, f".{out.name}.work", COMMAND)
         try:
-            return _export_into(work, out, eager, cfg, fmt, precision, frames, config=config, checkpoint=checkpoint,
-                                data=data, calibration_split=calibration_split, seed=seed)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
+            work = work_dir(out.parent, f".{out.name}.work", COMMAND)
+            try:
+                return _export_into(work, out, eager, cfg, fmt, precision, frames, config=config,
+                                    checkpoint=checkpoint, data=data, calibration_split=calibration_split, seed=seed)
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+        except OSError as e:
+            if e.filename is not None and f"{os.sep}.{out.name}.work" not in str(e.filename):
+                raise
+            # a write in the hidden work folder (a full disk): name the export asked for, not the work folder
+            raise OSError(e.errno, f"{e.strerror or e}; nothing was replaced", str(out)) from None
 
 
 def _export_into(work: Path, out: Path, eager, cfg, fmt: str, precision: str, frames: list, *, config, checkpoint,

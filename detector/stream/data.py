@@ -8,25 +8,13 @@ Times are kept as int64 microseconds so that ``emitted <= captured`` comparisons
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 from pathlib import Path
 
 import numpy as np
 
 from mpchair.core.errors import InputError
-from mpchair.core.text import load_json
 from mpchair.kitti import Calib, Labels, read_calib, read_labels, read_poses, read_times
-
-
-@dataclasses.dataclass(frozen=True)
-class Region:
-    """The labelled region of the stream's sensor (:mod:`mpchair.geometry.region`): metres, radians (``None``: no
-    field-of-view limit)."""
-
-    max_abs_dz: float
-    max_distance: float
-    half_fov: float | None
+from mpchair.recording.sources import Region, read_stream_meta
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -77,36 +65,13 @@ class Stream:
         return sum(len(s) for s in self.sequences)
 
 
-#: Fastest sensor rate a stream may declare (Hz); real depth cameras and LiDARs run at 1-100 Hz.
-MAX_RATE_HZ = 1000.0
-
-
 def read_stream(root: str | Path) -> Stream:
-    """Read ``stream.json`` and every sequence's times and poses; a missing or inconsistent file is an
-    :class:`InputError` naming it."""
+    """Read ``stream.json`` (checked by :func:`mpchair.recording.sources.read_stream_meta`, as ``mpchair view`` checks
+    it) and every sequence's times and poses; a missing or inconsistent file is an :class:`InputError` naming it."""
     root = Path(root)
-    meta_path = root / "stream.json"
-    if not meta_path.is_file():
-        raise InputError("not a complete stream folder (no stream.json; run or finish `mpchair stream`)", root)
-    meta = load_json(meta_path, "stream file")  # a FIFO, a device, nesting 100,000 deep: one line
-    try:
-        region = Region(float(meta["region"]["max_abs_dz"]), float(meta["region"]["max_distance"]),
-                        None if meta["region"]["half_fov"] is None else float(meta["region"]["half_fov"]))
-        size = (int(meta["image_size"][0]), int(meta["image_size"][1]))
-        names = sorted(meta["sequences"])
-        rate = float(meta["rate_hz"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
-        raise InputError(f"malformed stream file ({type(e).__name__}: {' '.join(str(e).split())[:200]})",
-                         meta_path) from None
-    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
-        raise InputError(f"rate_hz: expected a sensor rate in (0, {MAX_RATE_HZ:g}] Hz, got {rate!r}", meta_path)
-    fov = () if region.half_fov is None else (region.half_fov,)
-    if not all(math.isfinite(v) and v > 0 for v in (region.max_abs_dz, region.max_distance, *fov)):
-        raise InputError(f"region: expected positive finite limits, got {meta['region']!r}", meta_path)
-    if min(size) < 1:
-        raise InputError(f"image_size: expected a positive width and height, got {list(size)}", meta_path)
+    meta = read_stream_meta(root)
     seqs = []
-    for name in names:
+    for name in meta.sequences:
         folder = root / "sequences" / name
         times = read_times(folder / "times.txt")
         poses = read_poses(folder / "poses.txt")
@@ -114,5 +79,6 @@ def read_stream(root: str | Path) -> Stream:
             raise InputError(f"{len(poses)} poses but {len(times)} capture times", folder / "poses.txt")
         seqs.append(StreamSequence(name, folder, times, poses))
     if not seqs:
-        raise InputError("the stream has no sequences", meta_path)
-    return Stream(root=root, rate_hz=rate, region=region, image_size=size, sequences=tuple(seqs), meta=meta)
+        raise InputError("the stream has no sequences", meta.path)
+    return Stream(root=root, rate_hz=meta.rate_hz, region=meta.region, image_size=meta.image_size,
+                  sequences=tuple(seqs), meta=meta.data)

@@ -8,8 +8,12 @@ both modes. With a constant latency everything is a pure function of the inputs 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
+import re
+import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -19,7 +23,9 @@ from detector.stream.data import Stream
 from detector.stream.outputs import ModelRunner, Output, oracle_outputs, result_outputs
 from detector.stream.schedule import Schedule, latest_outputs, single_worker, unbounded_workers
 from detector.stream.score import MODES, ap_ceiling, evaluate_overall, query_results
+from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
+from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Calib, Labels
 
@@ -46,6 +52,8 @@ class Source:
 
 
 LATENCY_LOG_FORMAT = "mpchair-stream-latency/1"
+#: The largest constant latency (ms): an hour, longer than any stream; the schedule counts integer microseconds.
+MAX_LATENCY_MS = 3_600_000.0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -126,8 +134,8 @@ def prepare(stream: Stream, source: Source, *, latency_ms: float | None = None, 
 
     if schedule not in SCHEDULES:
         raise InputError(f"unknown schedule {schedule!r} ({' or '.join(SCHEDULES)})")
-    if latency_ms is not None and not latency_ms >= 0:
-        raise InputError(f"--latency-ms must be >= 0, got {latency_ms}")
+    if latency_ms is not None and not 0 <= latency_ms <= MAX_LATENCY_MS:  # inf / 1e300 overflowed the int64 schedule
+        raise InputError(f"--latency-ms must be >= 0 and at most {MAX_LATENCY_MS:g} (an hour), got {latency_ms}")
     measured = latency_ms is None and latency_log is None
     if measured and source.kind != "model":
         raise InputError(f"--latency measured needs a model (--config and --checkpoint); for {source.kind} outputs "
@@ -315,18 +323,69 @@ def source_from_options(config: Path | None, checkpoint: Path | None, results: P
     return Source("oracle")
 
 
+#: The command that owns a ``--save-results`` folder (:mod:`mpchair.core.owned`).
+SAVE_COMMAND = "detector stream-eval --save-results"
+
+
+def _legacy_saved(folder: Path) -> set[str] | None:
+    """The files of a ``--save-results`` folder written before ownership markers: nothing but regular
+    ``NN/NNNNNN.txt`` result files (None otherwise)."""
+    files = set()
+    for seq in folder.iterdir():
+        if seq.is_symlink() or not seq.is_dir():
+            return None
+        for f in seq.iterdir():
+            if not (re.fullmatch(r"[0-9]+\.txt", f.name) and f.is_file() and not f.is_symlink()):
+                return None
+            files.add(f"{seq.name}/{f.name}")
+    return files
+
+
+def check_save_results(out: str | Path, results: str | Path | None = None) -> None:
+    """Before any work: :class:`InputError` unless ``out`` may become the ``--save-results`` folder: missing, empty,
+    or result files this command saved (a folder holding anything else is never replaced), not the ``--results``
+    folder being read, and in a writable folder."""
+    out = Path(out)
+    if results is not None and Path(results).exists() and out.exists() and os.path.samefile(out, results):
+        raise InputError("is the --results folder this run reads; save the results elsewhere", out)
+    check_replaceable(out, SAVE_COMMAND, legacy=_legacy_saved, option="--save-results")
+    check_writable(out, folder=True)
+
+
 def save_results(prep: Prepared, out: str | Path) -> Path:
     """Write every output there is as a 16-column KITTI result file ``OUT/NN/NNNNNN.txt`` (rectified camera frame of
-    that frame; the ``--results`` layout), atomically per file: every frame after the offline pass, else the frames
-    the schedule processed (enough to replay the same schedule)."""
+    that frame; the ``--results`` layout): every frame after the offline pass, else the frames the schedule processed
+    (enough to replay the same schedule).
+
+    All or nothing: the files are written into a hidden work folder beside ``OUT`` that replaces ``OUT`` when complete
+    (an older folder this command saved is replaced; any other is refused, :func:`check_save_results`). A write that
+    fails (a full disk) is an ``OSError`` naming ``OUT``, and leaves neither ``OUT`` nor the folders this call
+    created on the way to it."""
     from detector.infer import boxes_to_results
     from mpchair.kitti import write_labels
 
     out = Path(out)
-    for s, seq in enumerate(prep.stream.sequences):
-        for i in range(len(seq)):
-            o = prep.outputs[s][i]
-            if o is not None:
-                write_labels(out / seq.name / f"{seq.frame_id(i)}.txt",
-                             boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i], prep.stream.image_size))
+    check_save_results(out)
+    created = [p for p in (out.parent, *out.parent.parents) if not p.exists()]  # deepest first
+    try:
+        remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), SAVE_COMMAND)
+        stage = work_dir(out.parent, f".{out.name}.work", SAVE_COMMAND)
+        try:
+            for s, seq in enumerate(prep.stream.sequences):
+                for i in range(len(seq)):
+                    o = prep.outputs[s][i]
+                    if o is not None:
+                        write_labels(stage / seq.name / f"{seq.frame_id(i)}.txt",
+                                     boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i],
+                                                      prep.stream.image_size))
+            replace_folder(stage, out, SAVE_COMMAND, legacy=_legacy_saved)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+    except BaseException as e:
+        for p in created:
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        if isinstance(e, OSError):  # name the folder asked for, not the hidden work folder nobody asked for
+            raise OSError(e.errno, f"{e.strerror or e}; no result file was saved", str(out)) from None
+        raise
     return out

@@ -30,10 +30,10 @@ from detector.eval import EvalResult, evaluate, get_thresholds
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r11, ap_r40
 from detector.infer import boxes_to_results
 from detector.ops import rotated_iou_bev
-from detector.stream.data import Region
 from detector.stream.outputs import Output
 from mpchair.geometry import canonical_yaw, in_region, invert_rigid, transform_boxes
 from mpchair.kitti import Calib, Labels
+from mpchair.recording.sources import Region
 
 MODES: tuple[str, ...] = ("ego", "raw")
 

@@ -88,6 +88,14 @@ def _forward_losses(batch: Batch, parts: ModelAndOptimiser, settings: StepSettin
     return losses.total * scale * settings.world_size, all_reduce_losses(losses, scale), int(pos_global)
 
 
+def _kept(last_good: Path) -> str:
+    """What a stopped run keeps, in words: the checkpoint when one was written, else that nothing was (a run that
+    fails before its first checkpoint must not point at a file that does not exist)."""
+    if last_good.is_file():
+        return f"{last_good} keeps the last good state"
+    return f"no checkpoint was written yet ({last_good} does not exist), so nothing is kept"
+
+
 def train_step(batch: Batch, parts: ModelAndOptimiser, settings: StepSettings, *, epoch: int, step: int) -> StepStats:
     """Train on this rank's ``batch`` of global step ``step + 1`` in epoch ``epoch + 1`` (both counted from 0 here,
     from 1 in messages). A non-finite loss or gradient norm raises :class:`TrainingError` before the weights change
@@ -97,8 +105,8 @@ def train_step(batch: Batch, parts: ModelAndOptimiser, settings: StepSettings, *
     if not math.isfinite(logged.total):
         raise TrainingError(
             f"non-finite loss ({logged.total}) at epoch {epoch + 1}, step {step + 1} (frames "
-            f"{', '.join(batch.frame_ids)}); training stopped, {settings.last_good} keeps the last good "
-            "state. Check the data for NaN/inf values or lower train.lr")
+            f"{', '.join(batch.frame_ids)}); training stopped, {_kept(settings.last_good)}. Check the data for "
+            "NaN/inf values or lower train.lr")
     optimizer = parts.optimizer
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
@@ -107,7 +115,7 @@ def train_step(batch: Batch, parts: ModelAndOptimiser, settings: StepSettings, *
     if not math.isfinite(grad_norm):
         raise TrainingError(
             f"non-finite gradient norm at epoch {epoch + 1}, step {step + 1}; training stopped, "
-            f"{settings.last_good} keeps the last good state. Lower train.lr or enable train.grad_clip_norm")
+            f"{_kept(settings.last_good)}. Lower train.lr or enable train.grad_clip_norm")
     lr, beta1 = optimizer.param_groups[0]["lr"], optimizer.param_groups[0]["betas"][0]
     optimizer.step()
     if parts.scheduler is not None and step + 1 < settings.total_steps:

@@ -626,7 +626,8 @@ def stream_zmax(stream: str | Path) -> float:
     height of the ``--height`` in ``stream.json``'s command (1.0 m when it names none)."""
     from mpchair.recording.sources import read_stream_meta
 
-    meta, path = read_stream_meta(Path(stream))
+    stream_meta = read_stream_meta(Path(stream))
+    meta, path = stream_meta.data, stream_meta.path
     command = meta.get("command") if isinstance(meta.get("command"), list) else []
     height = 1.0
     if "--height" in command[:-1]:

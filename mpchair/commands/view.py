@@ -22,6 +22,11 @@ def _png(path: Path, option: str) -> Path:
     return path
 
 
+#: The largest picture side (pixels) ``view`` draws: matplotlib's Agg canvas takes at most 2^16, and a 8192 x 8192
+#: RGBA picture already needs 256 MiB.
+MAX_PICTURE_SIDE = 8192
+
+
 @click.command(context_settings=_CTX)
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--frame", "frame", type=FRAME_ID, help="Frame id (123 or 000123).")
@@ -82,8 +87,13 @@ def view(dataset: Path, frame: str | None, sequence: str | None, out: Path | Non
         raise InputError("give --frame and --out (a picture of one frame), or --rerun OUT.rrd, or --mcap OUT.mcap")
     fid = frame
     _png(out, "--out")
-    if min(size) < 64:
-        raise click.BadParameter("pictures need at least 64 x 64 pixels", param_hint="--size")
+    if min(size) < 64 or max(size) > MAX_PICTURE_SIDE:  # 100000 x 100000 asked for 40 GB and ended in bad_alloc
+        raise click.BadParameter(f"pictures need from 64 x 64 to {MAX_PICTURE_SIDE} x {MAX_PICTURE_SIDE} pixels",
+                                 param_hint="--size")
+    if extent is not None and not (all(math.isfinite(v) for v in extent) and extent[0] < extent[1]
+                                   and extent[2] < extent[3]):  # a NaN window drew an empty picture, exit 0
+        raise click.BadParameter(f"expected finite XMIN < XMAX and YMIN < YMAX metres, got {list(extent)}",
+                                 param_hint="--extent")
     folder, split_dir, sequence = _frame_folder(dataset, sequence, fov_crop)
     if not (folder / split_dir / "velodyne" / f"{fid}.bin").is_file():
         raise InputError(f"frame {fid} not found (no {Path(split_dir) / 'velodyne' / (fid + '.bin')})", folder)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import click
 
@@ -117,6 +118,10 @@ def _check_mpl_backend(backend: str) -> None:
     except ImportError:  # no matplotlib: nothing reads the variable
         return
     except ValueError as e:
+        # the refused import leaves a half-made matplotlib in sys.modules: drop it, so that a caller that goes on in
+        # this process (a library user, a test) imports it afresh instead of failing on attributes it never got
+        for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+            del sys.modules[name]
         raise refuse(e) from None
     try:
         validate_backend(backend)

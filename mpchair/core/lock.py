@@ -181,8 +181,11 @@ def folder_lock(path: str | Path, what: str, *, folder: str | Path | None = None
                          "(a killed run leaves no lock behind)", path.parent if folder is None else folder)
     _HELD.add(fd)
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, _stamp(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, _stamp(), 0)
+        except OSError as e:  # a full disk: a write to a descriptor names no file, so name the folder
+            raise OSError(e.errno, e.strerror, str(path.parent if folder is None else folder)) from None
         yield
     finally:
         _release(path, fd)

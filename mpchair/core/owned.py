@@ -134,7 +134,12 @@ def work_dir(parent: Path, prefix: str, command: str) -> Path:
     removes it if this one is killed)."""
     parent.mkdir(parents=True, exist_ok=True)
     path = Path(tempfile.mkdtemp(dir=parent, prefix=prefix))
-    write_marker(path, command, list_files=False)
+    try:
+        write_marker(path, command, list_files=False)
+    except BaseException:  # a full disk: an unmarked folder would stay forever (remove_leftovers proves ownership)
+        with contextlib.suppress(OSError):
+            path.rmdir()
+        raise
     return path
 
 

@@ -15,7 +15,8 @@ _ROW_BYTES = 16  # 4 x float32
 def read_velodyne(path: str | Path) -> np.ndarray:
     """Read a scan as a (N,4) float32 array ``x, y, z, reflectance`` (sensor frame, metres).
 
-    A file whose size is not a multiple of 16 bytes is an :class:`InputError`.
+    A file whose size is not a multiple of 16 bytes, or that holds a NaN or infinite value, is an :class:`InputError`
+    naming it (every command reads scans here: ``view``, ``stats``, ``train``, ``eval``, ``stream-eval``).
     """
     path = Path(path)
     try:
@@ -25,7 +26,16 @@ def read_velodyne(path: str | Path) -> np.ndarray:
     except OSError as e:
         raise InputError(f"cannot read velodyne file: {e}", path) from None
     _check_size(path, len(data))
-    return np.frombuffer(data, dtype="<f4").astype(np.float32).reshape(-1, 4)
+    points = np.frombuffer(data, dtype="<f4").astype(np.float32).reshape(-1, 4)
+    finite = np.isfinite(points)
+    if not finite.all():
+        # a NaN would pass every range filter (each comparison is False) and poison the pillars, the boxes and the
+        # pictures further on, where nothing names the file
+        row, col = np.argwhere(~finite)[0]
+        what = ("x", "y", "z", "reflectance")[col]
+        raise InputError(f"point {row} has a non-finite {what} ({points[row, col]}); a scan holds finite x, y, z, "
+                         "reflectance", path)
+    return points
 
 
 def velodyne_rows(path: str | Path) -> int:

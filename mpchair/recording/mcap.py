@@ -204,13 +204,10 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
     """Write the stream folder ``root`` (``mpchair stream``) as the bag ``out``; ``extra`` may add messages for each
     frame. Returns ``{"sequences", "frames", "topics": {topic: messages}}``."""
     root = Path(root)
-    meta, meta_path = read_stream_meta(root)
-    try:
-        names = sorted(meta["sequences"])
-        period = _period_us(meta["rate_hz"], "rate_hz")
-    except (KeyError, TypeError) as e:
-        raise InputError(f"malformed stream file ({type(e).__name__})", meta_path) from None
-    height = _sensor_height(meta, meta_path)
+    meta = read_stream_meta(root)  # checked as every stream reader checks it (rate_hz in range, ...)
+    names = meta.sequences
+    period = _period_us(meta.rate_hz, "rate_hz")
+    height = _sensor_height(meta.data, meta.path)
     frames, offset, offsets = 0, 0, {}
     with bag_file(out) as bag:
         for seq in names:
@@ -218,7 +215,7 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
             n, end = _log_sequence(bag, root / "sequences" / seq, seq, offset, height, extra)
             frames += n
             offset = end + period
-        bag.metadata(METADATA_NAME, {"kind": "stream", "rate_hz": str(meta["rate_hz"]),
+        bag.metadata(METADATA_NAME, {"kind": "stream", "rate_hz": str(meta.data["rate_hz"]),
                                      "sequence_offsets_us": json.dumps(offsets, sort_keys=True)})
     return {"sequences": len(names), "frames": frames, "topics": dict(sorted(bag.counts.items()))}
 

@@ -184,7 +184,7 @@ def log_stream(root: str | Path, out: str | Path, extra: FrameHook | None = None
     """Write the stream folder ``root`` (``mpchair stream``) as a recording ``out``; ``extra(recorder, entity,
     sequence, i)`` may log more under ``entity`` (the sensor) for each frame. Returns ``{"sequences", "frames"}``."""
     root = Path(root)
-    names = sorted(read_stream_meta(root)[0]["sequences"])
+    names = read_stream_meta(root).sequences  # checked as every stream reader checks it
     frames = 0
     with recording(out) as rec:
         for seq in names:

@@ -48,6 +48,7 @@ from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.labels.select import apply_scan_points, label_half_fov
 from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House
+from mpchair.recording.sources import MAX_RATE_HZ
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
 from mpchair.stream.episodes import Episode, EpisodeSettings, plan_episode
@@ -151,19 +152,35 @@ class _Plan:
     categories: tuple[str, ...]
 
 
+#: Bounds that keep planning finite (it runs before any frame, in one process): episodes per house, an episode's
+#: --duration (seconds; the drive is simulated at 100 Hz) and the slowest moving robot (m/s; a drive to the goal is
+#: simulated for up to 4 x its path at full speed).
+MAX_EPISODES = 10_000
+MAX_DURATION_S = 3600.0
+MIN_SPEED = 0.01
+
+
 def _check_request(req: StreamRequest) -> None:
-    if req.episodes < 1:
-        raise InputError(f"--episodes must be >= 1, got {req.episodes}")
-    if not (req.rate > 0 and math.isfinite(req.rate)):
-        raise InputError(f"--rate must be a positive number of Hz, got {req.rate}")
+    if not 1 <= req.episodes <= MAX_EPISODES:
+        raise InputError(f"--episodes must be from 1 to {MAX_EPISODES} per house, got {req.episodes}")
+    if not 0 < req.rate <= MAX_RATE_HZ:  # what every stream reader accepts (mpchair.recording.sources); NaN fails
+        raise InputError(f"--rate must be a positive sensor rate of at most {MAX_RATE_HZ:g} Hz (what every stream "
+                         f"reader accepts), got {req.rate}")
+    if not (req.speed == 0 or MIN_SPEED <= req.speed < math.inf):
+        raise InputError(f"--speed must be 0 (a robot that stays put) or a finite number >= {MIN_SPEED:g} m/s, got "
+                         f"{req.speed}")
+    if not 0 <= req.turn_rate < math.inf:
+        raise InputError(f"--turn-rate must be a finite number >= 0 rad/s, got {req.turn_rate}")
+    if not 0 < req.accel < math.inf:
+        raise InputError(f"--accel must be a finite number > 0 m/s^2, got {req.accel}")
     if req.workers < 1:
         raise InputError(f"--workers must be >= 1, got {req.workers}")
     if not req.houses:
         raise InputError("give at least one --house")
     if len(set(req.houses)) != len(req.houses):
         raise InputError("a --house is repeated")
-    if req.duration is not None and not req.duration > 0:
-        raise InputError(f"--duration must be > 0 seconds, got {req.duration}")
+    if req.duration is not None and not 0 < req.duration <= MAX_DURATION_S:
+        raise InputError(f"--duration must be from 0 to {MAX_DURATION_S:g} seconds per episode, got {req.duration}")
     if req.speed == 0 and req.duration is None:
         raise InputError("--speed 0 (a robot that stays put) needs --duration")
     if req.free_space not in ("auto", "regions", "navmesh"):
