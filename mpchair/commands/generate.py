@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import re
 from pathlib import Path
 
 import click
 
-from mpchair.commands import sensor_help
+from mpchair.commands import echo_summary, sensor_help
 from mpchair.core import limits
 from mpchair.core.errors import InputError
 
@@ -100,8 +98,4 @@ def generate(root: Path, houses: tuple[str, ...], frames: int, out: Path, sensor
         backend=backend, workers=workers, shard=_parse_shard(shard), max_attempts=max_attempts, progress=not quiet,
         viewpoints=viewpoints,
     )  # fmt: skip
-    summary = run(req)
-    if as_json:
-        click.echo(json.dumps(dataclasses.asdict(summary), sort_keys=True))
-    else:
-        click.echo(summary.line())
+    echo_summary(run(req), as_json)

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import dataclasses
-import json
 from pathlib import Path
 
 import click
 
-from mpchair.commands import sensor_help
+from mpchair.commands import echo_summary, sensor_help
 from mpchair.core import limits
 
 
@@ -79,8 +77,4 @@ def stream(root: Path, houses: tuple[str, ...], episodes: int, out: Path, rate: 
         look_around=look_around, duration=duration, min_geodesic=min_geodesic, max_geodesic=max_geodesic,
         min_ratio=min_ratio, free_space=free_space, backend=backend, workers=workers, progress=not quiet,
     )  # fmt: skip
-    summary = run(req)
-    if as_json:
-        click.echo(json.dumps(dataclasses.asdict(summary), sort_keys=True))
-    else:
-        click.echo(summary.line())
+    echo_summary(run(req), as_json)

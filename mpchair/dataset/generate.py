@@ -24,12 +24,10 @@ import contextlib
 import dataclasses
 import fnmatch
 import functools
-import json
 import math
 import os
 import re
 import shutil
-import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -39,9 +37,9 @@ import numpy as np
 
 from mpchair.core.atomic import temp_glob, write_text
 from mpchair.core.config import to_dict
-from mpchair.core.errors import InputError, RunError
-from mpchair.core.heap import keep_freed_memory
+from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock, held, wait_lock
+from mpchair.dataset import job
 from mpchair.dataset.frame import (
     FrameSettings,
     HouseContext,
@@ -66,9 +64,7 @@ from mpchair.dataset.manifest import (
     read_frame_record,
 )
 from mpchair.dataset.splits import SPLIT_MODES, TESTING_KINDS, house_splits, split_frames, write_testing_folder
-from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.kitti import write_imageset
-from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
 from mpchair.scan.viewpoints import ViewpointParams
@@ -76,6 +72,7 @@ from mpchair.scan.viewpoints import ViewpointParams
 #: Frame ids are 6 digits (KITTI file names).
 MAX_FRAMES = 1_000_000
 SETTINGS_FILE = ".generate.json"
+GENERATE = job.JobKind(command="generate", folder="dataset", settings_file=SETTINGS_FILE)
 _LOCK_NAME = re.compile(r"\.generate-(\d+)-of-(\d+)\.lock")
 FRAME_DIRS = ("velodyne", "label_2", "calib", "image_2", "pose")
 
@@ -225,14 +222,9 @@ def make_frame_task(worker: FrameWorker, task: FrameTask) -> FrameRecord:
     return write_frame(worker.out, task.fid, ctx.house, task.index, result, worker.settings.sensor)
 
 
-def _remove_stale_temps(out: Path, fids: set[str]) -> None:
-    """Delete temp files (``.<name>.*.tmp``) a killed run left for frames this run owns."""
-    for sub in [out / "training" / d for d in FRAME_DIRS] + [out / ".frames"]:
-        if not sub.is_dir():
-            continue
-        for p in sub.iterdir():
-            if p.name.startswith(".") and p.name.endswith(".tmp") and p.name[1:7] in fids:
-                p.unlink(missing_ok=True)
+def _frame_folders(out: Path) -> list[Path]:
+    """The folders that hold one file per frame (and the frame records)."""
+    return [out / "training" / d for d in FRAME_DIRS] + [out / ".frames"]
 
 
 def _shard_lock(out: Path, shard: tuple[int, int]) -> Path:
@@ -249,9 +241,14 @@ def _others_running(out: Path, shard: tuple[int, int]) -> list[tuple[int, int]]:
     return sorted(files[p] for p in held(list(files)))
 
 
+def _is_lock(name: str) -> bool:
+    """A shard's lock file (``.generate-i-of-N.lock``)."""
+    return bool(_LOCK_NAME.fullmatch(name))
+
+
 def _is_ours(name: str) -> bool:
     """Files a run of ours may leave in a folder without a settings file: its lock files and a killed settings write."""
-    return bool(_LOCK_NAME.fullmatch(name)) or fnmatch.fnmatchcase(name, temp_glob(SETTINGS_FILE))
+    return _is_lock(name) or fnmatch.fnmatchcase(name, temp_glob(SETTINGS_FILE))
 
 
 def _has_records(out: Path) -> bool:
@@ -259,39 +256,10 @@ def _has_records(out: Path) -> bool:
     return d.is_dir() and any(p.suffix == ".json" and not p.name.startswith(".") for p in d.iterdir())
 
 
-def _check_settings(out: Path, settings: dict, alone: bool) -> None:
-    """Write ``.generate.json`` into a new folder, or check that an existing one holds these settings.
-
-    A folder whose settings differ but that holds no frame record yet (a run stopped before its first frame) takes
-    the new settings when no other ``generate`` is running on it. ``alone``: no other shard's process holds a lock.
-    """
-    path = out / SETTINGS_FILE
-    text = json.dumps(settings, sort_keys=True, indent=1) + "\n"
-    if alone:  # temp files of a killed settings write (another live shard may be writing its own right now)
-        for p in out.glob(temp_glob(SETTINGS_FILE)):
-            p.unlink(missing_ok=True)
-    if path.is_file():
-        old_text = path.read_text(encoding="utf-8")
-        if old_text == text:
-            return
-        if not (alone and not _has_records(out)):
-            try:
-                old = json.loads(old_text)
-                diff = ", ".join(sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k)))
-            except (json.JSONDecodeError, AttributeError):
-                diff = "the file is not a settings object"
-            raise InputError(f"holds a dataset made with other settings ({diff} differ); use a new --out or the same "
-                             "arguments to resume", path)
-    elif any(not _is_ours(p.name) for p in out.iterdir()):
-        raise InputError("exists and is not an mpchair dataset folder (no .generate.json); choose an empty --out",
-                         out)
-    write_text(path, text)
-
-
 def _undo(out: Path, fids: set[str], existed: bool, shard: tuple[int, int]) -> None:
     """Remove what a run that could not make its frames wrote into a folder that held no frame before it: its frames'
     files, then (when no other shard runs and no frame is left) the settings and the folders it created."""
-    for sub in [out / "training" / d for d in FRAME_DIRS] + [out / ".frames"]:
+    for sub in _frame_folders(out):
         if sub.is_dir():
             for p in sub.iterdir():
                 if p.name.split(".")[0] in fids or (p.name.startswith(".") and p.name[1:7] in fids):
@@ -310,15 +278,10 @@ def _check_numbers(req: GenerateRequest) -> None:
     """Every number of the request finite and in range, before anything is read or written."""
     if req.frames < 1:
         raise InputError(f"--frames must be >= 1, got {req.frames}")
-    if not req.houses:
-        raise InputError("give at least one --house")
-    if len(set(req.houses)) != len(req.houses):
-        raise InputError("a --house is repeated")
+    job.check_houses_and_workers(req.houses, req.workers)
     if len(req.houses) * req.frames > MAX_FRAMES:
         raise InputError(f"{len(req.houses)} houses x --frames {req.frames} exceeds {MAX_FRAMES} frames (6-digit "
                          "KITTI frame ids)")
-    if req.workers < 1:
-        raise InputError(f"--workers must be >= 1, got {req.workers}")
     if req.max_attempts < 1:
         raise InputError(f"--max-attempts must be >= 1, got {req.max_attempts}")
     if req.seed < 0:
@@ -368,7 +331,9 @@ def generate(req: GenerateRequest) -> GenerateSummary:
         if clash:
             raise InputError(f"another mpchair generate (--shard {clash[0][0]}/{clash[0][1]}) is writing this folder; "
                              f"shards running at the same time must share N (here {sn})", out)
-        _check_settings(out, plan.settings, alone=not others)
+        # a folder without a frame record yet takes new settings, unless another shard is writing it
+        job.check_settings(GENERATE, out, plan.settings, alone=not others,
+                           replace=not others and not _has_records(out), ours=_is_lock)
         return _run(plan, t0=t0, fresh=not _has_records(out), existed=existed)
 
 
@@ -376,8 +341,7 @@ def _plan(req: GenerateRequest) -> _Plan:
     """Load the sensor, the classes and the houses of ``req`` (every input check that needs no folder)."""
     sensor = load_sensor(req.sensor)
     params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
-    cat_idx = resolve_categories(list(req.categories))
-    cats = tuple(sorted(mpcat40_name(c) for c in cat_idx))
+    cat_idx, cats = job.resolve_classes(req.categories)
 
     def check_viewpoints(house: House) -> None:  # a navmesh without a large enough island fails here, not in a frame
         viewpoint_sampler(house, resolve_viewpoints(house, req.viewpoints))
@@ -402,13 +366,12 @@ def _run(plan: _Plan, *, t0: float, fresh: bool, existed: bool) -> GenerateSumma
     tasks = [FrameTask(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
     mine = [tasks[g] for g in shard_frames(n_total, req.shard)]
     pending = [t for t in mine if not record_path(out, t.fid).is_file()]
-    _remove_stale_temps(out, {t.fid for t in pending})
+    fids = {t.fid for t in pending}
+    job.remove_temps(_frame_folders(out), owned=lambda name: name[1:7] in fids)  # this shard's frames' only
     resumed = len(mine) - len(pending)
     if pending:
         warm_up(plan.frame_settings.sensor)  # before forking: the workers inherit the loaded kernels
-    t_frames = time.perf_counter()
-    _make_frames(plan, pending, len(mine), fresh=fresh, existed=existed)
-    made_seconds = time.perf_counter() - t_frames
+    made_seconds = _make_frames(plan, pending, len(mine), fresh=fresh, existed=existed)
 
     complete = all(record_path(out, f"{g:06d}").is_file() for g in range(n_total))
     splits: dict[str, int] = {}
@@ -418,8 +381,8 @@ def _run(plan: _Plan, *, t0: float, fresh: bool, existed: bool) -> GenerateSumma
             with wait_lock(out / ".generate-assemble.lock") if req.shard[1] > 1 else contextlib.nullcontext():
                 manifest = _assemble(plan, n_total)
         except OSError as e:
-            raise _with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
-                                "manifest") from None
+            raise job.with_hint(e, "the frames are kept: run the same command again to write ImageSets and the "
+                                    "manifest") from None
         splits, records = manifest.splits, manifest.frames
     else:  # this shard's frames, made now or by an earlier run
         records = tuple(read_frame_record(record_path(out, t.fid)) for t in mine)
@@ -429,63 +392,35 @@ def _run(plan: _Plan, *, t0: float, fresh: bool, existed: bool) -> GenerateSumma
         out=str(out), frames=n_total, made=made, resumed=resumed, complete=complete, nothing_to_make=not made,
         scope="dataset" if complete else "shard", kept=counts.kept, kept_by_class=counts.kept_by_class,
         rejected=counts.rejected, points=counts.points, rays=counts.rays, seconds=time.perf_counter() - t0,
-        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0, splits=splits,
+        frames_per_second=job.per_second(made, made_seconds), splits=splits,
     )  # fmt: skip
 
 
 def _make_frames(plan: _Plan, pending: list[FrameTask], shard_frames_total: int, *, fresh: bool,
-                 existed: bool) -> None:
+                 existed: bool) -> float:
     """Make the ``pending`` frames (in worker processes when ``req.workers`` > 1), with a progress bar over the
-    shard's ``shard_frames_total`` frames; a frame that cannot be made on a ``fresh`` folder undoes the run."""
+    shard's ``shard_frames_total`` frames; a frame that cannot be made on a ``fresh`` folder undoes the run. Returns
+    the seconds it took."""
     req, out = plan.req, Path(plan.req.out)
-    from tqdm import tqdm
-
-    bar = tqdm(total=shard_frames_total, initial=shard_frames_total - len(pending), unit="frame",
-               disable=not req.progress, file=sys.stderr, dynamic_ncols=True, desc="generate")
-    kept = rejected = 0  # shown on the progress bar (the summary counts come from the records afterwards)
-
-    def account(rec: FrameRecord) -> None:
-        nonlocal kept, rejected
-        kept += len(rec.kept)
-        rejected += len(rec.rejected)
-        bar.update(1)
-        bar.set_postfix(kept=kept, rejected=rejected, refresh=False)
-
     worker = FrameWorker(houses=plan.houses.houses, settings=plan.frame_settings, categories=plan.category_ids,
                          backend=req.backend, out=out, directions=scan_directions(plan.frame_settings.sensor))
-    pooled = req.workers > 1 and len(pending) > 1
-    resume = "the frames written so far are kept: run the same command again to resume"
+    shown = {"kept": 0, "rejected": 0}  # beside the progress bar (the summary counts come from the records)
+
+    def account(rec: FrameRecord) -> dict[str, int]:
+        shown["kept"] += len(rec.kept)
+        shown["rejected"] += len(rec.rejected)
+        return shown
+
     try:
-        if not pooled:
-            for task in pending:
-                account(make_frame_task(worker, task))
-        else:
-            # Forked workers inherit the parsed houses instead of re-reading them; chunks of 4 frames: one pipe round
-            # trip per frame cost the parent ~1 ms of CPU per frame.
-            make = functools.partial(make_frame_task, worker)  # forked workers inherit it: never pickled
-            for rec in imap_unordered(make, pending, min(req.workers, len(pending)), initializer=keep_freed_memory,
-                                      chunksize=4):
-                account(rec)
+        return job.make_tasks(functools.partial(make_frame_task, worker), pending, shard_frames_total,
+                              workers=req.workers, out=out, kind=GENERATE, progress=req.progress,
+                              is_done=lambda t: record_path(out, t.fid).is_file(), account=account)
     except InputError:
         if fresh:  # these settings cannot make the dataset: leave the folder as it was for the corrected command
             _undo(out, {t.fid for t in pending}, existed, req.shard)
         raise
-    except KeyboardInterrupt:
-        bar.close()  # the message below starts on a line of its own
-        done = sum(record_path(out, t.fid).is_file() for t in pending) + shard_frames_total - len(pending)
-        raise KeyboardInterrupt(f"{done} of {shard_frames_total} frames are kept in {out}: run the same command "
-                                "again to resume") from None
-    except WorkerDied as e:
-        raise RunError(f"{out}: {e}; stopped the other workers; {resume}") from None
     except OSError as e:
-        raise _with_hint(e, resume) from None
-    except Exception as e:
-        if pooled:  # a worker's unexpected error: its traceback stayed in the worker
-            raise RunError(f"{out}: a worker process failed: {type(e).__name__}: {e}; stopped the other workers; "
-                           f"{resume}") from e
-        raise
-    finally:
-        bar.close()
+        raise job.with_hint(e, job.RESUME) from None
 
 
 def shard_frames(n_total: int, shard: tuple[int, int]) -> range:
@@ -498,20 +433,11 @@ def shard_frames(n_total: int, shard: tuple[int, int]) -> range:
     return range(i * n_total // n, (i + 1) * n_total // n)
 
 
-def _with_hint(e: OSError, hint: str) -> OSError:
-    """The same OS error (errno, file) with ``hint`` after its reason."""
-    return type(e)(e.errno, f"{e.strerror or e}; {hint}", e.filename)
-
-
 def _assemble(plan: _Plan, n_total: int) -> Manifest:
     """Write ImageSets and then ``manifest.json`` (last) from the frame records; return the manifest."""
     out = Path(plan.req.out)
     testing = [out / "testing" / kind for kind in TESTING_KINDS]
-    for p in [out, out / "ImageSets", *testing]:  # temps a killed assembly left behind
-        if p.is_dir():
-            for q in p.iterdir():
-                if q.name.startswith(".") and q.name.endswith(".tmp"):
-                    q.unlink(missing_ok=True)
+    job.remove_temps([out, out / "ImageSets", *testing])  # temps a killed assembly left behind
     records = tuple(read_frame_record(record_path(out, f"{g:06d}")) for g in range(n_total))
     req = plan.req
     splits = split_frames(len(req.houses), req.frames, req.split_mode, req.seed, held_out_positions(req))
@@ -563,21 +489,12 @@ def _manifest(plan: _Plan, records: tuple[FrameRecord, ...], splits: dict[str, i
 
 def _command(req: GenerateRequest, sensor_name: str, cats: tuple[str, ...]) -> tuple[str, ...]:
     """The ``mpchair generate`` command line that makes this dataset (the root by folder name: no absolute path)."""
-    command = ["mpchair", "generate", "--root", Path(req.root).name]
-    for h in req.houses:
-        command += ["--house", h]
-    command += ["--frames", str(req.frames), "--sensor", sensor_name, "--seed", str(req.seed),
-                "--height", repr(req.height), "--robot-radius", repr(req.robot_radius), "--split-mode", req.split_mode,
-                *[w for h in req.val_houses for w in ("--val-house", h)],
-                *[w for h in req.test_houses for w in ("--test-house", h)],
-                "--backend", req.backend, "--max-attempts", str(req.max_attempts)]
-    for c in cats:
-        command += ["--category", c]
-    if req.keep_empty:
-        command.append("--keep-empty")
-    if req.viewpoints != "auto":
-        command += ["--viewpoints", req.viewpoints]
-    return tuple(command)
+    return job.command_line(GENERATE, req.root, req.houses, [
+        ("--frames", req.frames), ("--sensor", sensor_name), ("--seed", req.seed), ("--height", req.height),
+        ("--robot-radius", req.robot_radius), ("--split-mode", req.split_mode), ("--val-house", req.val_houses),
+        ("--test-house", req.test_houses), ("--backend", req.backend), ("--max-attempts", req.max_attempts),
+        ("--category", cats), ("--keep-empty", bool(req.keep_empty)),
+        ("--viewpoints", None if req.viewpoints == "auto" else req.viewpoints)])
 
 
 def default_workers() -> int:

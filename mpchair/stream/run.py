@@ -20,7 +20,6 @@ import dataclasses
 import functools
 import json
 import math
-import sys
 import time
 from collections import Counter
 from collections.abc import Mapping
@@ -29,11 +28,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mpchair.core.atomic import temp_glob, write_text
+from mpchair.core.atomic import write_text
 from mpchair.core.config import to_dict
-from mpchair.core.errors import InputError, RunError
-from mpchair.core.heap import keep_freed_memory
+from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
+from mpchair.dataset import job
 from mpchair.dataset.frame import (
     HouseContext,
     build_context,
@@ -44,9 +43,7 @@ from mpchair.dataset.frame import (
     warm_up,
 )
 from mpchair.dataset.houses import RunHouses, load_run_houses
-from mpchair.dataset.workers import WorkerDied, imap_unordered
 from mpchair.labels.select import apply_scan_points, label_half_fov
-from mpchair.matterport.categories import mpcat40_name, resolve_categories
 from mpchair.matterport.house import House
 from mpchair.recording.sources import MAX_RATE_HZ
 from mpchair.scan.sensors import SensorConfig, load_sensor, scan_directions
@@ -66,6 +63,8 @@ from mpchair.stream.writer import (
 )
 
 STREAM_FORMAT = "mpchair-stream/1"
+STREAM = job.JobKind(command="stream", folder="stream", settings_file=".stream.json")
+STREAM_LOCK = ".stream.lock"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,22 +135,6 @@ class StreamTask(NamedTuple):
         return f"{self.index:06d}"
 
 
-@dataclasses.dataclass(frozen=True)
-class _Plan:
-    """A checked ``stream`` run, before it touches the folder: the ``req``, the ``settings`` stored in
-    ``.stream.json`` (and ``stream.json``'s ``config``), the ``sequences`` (name, episode) in order, each house's
-    raycasting scene (``contexts``), the ``sensor``, the run's ``houses`` and the ``categories`` (mpcat40 names,
-    sorted) labelled."""
-
-    req: StreamRequest
-    settings: dict
-    sequences: tuple[tuple[str, Episode], ...]
-    contexts: Mapping[str, HouseContext]
-    sensor: SensorConfig
-    houses: RunHouses
-    categories: tuple[str, ...]
-
-
 #: Bounds that keep planning finite (it runs before any frame, in one process): episodes per house, an episode's
 #: --duration (seconds; the drive is simulated at 100 Hz) and the slowest moving robot (m/s; a drive to the goal is
 #: simulated for up to 4 x its path at full speed).
@@ -173,12 +156,7 @@ def _check_request(req: StreamRequest) -> None:
         raise InputError(f"--turn-rate must be a finite number >= 0 rad/s, got {req.turn_rate}")
     if not 0 < req.accel < math.inf:
         raise InputError(f"--accel must be a finite number > 0 m/s^2, got {req.accel}")
-    if req.workers < 1:
-        raise InputError(f"--workers must be >= 1, got {req.workers}")
-    if not req.houses:
-        raise InputError("give at least one --house")
-    if len(set(req.houses)) != len(req.houses):
-        raise InputError("a --house is repeated")
+    job.check_houses_and_workers(req.houses, req.workers)
     if req.duration is not None and not 0 < req.duration <= MAX_DURATION_S:
         raise InputError(f"--duration must be from 0 to {MAX_DURATION_S:g} seconds per episode, got {req.duration}")
     if req.speed == 0 and req.duration is None:
@@ -205,28 +183,6 @@ def _settings(req: StreamRequest, sensor: SensorConfig, es: EpisodeSettings, par
         "free_space": req.free_space,
         "backend": req.backend,
     }
-
-
-STREAM_LOCK = ".stream.lock"
-
-
-def _check_settings(out: Path, settings: dict) -> None:
-    """Write ``.stream.json`` into a new folder, or check that an existing one holds these settings (the caller holds
-    the folder's lock, so temp files of a killed settings write are stale and removed)."""
-    path = out / ".stream.json"
-    text = json.dumps(settings, sort_keys=True, indent=1) + "\n"
-    for p in out.glob(temp_glob(path.name)):
-        p.unlink(missing_ok=True)
-    if path.is_file():
-        if path.read_text(encoding="utf-8") != text:
-            old = json.loads(path.read_text(encoding="utf-8"))
-            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
-            raise InputError(f"holds a stream made with other settings ({', '.join(diff)} differ); use a new --out "
-                             "or the same arguments to resume", path)
-        return
-    if out.exists() and any(p.name != STREAM_LOCK for p in out.iterdir()):
-        raise InputError("exists and is not an mpchair stream folder (no .stream.json); choose an empty --out", out)
-    write_text(path, text)
 
 
 def _plan_episodes(req: StreamRequest, houses: Mapping[str, House], contexts: Mapping[str, HouseContext],
@@ -280,15 +236,20 @@ def make_stream_task(worker: StreamWorker, task: StreamTask) -> StreamFrameRecor
                               int(ep.times_us[task.index]), dec.dense_rays + len(worker.directions))
 
 
-def _remove_stale_temps(out: Path, seqs: list[str]) -> None:
-    """Delete temp files (``.<name>.*.tmp``) a killed run left behind."""
-    dirs = [out] + [sequence_dir(out, s) / d for s in seqs for d in FRAME_DIRS] + [sequence_dir(out, s) for s in seqs]
-    dirs += [out / ".frames" / s for s in seqs]
-    for d in dirs:
-        if d.is_dir():
-            for p in d.iterdir():
-                if p.name.startswith(".") and p.name.endswith(".tmp"):
-                    p.unlink(missing_ok=True)
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """A checked ``stream`` run, before it touches the folder: the ``req``, the ``settings`` stored in
+    ``.stream.json`` (and ``stream.json``'s ``config``), the ``sequences`` (name, episode) in order, each house's
+    raycasting scene (``contexts``), the ``sensor``, the run's ``houses`` and the ``categories`` (mpcat40 names,
+    sorted) labelled."""
+
+    req: StreamRequest
+    settings: dict
+    sequences: tuple[tuple[str, Episode], ...]
+    contexts: Mapping[str, HouseContext]
+    sensor: SensorConfig
+    houses: RunHouses
+    categories: tuple[str, ...]
 
 
 def stream(req: StreamRequest) -> StreamSummary:
@@ -296,6 +257,14 @@ def stream(req: StreamRequest) -> StreamSummary:
     :class:`InputError` before any file is written."""
     t0 = time.perf_counter()
     _check_request(req)
+    plan = _plan(req)
+    with folder_lock(Path(req.out) / STREAM_LOCK, "mpchair stream"):
+        return _make(plan, t0)
+
+
+def _plan(req: StreamRequest) -> _Plan:
+    """Load the sensor, the classes and the houses of ``req``, build each house's scene and plan every episode
+    (every input check, before the folder is touched)."""
     sensor = load_sensor(req.sensor)
     try:
         params = ViewpointParams(height=req.height, robot_radius=req.robot_radius)
@@ -306,8 +275,7 @@ def stream(req: StreamRequest) -> StreamSummary:
             duration_us=None if req.duration is None else int(round(req.duration * 1e6)), seed=req.seed)
     except ValueError as e:
         raise InputError(str(e)) from None
-    cat_idx = resolve_categories(list(req.categories))
-    cats = tuple(sorted(mpcat40_name(c) for c in cat_idx))
+    cat_idx, cats = job.resolve_classes(req.categories)
     contexts: dict[str, HouseContext] = {}
 
     def build_scene(house: House) -> None:  # right after reading: a house without floor fails before the next is read
@@ -315,18 +283,19 @@ def stream(req: StreamRequest) -> StreamSummary:
 
     houses = load_run_houses(req.root, req.houses, cat_idx, backend=req.backend, hashed="layout", check=build_scene)
     sequences = _plan_episodes(req, houses.houses, contexts, es, params)
-    plan = _Plan(req=req, settings=_settings(req, sensor, es, params, cats), sequences=tuple(sequences),
+    return _Plan(req=req, settings=_settings(req, sensor, es, params, cats), sequences=tuple(sequences),
                  contexts=contexts, sensor=sensor, houses=houses, categories=cats)
-    with folder_lock(Path(req.out) / STREAM_LOCK, "mpchair stream"):
-        return _make(plan, t0)
 
 
 def _make(plan: _Plan, t0: float) -> StreamSummary:
     """Write the stream's missing frames and its summary files (under the folder's lock; ``t0``: when the run
     started, ``time.perf_counter``)."""
     out = Path(plan.req.out)
-    _check_settings(out, plan.settings)
-    _remove_stale_temps(out, [s for s, _ in plan.sequences])
+    # under the folder's lock: alone; a stream's settings are never replaced (its sequence files come first)
+    job.check_settings(STREAM, out, plan.settings, alone=True, replace=False, ours=lambda name: name == STREAM_LOCK)
+    seqs = [s for s, _ in plan.sequences]
+    job.remove_temps([out, *(sequence_dir(out, s) / d for s in seqs for d in FRAME_DIRS),
+                  *(sequence_dir(out, s) for s in seqs), *(out / ".frames" / s for s in seqs)])
     tasks = [StreamTask(seq, i) for seq, ep in plan.sequences for i in range(len(ep.times_us))]
     pending = [t for t in tasks if not record_path(out, t.sequence, t.fid).is_file()]
     resumed = len(tasks) - len(pending)
@@ -335,53 +304,26 @@ def _make(plan: _Plan, t0: float) -> StreamSummary:
             write_sequence_files(out, seq, ep.times_us, ep.poses)
         if pending:
             warm_up(plan.sensor)  # before forking: the workers inherit the loaded kernels
-        t_frames = time.perf_counter()
-        _make_frames(plan, pending, len(tasks))
-        made_seconds = time.perf_counter() - t_frames
+        worker = StreamWorker(episodes=dict(plan.sequences), contexts=plan.contexts, sensor=plan.sensor,
+                              directions=scan_directions(plan.sensor), out=out)
+        made_seconds = job.make_tasks(functools.partial(make_stream_task, worker), pending, len(tasks),
+                                      workers=plan.req.workers, out=out, kind=STREAM, progress=plan.req.progress,
+                                      is_done=lambda t: record_path(out, t.sequence, t.fid).is_file())
         records = [read_stream_record(record_path(out, t.sequence, t.fid)) for t in tasks]
         _write_stream_json(plan, records, label_half_fov(plan.sensor.filters, plan.sensor.camera))
     except OSError as e:
         # a full disk, a lost permission (in any write: the sequence files, a frame, stream.json): what is written is
         # whole (temp + rename), so the same command resumes
-        raise type(e)(e.errno, f"{e.strerror or e}; the frames written so far are kept: free the space (or fix the "
-                      "cause) and run the same command again to resume", e.filename) from None
+        raise job.with_hint(e, "the frames written so far are kept: free the space (or fix the cause) and run the "
+                            "same command again to resume") from None
     made = len(pending)
     return StreamSummary(
         out=str(out), sequences=len(plan.sequences), frames=len(tasks), made=made, resumed=resumed, complete=True,
         kept=sum(r.kept for r in records), dontcare=sum(r.dontcare for r in records),
         points=float(np.mean([r.points for r in records])) if records else 0.0,
         seconds=time.perf_counter() - t0,
-        frames_per_second=made / made_seconds if made and made_seconds > 0 else 0.0,
+        frames_per_second=job.per_second(made, made_seconds),
     )  # fmt: skip
-
-
-def _make_frames(plan: _Plan, pending: list[StreamTask], total: int) -> None:
-    """Make the ``pending`` frames (in worker processes when ``req.workers`` > 1), with a progress bar over the
-    stream's ``total`` frames."""
-    req, out = plan.req, Path(plan.req.out)
-    worker = StreamWorker(episodes=dict(plan.sequences), contexts=plan.contexts, sensor=plan.sensor,
-                          directions=scan_directions(plan.sensor), out=out)
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, initial=total - len(pending), unit="frame", disable=not req.progress, file=sys.stderr,
-               dynamic_ncols=True, desc="stream")
-    try:
-        if req.workers == 1 or len(pending) <= 1:
-            for task in pending:
-                make_stream_task(worker, task)
-                bar.update(1)
-        else:
-            # forked workers inherit the houses and scenes instead of rebuilding them; a worker that dies (the OOM
-            # killer) or raises stops the others at once (mpchair.dataset.workers), as in `mpchair generate`
-            make = functools.partial(make_stream_task, worker)  # forked workers inherit it: never pickled
-            for _ in imap_unordered(make, pending, min(req.workers, len(pending)), initializer=keep_freed_memory,
-                                    chunksize=4):
-                bar.update(1)
-    except WorkerDied as e:
-        raise RunError(f"{out}: {e}; stopped the other workers; the frames written so far are kept: run the same "
-                       "command again to resume") from None
-    finally:
-        bar.close()
 
 
 def _r(x: float, nd: int = 6) -> float:
@@ -439,20 +381,12 @@ def _sequence_entry(ep: Episode, records: list[StreamFrameRecord]) -> dict:
             "dontcare": sum(r.dontcare for r in records)}  # fmt: skip
 
 
-def _command(req: StreamRequest, sensor_name: str, cats: tuple[str, ...]) -> list[str]:
+def _command(req: StreamRequest, sensor_name: str, cats: tuple[str, ...]) -> tuple[str, ...]:
     """The ``mpchair stream`` command line that makes this stream (the root by folder name: no absolute path)."""
-    command = ["mpchair", "stream", "--root", Path(req.root).name]
-    for h in req.houses:
-        command += ["--house", h]
-    command += ["--episodes", str(req.episodes), "--rate", repr(req.rate), "--speed", repr(req.speed),
-                "--turn-rate", repr(req.turn_rate), "--accel", repr(req.accel), "--sensor", sensor_name,
-                "--seed", str(req.seed), "--height", repr(req.height), "--robot-radius", repr(req.robot_radius),
-                "--min-geodesic", repr(req.min_geodesic), "--max-geodesic", repr(req.max_geodesic),
-                "--min-ratio", repr(req.min_ratio), "--free-space", req.free_space, "--backend", req.backend]
-    if req.duration is not None:
-        command += ["--duration", repr(req.duration)]
-    if not req.look_around:
-        command.append("--no-look-around")
-    for c in cats:
-        command += ["--category", c]
-    return command
+    return job.command_line(STREAM, req.root, req.houses, [
+        ("--episodes", req.episodes), ("--rate", req.rate), ("--speed", req.speed), ("--turn-rate", req.turn_rate),
+        ("--accel", req.accel), ("--sensor", sensor_name), ("--seed", req.seed), ("--height", req.height),
+        ("--robot-radius", req.robot_radius), ("--min-geodesic", req.min_geodesic),
+        ("--max-geodesic", req.max_geodesic), ("--min-ratio", req.min_ratio), ("--free-space", req.free_space),
+        ("--backend", req.backend), ("--duration", req.duration), ("--no-look-around", not req.look_around),
+        ("--category", cats)])
