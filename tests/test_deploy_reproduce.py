@@ -13,8 +13,8 @@ from detector.bench.result import BenchDensity, BenchMachine, BenchResult, Densi
 from detector.cli import main as detector_main
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.device import Machine
-from detector.reproduce.cli import main
-from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
+from reproduction.cli import main
+from reproduction.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("openvino")

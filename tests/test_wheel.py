@@ -125,7 +125,7 @@ def test_the_installed_wheel_generates_trains_evaluates_and_exports_outside_the_
     deploy = json.loads((work / "exported" / "deploy.json").read_text())
     assert (work / "exported" / "model.onnx").stat().st_size > 100_000 and deploy["weights"] == "run/last.pt"
     # the reproduction, which writes a clone's docs/, says in one line that an installed package is not one
-    refused = _run([bin_ / "python", "-c", "from detector.reproduce.cli import main; raise SystemExit(main([]))"],
+    refused = _run([bin_ / "python", "-c", "from reproduction.cli import main; raise SystemExit(main([]))"],
                    work, expect=2)
     assert refused.stderr.startswith("error: the reproduction runs in a clone of the repository")
     assert len(refused.stderr.strip().splitlines()) == 1

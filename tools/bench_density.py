@@ -17,7 +17,7 @@ from pathlib import Path
 
 from detector.bench.density import DENSITIES, density_curve, format_curve, plot_curve
 from mpchair.core.atomic import check_writable, write_text
-from mpchair.core.clitools import run_holding_warnings
+from mpchair.core.clitools import run_script
 from mpchair.core.errors import InputError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "detector" / "configs"
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args(argv)
     # a warning raised on the way (a checkpoint of another grid): one line each, after the result
-    return run_holding_warnings(lambda: _run(args))
+    return run_script(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:
