@@ -29,18 +29,20 @@ def _package_parent() -> Path:
 ROOT: Path = _package_parent()
 
 
-def checkout_problem(root: Path = ROOT) -> str | None:
-    """Why ``root`` is not a clone of the repository (it lacks the project's ``pyproject.toml``, ``tools/`` or
-    ``docs/``), or None when it is one."""
+def checkout_problem(root: Path | None = None) -> str | None:
+    """Why ``root`` (default :data:`ROOT`) is not a clone of the repository (it lacks the project's
+    ``pyproject.toml``, ``tools/`` or ``docs/``), or None when it is one."""
+    root = ROOT if root is None else root
     if (root / "pyproject.toml").is_file() and (root / "tools").is_dir() and (root / "docs").is_dir():
         return None
     return (f"the reproduction runs in a clone of the repository (it writes its docs/ and README.md); {root} is not "
             "one (this is an installed package): clone the repository and run make reproduce there")
 
 
-def require_checkout(root: Path = ROOT) -> Path:
-    """``root`` when it is a clone of the repository, else an :class:`InputError` saying so (the experiment's commands
-    call it before any work)."""
+def require_checkout(root: Path | None = None) -> Path:
+    """``root`` (default :data:`ROOT`) when it is a clone of the repository, else an :class:`InputError` saying so
+    (the experiment's commands call it before any work)."""
+    root = ROOT if root is None else root
     problem = checkout_problem(root)
     if problem is not None:
         raise InputError(problem)

@@ -148,3 +148,10 @@ def test_junit_to_json(tmp_path):
     assert (got["total"], got["passed"], got["failed"], got["skipped"]) == (3, 1, 1, 1)
     assert got["skip_reasons"] == {"no CUDA": 1} and got["seconds"] == 1.5
     assert got["cases"][2] == {"name": "t::b", "outcome": "failed", "seconds": 1.0, "message": "boom"}
+
+
+def test_a_step_without_a_command_is_one_error_line(tmp_path, capsys):
+    """The Python side's bad input goes through the console scripts' error path: one line, exit 2, nothing written."""
+    assert device_check_main(["step", "x", "--results", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == "error: step needs a command after --\n"
+    assert not (tmp_path / "steps").exists()
