@@ -17,11 +17,9 @@ from mpchair.core.errors import InputError
 
 def _package_parent() -> Path:
     """The folder that holds the ``reproduction`` package: a clone's root in a clone (run in place or installed in
-    editable mode), ``site-packages`` in an installed wheel."""
-    here = importlib.resources.files(__package__)
-    if not isinstance(here, Path):  # a zip import: no folder on disk, so no clone either
-        raise InputError(f"{__package__} is imported from an archive ({here}); run it from a clone of the repository")
-    return here.resolve().parent
+    editable mode), ``site-packages`` in an installed wheel (a zip import gives a path inside the archive, which is no
+    clone either)."""
+    return Path(str(importlib.resources.files(__package__))).resolve().parent
 
 
 #: The checkout: every command of the experiment runs in it, and its reports name paths relative to it. In an
