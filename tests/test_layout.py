@@ -244,7 +244,8 @@ def test_the_experiments_tools_are_front_ends():
     ``main`` and the exit."""
     fronts = {p.name: p.read_text(encoding="utf-8") for p in sorted((ROOT / "tools").glob("*.py"))
               if "from reproduction" in p.read_text(encoding="utf-8")}
-    assert set(fronts) >= {"reproduce.py", "reproduce_stream.py", "accuracy_study.py", "device_check.py"}, fronts
+    assert set(fronts) >= {"reproduce.py", "reproduce_stream.py", "accuracy_study.py", "device_check.py",
+                           "doc_pictures.py"}, fronts
     for name, text in fronts.items():
         body = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith('"""')]
         assert len(body) == 2 and body[0].startswith("from reproduction.") and body[0].endswith(" import main") \
