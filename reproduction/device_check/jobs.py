@@ -34,23 +34,18 @@ EXPERIMENTS: dict[str, tuple[str, dict]] = {
     "kitti_car_sparse": ("kitti_car_sparse", {}),
     "kitti_car_sparse_exact": ("kitti_car_sparse", {"model": {"head": "sparse_exact"}}),
 }
-
-
 #: ``--dry-run``'s models: the same configs on a small grid (6 x 10 m of a room, 13 x 13 m of a road) with slim
 #: layers and batch 1, so that a CPU runs every step in seconds; voxelizer, anchors, head and losses are unchanged.
 TINY: dict = {"model": {"pfn_channels": 32, "layer_channels": [32, 32, 64], "layer_nums": [1, 1, 1],
                         "neck_channels": [32, 32, 32], "max_pillars_train": 6144, "max_pillars_test": 6144},
               "train": {"batch_size": 1}}
-
-
+#: ``--dry-run``'s grids, per geometry.
 TINY_GRID: dict[str, dict] = {
     "mpchair": {"point_cloud_range": [0.0, -4.8, -2.0, 6.4, 4.8, 2.0], "voxel_size": [0.1, 0.1, 4.0],
                 "output_shape": [96, 64], "anchor_range": [0.0, -4.8, 0.0, 6.4, 4.8, 0.0]},
     "kitti": {"point_cloud_range": [0.0, -6.4, -3.0, 12.8, 6.4, 1.0], "voxel_size": [0.16, 0.16, 4.0],
               "output_shape": [80, 80], "anchor_range": [0.0, -6.4, -1.78, 12.8, 6.4, -1.78]},
 }
-
-
 #: Untimed first steps of a training throughput run (the first allocates every buffer and picks kernels).
 WARMUP_STEPS = 2
 

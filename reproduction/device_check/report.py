@@ -22,16 +22,11 @@ PAPER_DESKTOP: dict[str, dict[str, ComponentTimes]] = {
     "mpchair": dict(TABLE_II["desktop"]),
     "kitti": {m: TABLE_IV[m] for m in ("dense", "sparse")},
 }
-
-
+#: The section title of each geometry's bench.
 GEOMETRY: dict[str, str] = {"mpchair": "Matterport-Chair geometry",
                             "kitti": "KITTI geometry (tests/data/kitti's frames)"}
-
-
 #: Table order of the training runs.
 MODEL_ORDER = ("dense", "sparse", "sparse_exact")
-
-
 PRECISION_ORDER = ("fp32", "autocast")
 
 
