@@ -22,7 +22,7 @@ test: venv
 # its record, docs/results-data/commands.log); `make reproduce SCALE=recipe` trains the longer dense 16 / sparse 20
 # (an estimated ~3.5 h of training on 2 native-bf16 cores, ~16 h on 2 AVX2-only ones: steps x measured step times,
 # docs/benchmarks.md); `make reproduce SCALE=small` is a quick check (33.5 min on a shared 2-core machine). Each run
-# prints its own estimate for this machine before it starts (detector/reproduce/estimate.py).
+# prints its own estimate for this machine before it starts (reproduction/estimate.py).
 SCALE ?= full
 reproduce: venv
 	$(BIN)/python tools/reproduce.py --scale $(SCALE)
@@ -38,7 +38,7 @@ reproduce-ablations: venv
 
 # Streaming AP (sAP) of make reproduce's trained models on a robot driving through held-out houses, at 768 x 512 and
 # 288 x 144 under 2 and 1 threads (docs/streaming.md); `make reproduce-stream SCALE=small` is a few-minute check. The
-# scripts are front-ends of detector/reproduce/.
+# scripts are front-ends of reproduction/.
 reproduce-stream: venv
 	$(BIN)/python tools/reproduce_stream.py --scale $(SCALE)
 

@@ -13,10 +13,10 @@ import torch
 from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
 
 from detector.eval.bootstrap import bootstrap_gap, kitti_ap
-from detector.reproduce.study import Study, Training, read_zip_texts, restore, save, study_config, trainings
-from detector.reproduce.study_report import markdown, write_analysis
 from detector.train import train
 from mpchair.kitti import Labels, read_labels
+from reproduction.study import Study, Training, read_zip_texts, restore, save, study_config, trainings
+from reproduction.study_report import markdown, write_analysis
 
 
 def _with_scores(labels: Labels, score: float) -> Labels:
@@ -133,7 +133,7 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     assert gap["mean"] == pytest.approx(by["sparse_s0"]["test"]["ap_3d"] - dense_mean)
     saved = json.loads((record / "accuracy.json").read_text())
     assert saved["gap_3d"]["mean"] == pytest.approx(gap["mean"])
-    from detector.reproduce.study_report import analyse
+    from reproduction.study_report import analyse
 
     assert analyse(record, resamples=20) == saved  # the same tested seeds: the gaps come back, not redrawn
     assert analyse(record, resamples=21)["gap_3d"]["resamples"] == 21  # other settings: drawn again
@@ -149,7 +149,7 @@ def test_the_committed_accuracy_record_agrees_with_its_analysis_and_results_md()
     """docs/results-data/accuracy: accuracy.json is the analysis of the record's files (the curves, states and test
     AP; a gap's bootstrap is reused while its tested trainings are the same, and checked by its own tests),
     accuracy.md is written from it, and docs/results.md shows that text."""
-    from detector.reproduce.study_report import analyse
+    from reproduction.study_report import analyse
 
     record = ROOT / "docs" / "results-data" / "accuracy"
     saved = json.loads((record / "accuracy.json").read_text())

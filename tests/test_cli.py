@@ -17,7 +17,7 @@ from detector.cli import COMMANDS as DETECTOR_COMMANDS
 from detector.cli import cli as detector_cli
 from mpchair.cli import COMMANDS as MPCHAIR_COMMANDS
 from mpchair.cli import cli as mpchair_cli
-from mpchair.core.clitools import run_cli
+from mpchair.core.clitools import run_cli, run_script
 from mpchair.core.errors import InputError
 from mpchair.kitti import Labels, read_imageset, read_labels, write_labels
 
@@ -96,6 +96,36 @@ def test_input_error_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) 
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err == "error: house.house:12: record has 3 tokens, expected 5\n"
+
+
+def test_run_script_is_the_console_scripts_error_path(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    """The argparse command lines (tools/, the experiment) get run_cli's outcomes: an InputError or OSError is one
+    line and 2, a RunError 1, a warning is held until a success and dropped after a failure."""
+    import warnings
+
+    from mpchair.core.errors import RunError
+
+    def fail(error: Exception):
+        def work() -> int:
+            warnings.warn("held back", stacklevel=1)
+            raise error
+        return work
+
+    assert run_script(fail(InputError("bad option", "x.yaml", 3))) == 2
+    assert capsys.readouterr().err == "error: x.yaml:3: bad option\n"
+    assert run_script(fail(OSError(13, "Permission denied", str(tmp_path / "out")))) == 2
+    assert capsys.readouterr().err == f"error: {tmp_path / 'out'}: Permission denied\n"
+    assert run_script(fail(RunError("a worker died"))) == 1
+    assert capsys.readouterr().err == "error: a worker died\n"
+
+    def fine() -> int:
+        warnings.warn("a note", stacklevel=1)
+        print("done")
+        return 0
+
+    assert run_script(fine) == 0 and run_script(lambda: 3) == 3
+    out = capsys.readouterr()
+    assert out.out == "done\n" and out.err == "warning: a note\n"
 
 
 def test_console_scripts_run_as_modules() -> None:

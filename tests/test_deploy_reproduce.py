@@ -13,8 +13,8 @@ from detector.bench.result import BenchDensity, BenchMachine, BenchResult, Densi
 from detector.cli import main as detector_main
 from detector.deploy.cpu import cpu_flags, skip_reason
 from detector.device import Machine
-from detector.reproduce.cli import main
-from detector.reproduce.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
+from reproduction.cli import main
+from reproduction.deploy import VARIANTS, deploy_section, deployed_variants, eval_dir, like_for_like, read_deploy
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("openvino")
@@ -204,7 +204,7 @@ def test_like_for_like_picks_only_rows_within_one_ap_point_of_eager_fp32_and_nam
     res = tmp_path / "results"
 
     def metrics(model: str, runtime: str, precision: str, ap3d: float) -> None:
-        from detector.reproduce.deploy import metrics_path
+        from reproduction.deploy import metrics_path
 
         path = metrics_path(res, model, runtime, precision)
         path.parent.mkdir(parents=True, exist_ok=True)

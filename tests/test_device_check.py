@@ -1,5 +1,6 @@
 """``tools/device_check.sh --dry-run``: the GPU check's every step on the CPU with tiny sizes, so that the script a
-lent GPU runs cannot rot unnoticed; plus its time budget, its argument errors and the helper's pure functions."""
+lent GPU runs cannot rot unnoticed; plus its time budget, its argument errors and the functions of its Python side
+(``reproduction.device_check``)."""
 
 from __future__ import annotations
 
@@ -11,17 +12,18 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers_tools import load_tool
 
 from detector.bench.result import BenchResult
+from detector.bench.timing import TITLES
+from reproduction.device_check.cli import main as device_check_main
+from reproduction.device_check.jobs import throughput
+from reproduction.device_check.report import paper_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "tools" / "device_check.sh"
 MODELS = ["dense", "sparse", "sparse+sparse_head"]
 STEPS = {"tests", "synth", "generate", "bench_mpchair", "bench_kitti", "eval", "ddp",
          *(f"train_{m}_{p}" for m in ("dense", "sparse", "sparse_exact") for p in ("fp32", "autocast"))}
-
-dc = load_tool("device_check")
 
 
 def _run(*args: str, timeout: float = 900) -> subprocess.CompletedProcess:
@@ -120,17 +122,17 @@ def test_bad_arguments(tmp_path):
 
 def test_throughput_skips_warmup_steps():
     steps = [{"time_s": t, "loss_total": 1.0} for t in (9.0, 5.0, 0.5, 0.25, 0.75)]
-    got = dc._throughput(steps, batch=6)
+    got = throughput(steps, batch=6)
     assert got["timed_steps"] == 3 and got["step_s_mean"] == pytest.approx(0.5)
     assert got["steps_per_s"] == pytest.approx(2.0) and got["samples_per_s"] == pytest.approx(12.0)
 
 
 def test_paper_rows_put_ours_beside_the_desktop_column():
-    comps = {k: {"mean_ms": 1.0 + i, "std_ms": 0.0} for i, k in enumerate(dc.COMPONENT_TITLES)}
+    comps = {k: {"mean_ms": 1.0 + i, "std_ms": 0.0} for i, k in enumerate(TITLES)}
     bench = {"models": [{"name": "dense", "components": comps}, {"name": "sparse", "components": comps},
                         {"name": "open3d-ml", "peer": "open3d-ml", "components": comps}]}
-    rows = dc.paper_rows(BenchResult.from_json(bench), "mpchair")
-    assert [r[0] for r in rows] == list(dc.COMPONENT_TITLES.values())
+    rows = paper_rows(BenchResult.from_json(bench), "mpchair")
+    assert [r[0] for r in rows] == list(TITLES.values())
     assert rows[-1] == ["Total", "20.154 ± 0.143", "7.000", "13.655 ± 0.060", "7.000", "-"]
     assert rows[3][1:3] == ["2.512 ± 0.017", "4.000"]  # Backbone
 
@@ -141,8 +143,15 @@ def test_junit_to_json(tmp_path):
                    '<testcase classname="t" name="a[cuda]" time="0"><skipped message="no CUDA"/></testcase>'
                    '<testcase classname="t" name="b" time="1"><failure message="boom"/></testcase>'
                    '</testsuite></testsuites>')
-    assert dc.main(["tests", "--junit", str(xml), "--out", str(tmp_path / "t.json")]) == 1  # a failure
+    assert device_check_main(["tests", "--junit", str(xml), "--out", str(tmp_path / "t.json")]) == 1  # a failure
     got = json.loads((tmp_path / "t.json").read_text())
     assert (got["total"], got["passed"], got["failed"], got["skipped"]) == (3, 1, 1, 1)
     assert got["skip_reasons"] == {"no CUDA": 1} and got["seconds"] == 1.5
     assert got["cases"][2] == {"name": "t::b", "outcome": "failed", "seconds": 1.0, "message": "boom"}
+
+
+def test_a_step_without_a_command_is_one_error_line(tmp_path, capsys):
+    """The Python side's bad input goes through the console scripts' error path: one line, exit 2, nothing written."""
+    assert device_check_main(["step", "x", "--results", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == "error: step needs a command after --\n"
+    assert not (tmp_path / "steps").exists()

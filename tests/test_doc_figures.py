@@ -1,7 +1,7 @@
 """The figures docs/results.md, benchmarks.md, sparse.md, evaluation.md, deployment.md, streaming.md and the README
 quote agree with the tables they come from (the Markdown tables in the same docs), with the committed run record
 (docs/results-data: the deployed ratios and AP, the Open3D-ML example, the run's command times) and with the code that
-makes them (``detector.reproduce.report`` for the metric notes, the KITTI protocol for the half-found example), and a
+makes them (``reproduction.report`` for the metric notes, the KITTI protocol for the half-found example), and a
 figure with no JSON in the record says it is a one-off, so a number copied from an older run fails here.
 
 Each ``check_*`` returns the problems it finds in the docs' text; every test runs it on the docs as they are (no
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from detector.reproduce.deploy import DeployRow, like_for_like_pairs, read_deploy
-from detector.reproduce.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
-from detector.reproduce.results import EvalOutputs, Open3dMlMetrics
 from mpchair.paper import MATTERPORT_CHAIR_AP
+from reproduction.deploy import DeployRow, like_for_like_pairs, read_deploy
+from reproduction.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
+from reproduction.results import EvalOutputs, Open3dMlMetrics
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = {name: ROOT / path for name, path in (("results", "docs/results.md"), ("benchmarks", "docs/benchmarks.md"),

@@ -1,6 +1,6 @@
-"""The numbers docs/stats.md quotes are the ones its script (tools/doc_pictures.py) gets from the code today: the
-script makes them again (``--check``: no pictures) and each marked block of the page must equal what it would
-write."""
+"""The numbers docs/stats.md quotes are the ones its script (tools/doc_pictures.py, a front-end of
+``reproduction.doc_pictures``) gets from the code today: the script makes them again (``--check``: no pictures) and
+each marked block of the page must equal what it would write."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import json
 from pathlib import Path
 
 import pytest
-from helpers_tools import load_tool
+
+import reproduction.doc_pictures
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "stats.md"
@@ -16,7 +17,7 @@ DOC = ROOT / "docs" / "stats.md"
 
 @pytest.fixture(scope="module")
 def tool():
-    return load_tool("doc_pictures")
+    return reproduction.doc_pictures
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 from helpers_detector import detector_cli
 
-from detector.reproduce.cli import main as reproduce_main
 from mpchair.cli import main as mpchair_main
 from mpchair.core.limits import MAX_SEED, max_parallel
+from reproduction.cli import main as reproduce_main
 
 
 def _mpchair(args: list, capsys) -> tuple[int, str]:
@@ -200,7 +200,7 @@ def _record(tmp_path: Path, **meta) -> Path:
     rec = tmp_path / "rec"
     (rec / "results").mkdir(parents=True)
     (rec / "results/a.json").write_text("{}")
-    from detector.reproduce.scales import SCALES
+    from reproduction.scales import SCALES
 
     sizes = dataclasses.asdict(SCALES["small"])
     base = {"scale": "small", "notes": [], "dataset_sha256": None, "files": ["results/a.json"]}
@@ -224,15 +224,15 @@ def _record(tmp_path: Path, **meta) -> Path:
     ({"dataset_sha256": "abc"}, "dataset_sha256: expected 64 hex digits"),
 ])
 def test_an_edited_record_is_refused_naming_the_field(meta, needle, tmp_path):
-    from detector.reproduce.record import RecordError, read_record
+    from reproduction.record import RecordError, read_record
 
     with pytest.raises(RecordError, match=needle):
         read_record(_record(tmp_path, **meta))
 
 
 def test_a_record_is_restored_only_from_regular_files_inside_it(tmp_path):
-    from detector.reproduce.record import RecordError, restore_record, save_record
-    from detector.reproduce.scales import SCALES
+    from reproduction.record import RecordError, restore_record, save_record
+    from reproduction.scales import SCALES
 
     rec = _record(tmp_path)
     (rec / "results/a.json").unlink()
@@ -330,7 +330,7 @@ def test_a_lone_distributed_rank_gives_up_with_one_line(tmp_path):
 
 
 def _small_sizes() -> dict:
-    from detector.reproduce.scales import SCALES
+    from reproduction.scales import SCALES
 
     return dataclasses.asdict(SCALES["small"])
 

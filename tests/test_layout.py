@@ -1,5 +1,5 @@
-"""The import graph keeps docs/design.md's rules: two stacks on one shared floor, every arrow pointing down a floor,
-no import circle.
+"""The import graph keeps docs/design.md's rules: two stacks on one shared floor, the experiment on a floor of its own
+above both, every arrow pointing down a floor, no import circle.
 
 Every ``import`` of the project's own modules counts, at module level and inside functions alike (a lazy import is
 still a dependency). ``from pkg import name`` is an edge to ``pkg.name`` when that is a module, else to ``pkg``.
@@ -13,10 +13,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("mpchair", "detector")
+PACKAGES = ("mpchair", "detector", "reproduction")
+#: The experiment (make reproduce, the accuracy study, the device check): one package on one floor above both stacks.
+#: It may import anything of either stack; neither stack imports it.
+EXPERIMENT = "reproduction"
 
-#: The floor of every top-level folder / file of both packages: a module may import its own folder and any lower
-#: floor, never a higher one nor another folder of its own floor. Keep in step with docs/design.md ("Floors").
+#: The floor of every top-level folder / file of both stacks, and of the experiment: a module may import its own folder
+#: and any lower floor, never a higher one nor another folder of its own floor. Keep in step with docs/design.md
+#: ("Floors").
 FLOORS: dict[str, int] = {
     # the package roots hold only ``__version__`` and a docstring: anyone may read them
     "mpchair": -1,
@@ -55,16 +59,18 @@ FLOORS: dict[str, int] = {
     "detector.bench": 9,
     "detector.train": 9,
     "detector.stream": 9,
-    "detector.reproduce": 10,
-    "detector.commands": 11,
-    "detector.cli": 12,
-    "detector.__main__": 13,
+    "detector.commands": 10,
+    "detector.cli": 11,
+    "detector.__main__": 12,
+    # the experiment floor, above both stacks (it drives their command lines: the device check runs detector.cli's
+    # main in its own process to read the run's peak memory)
+    EXPERIMENT: 13,
 }
 SHARED_FLOOR = ("mpchair.core", "mpchair.geometry", "mpchair.kitti", "mpchair.paper", "mpchair.recording")
 
 
 def module_files() -> dict[str, Path]:
-    """Dotted module name → file, for every module of both packages."""
+    """Dotted module name → file, for every module of the three packages."""
     out = {}
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
@@ -101,7 +107,9 @@ def resolve(module: str, modules: dict[str, Path]) -> str:
 
 def floor_key(module: str) -> str:
     """The FLOORS entry a module belongs to: its top-level folder or file (``detector.bench.timing`` →
-    ``detector.bench``)."""
+    ``detector.bench``); every module of the experiment belongs to its one floor."""
+    if module.split(".")[0] == EXPERIMENT:
+        return EXPERIMENT
     return ".".join(module.split(".")[:2])
 
 
@@ -126,17 +134,26 @@ def test_mpchair_never_imports_detector():
     assert not bad, bad
 
 
-#: The one arrow from the detector into the mpchair stack above the shared floor: the reproduction (the experiment,
-#: which drives both command lines) reads a dataset's manifest through its one definition,
-#: ``mpchair.dataset.manifest`` (a module that loads no generator code). It stays the only one until the experiment
-#: becomes a package of its own above both stacks (issue 45).
-EXPERIMENT_READS = (("detector.reproduce", "mpchair.dataset.manifest"),)
-
-
 def test_detector_imports_only_the_shared_floor_of_mpchair():
     bad = sorted((a, b) for a, targets in GRAPH.items() if a.startswith("detector") for b in targets
-                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR)
-                 and not any(a.startswith(src) and b == dst for src, dst in EXPERIMENT_READS))
+                 if b.startswith("mpchair") and not b.startswith(SHARED_FLOOR))
+    assert not bad, bad
+
+
+def test_neither_stack_imports_the_experiment():
+    """The experiment drives both stacks; nothing of either stack (their CLIs included) may reach back up into it."""
+    bad = sorted((a, b) for a, targets in GRAPH.items() if not a.startswith(EXPERIMENT) for b in targets
+                 if b.split(".")[0] == EXPERIMENT)
+    assert not bad, bad
+    assert any(b.startswith("detector.") for b in GRAPH["reproduction.steps"])  # the graph sees the experiment's arrows
+
+
+def test_the_experiment_finds_the_checkout_in_one_place():
+    """Only ``reproduction.checkout`` locates the clone (from the package's own location); no other module of the
+    experiment walks up from its ``__file__``."""
+    files = module_files()
+    bad = [name for name, path in files.items() if name.startswith(EXPERIMENT) and name != "reproduction.checkout"
+           and ("__file__" in (text := path.read_text(encoding="utf-8")) or "parents[" in text)]
     assert not bad, bad
 
 
@@ -220,6 +237,19 @@ def test_the_graph_sees_lazy_and_submodule_imports():
     assert "mpchair.synth.furniture" in GRAPH["mpchair.synth.house"]
     assert "mpchair.synth" not in GRAPH["mpchair.synth.house"]
     assert any(b.startswith("mpchair.analysis") for b in GRAPH["mpchair.commands.stats"])  # imported inside main()
+
+
+def test_the_experiments_tools_are_front_ends():
+    """``tools/`` scripts of the experiment hold no code of their own: a docstring, one import of the package's
+    ``main`` and the exit."""
+    fronts = {p.name: p.read_text(encoding="utf-8") for p in sorted((ROOT / "tools").glob("*.py"))
+              if "from reproduction" in p.read_text(encoding="utf-8")}
+    assert set(fronts) >= {"reproduce.py", "reproduce_stream.py", "accuracy_study.py", "device_check.py",
+                           "doc_pictures.py"}, fronts
+    for name, text in fronts.items():
+        body = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith('"""')]
+        assert len(body) == 2 and body[0].startswith("from reproduction.") and body[0].endswith(" import main") \
+            and body[1] == "raise SystemExit(main())", (name, body)
 
 
 def test_tools_are_front_ends_that_do_not_edit_sys_path():

@@ -14,13 +14,13 @@ import pytest
 from helpers_detector import detector_cli, write_test_config
 
 from detector.infer import write_results
-from detector.reproduce.cli import main as reproduce_main
-from detector.reproduce.record import RECORD_JSON, RecordError, save_record
-from detector.reproduce.scales import SCALES
 from detector.train.run_folder import remove_stale_temps
 from mpchair.core.errors import InputError
 from mpchair.core.owned import MARKER, check_replaceable, read_marker, remove_leftovers, replace_folder, work_dir
 from mpchair.kitti import Labels
+from reproduction.cli import main as reproduce_main
+from reproduction.record import RECORD_JSON, RecordError, save_record
+from reproduction.scales import SCALES
 
 
 def _user_folder(path: Path, **extra: str) -> dict[str, bytes]:

@@ -75,13 +75,13 @@ def test_every_figure_is_printed_in_the_paper():
 
 
 def test_no_figure_is_copied_outside_the_table():
-    """A paper figure written as a literal anywhere in mpchair/, detector/ or tools/ (code, string or comment) other
-    than mpchair/paper.py fails; import it from ``mpchair.paper`` instead."""
+    """A paper figure written as a literal anywhere in mpchair/, detector/, reproduction/ or tools/ (code, string or
+    comment) other than mpchair/paper.py fails; import it from ``mpchair.paper`` instead."""
     patterns = {x: _pattern(x) for x in figures()}
     assert len(patterns) > 100  # the scan covers Tables II-IV, not only the headline numbers
     bad = []
     files = [*ROOT.joinpath("mpchair").rglob("*.py"), *ROOT.joinpath("detector").rglob("*.py"),
-             *ROOT.joinpath("tools").glob("*.py")]
+             *ROOT.joinpath("reproduction").rglob("*.py"), *ROOT.joinpath("tools").glob("*.py")]
     for path in files:
         if path == ROOT / "mpchair" / "paper.py":
             continue

@@ -1,4 +1,4 @@
-"""``tools/reproduce.py``'s estimate (detector/reproduce/estimate.py): the record's measured command times, each
+"""``tools/reproduce.py``'s estimate (reproduction/estimate.py): the record's measured command times, each
 command's latest one, scaled to the planned sizes and to this machine's probe; printed before the first command."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from detector.reproduce.cli import main
-from detector.reproduce.estimate import (
+from reproduction.checkout import ROOT
+from reproduction.cli import main
+from reproduction.estimate import (
     FP32_OVER_BF16_STEP,
     PROBE_FILE,
     command_step,
@@ -19,8 +20,7 @@ from detector.reproduce.estimate import (
     probe_seconds,
     recorded_times,
 )
-from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import Scale
+from reproduction.scales import Scale
 
 RECORDED = Scale(houses=8, frames_per_house=625, epochs=4, bench_frames=30, bench_trials=3, ops_frames=200,
                  precision="bf16")

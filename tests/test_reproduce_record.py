@@ -1,4 +1,4 @@
-"""The run record (detector/reproduce/record.py): what it keeps of a work folder, restoring it, refusing a dataset that
+"""The run record (reproduction/record.py): what it keeps of a work folder, restoring it, refusing a dataset that
 is not the recorded one, and ``tools/reproduce.py --from-record`` writing the report of a recorded run."""
 
 from __future__ import annotations
@@ -9,9 +9,12 @@ from pathlib import Path
 import pytest
 from helpers_detector import write_manifest, write_run_config
 
-from detector.reproduce.cli import main
-from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
-from detector.reproduce.record import (
+from mpchair.core.doctable import markers
+from mpchair.core.owned import MARKER
+from reproduction.checkout import ROOT
+from reproduction.cli import main
+from reproduction.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
+from reproduction.record import (
     RECORD_JSON,
     RecordError,
     check_dataset,
@@ -21,11 +24,8 @@ from detector.reproduce.record import (
     restore_record,
     save_record,
 )
-from detector.reproduce.report import write_report
-from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import SCALES
-from mpchair.core.doctable import markers
-from mpchair.core.owned import MARKER
+from reproduction.report import write_report
+from reproduction.scales import SCALES
 
 
 def _work_folder(out: Path) -> Path:
@@ -160,8 +160,8 @@ def test_the_committed_results_md_is_what_its_record_gives(tmp_path: Path) -> No
 def test_the_opening_gives_the_fused_head_as_the_reason_only_for_a_total_ratio_above_the_papers(tmp_path: Path) -> None:
     """results.md's generated "why it differs" sentence, on the committed record: the fused dense head explains a total
     ratio above the paper's 4.6x; a total ratio below it gets no such reason."""
-    from detector.reproduce.report import why_it_differs
-    from detector.reproduce.training import trained_schedules
+    from reproduction.report import why_it_differs
+    from reproduction.training import trained_schedules
 
     out = tmp_path / "w"
     restore_record(ROOT / "docs" / "results-data", out, with_dataset=True)

@@ -1,4 +1,4 @@
-"""detector.reproduce (``tools/reproduce.py``): the recipe's commands, its time accounting (a training resumed after
+"""reproduction (``tools/reproduce.py``): the recipe's commands, its time accounting (a training resumed after
 an interruption counts all of its epochs), its AP report (Overall and the reference's Open3D-ML metric first, then
 Easy / Moderate / Hard), and the report written from the outputs of real (tiny) runs of those commands."""
 
@@ -15,13 +15,13 @@ import pytest
 from helpers_detector import make_tiny_dataset, write_manifest, write_run_config, write_test_config
 
 from detector.bench.result import BenchResult
-from detector.reproduce import steps
-from detector.reproduce.cli import main
-from detector.reproduce.report import targets_section, write_report
-from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16, model_epochs
-from detector.reproduce.status import status_lines
-from detector.reproduce.training import elapsed_seconds
 from mpchair.kitti import read_imageset
+from reproduction import steps
+from reproduction.cli import main
+from reproduction.report import targets_section, write_report
+from reproduction.scales import SCALES, Scale, cpu_has_native_bf16, model_epochs
+from reproduction.status import status_lines
+from reproduction.training import elapsed_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -273,8 +273,8 @@ def test_half_found_r40_is_what_the_kitti_protocol_gives(num_gt: int, r40: float
     import numpy as np
 
     from detector.eval import evaluate
-    from detector.reproduce.report import half_found_r40
     from mpchair.kitti import Labels
+    from reproduction.report import half_found_r40
 
     def labels(n: int, scores: np.ndarray | None = None) -> Labels:
         loc = np.array([[-3.0 + 1.5 * (i % 5), 1.0, 5.0 + 2.0 * (i // 5)] for i in range(n)]).reshape(-1, 3)
@@ -369,7 +369,7 @@ def test_report_carries_the_numbers_of_real_outputs(tmp_path: Path, capsys) -> N
                                 train=dict(batch_size=2, epochs=epochs[m], eval_every=1)) for m in ("dense", "sparse")}
 
     def run(prog: str, *args, stdout: Path | None = None) -> None:
-        """Run a console script in this process and log it as detector.reproduce's Runner does."""
+        """Run a console script in this process and log it as reproduction's Runner does."""
         t = time.perf_counter()
         with pytest.raises(SystemExit) as e:
             (mpchair_main if prog == "mpchair" else detector_main)([str(a) for a in args])
@@ -548,7 +548,7 @@ def test_bench_step_runs_the_peer_and_the_report_shows_it(tmp_path: Path, capsys
 def test_readers_tolerate_missing_files_and_keys(tmp_path: Path) -> None:
     """The typed readers of the step outputs: a file not written (or empty) reads as None, a key a file lacks as None
     or empty, and a torn last line of metrics.jsonl is skipped."""
-    from detector.reproduce import results
+    from reproduction import results
 
     res = tmp_path / "results"
     (res / "eval_dense").mkdir(parents=True)
@@ -584,7 +584,7 @@ def test_status_without_scale_finds_the_run_of_another_scale(tmp_path: Path, cap
     """``tools/reproduce.py --status`` as README shows it, while a ``SCALE=small`` run is going: it shows that run
     (saying so) instead of "no reproduction here yet"; with an explicit ``--scale full`` it says which ``--scale``
     shows the run there is."""
-    import detector.reproduce.cli as reproduce_cli
+    import reproduction.cli as reproduce_cli
 
     monkeypatch.setattr(reproduce_cli, "ROOT", tmp_path)
     small = tmp_path / "out" / "reproduce-small"

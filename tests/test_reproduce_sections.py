@@ -17,11 +17,11 @@ from helpers_detector import make_tiny_dataset, write_run_config, write_test_con
 from detector.bench.density import crossings
 from detector.models import build_model
 from detector.models.reference_head import nchw, reference_head
-from detector.reproduce.cli import main
-from detector.reproduce.report import differences_section, targets_section
-from detector.reproduce.report_ablations import ablations_section
-from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
-from detector.reproduce.status import status_lines
+from reproduction.cli import main
+from reproduction.report import differences_section, targets_section
+from reproduction.report_ablations import ablations_section
+from reproduction.report_runtime import density_curve_section, reference_head_section, training_time_section
+from reproduction.status import status_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""detector.reproduce.stream (``tools/reproduce_stream.py``): the commands it runs (dry run: held-out houses, every
+"""reproduction.stream (``tools/reproduce_stream.py``): the commands it runs (dry run: held-out houses, every
 setting on the headline stream, the headline setting on the sweep), the crossover speed, the highest rate a model keeps
 up with, the check that the streamed houses are not the training data's, and the report it writes between the markers
 of docs/streaming.md without touching the rest."""
@@ -10,8 +10,9 @@ import json
 import pytest
 from helpers_detector import write_manifest
 
-from detector.reproduce.stream.cli import main
-from detector.reproduce.stream.report import (
+from mpchair.core.errors import InputError
+from reproduction.stream.cli import main
+from reproduction.stream.report import (
     BEGIN,
     END,
     crossover,
@@ -21,9 +22,8 @@ from detector.reproduce.stream.report import (
     results_section,
     write_section,
 )
-from detector.reproduce.stream.results import StreamSummary, check_houses, read_runs, stream_frames
-from detector.reproduce.stream.sweep import HEADLINE, Setting, eval_dir, settings, stream_dir, sweep_points
-from mpchair.core.errors import InputError
+from reproduction.stream.results import StreamSummary, check_houses, read_runs, stream_frames
+from reproduction.stream.sweep import HEADLINE, Setting, eval_dir, settings, stream_dir, sweep_points
 
 T2, T1 = Setting("768x512", 2), Setting("768x512", 1)
 

@@ -32,8 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SKIP_ENV = "MPCHAIR_SKIP_WHEEL_TEST"
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(os.environ.get(SKIP_ENV) == "1", reason=f"{SKIP_ENV}=1 skips the wheel test")]
-#: What the wheel is built from: the project's metadata and its two packages (as a clean clone has them).
-SOURCES = ("pyproject.toml", "README.md", "mpchair", "detector")
+#: What the wheel is built from: the project's metadata, its two stacks and the experiment (as a clean clone has them).
+SOURCES = ("pyproject.toml", "README.md", "mpchair", "detector", "reproduction")
 
 
 def _run(args: list, cwd: Path, expect: int = 0) -> subprocess.CompletedProcess:
@@ -91,7 +91,9 @@ def test_the_wheel_holds_what_the_commands_read(wheel_env):
     packaged.add("mpchair/data/mpcat40.tsv")
     assert packaged <= names, sorted(packaged - names)
     assert len(available_configs()) == 22 and "detector/pretrained/README.md" in names
-    assert not any(n.startswith(("tests/", "tools/", "configs/")) for n in names)
+    assert not any(n.startswith(("tests/", "tools/", "configs/", "docs/")) for n in names)
+    # the experiment ships too (one package list serves the editable install), and refuses to run outside a clone
+    assert {"reproduction/checkout.py", "reproduction/cli.py", "reproduction/device_check/cli.py"} <= names
 
 
 def test_the_installed_wheel_generates_trains_evaluates_and_exports_outside_the_checkout(wheel_env):
@@ -125,7 +127,7 @@ def test_the_installed_wheel_generates_trains_evaluates_and_exports_outside_the_
     deploy = json.loads((work / "exported" / "deploy.json").read_text())
     assert (work / "exported" / "model.onnx").stat().st_size > 100_000 and deploy["weights"] == "run/last.pt"
     # the reproduction, which writes a clone's docs/, says in one line that an installed package is not one
-    refused = _run([bin_ / "python", "-c", "from detector.reproduce.cli import main; raise SystemExit(main([]))"],
+    refused = _run([bin_ / "python", "-c", "from reproduction.cli import main; raise SystemExit(main([]))"],
                    work, expect=2)
     assert refused.stderr.startswith("error: the reproduction runs in a clone of the repository")
     assert len(refused.stderr.strip().splitlines()) == 1

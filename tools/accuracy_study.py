@@ -1,5 +1,5 @@
-"""``make accuracy-study``: the accuracy study, one session's share at a time (``detector.reproduce.study_cli``)."""
+"""``make accuracy-study``: the accuracy study, one session's share at a time (``reproduction.study_cli``)."""
 
-from detector.reproduce.study_cli import main
+from reproduction.study_cli import main
 
 raise SystemExit(main())

@@ -16,11 +16,10 @@ import sys
 from pathlib import Path
 
 from detector.bench.density import DENSITIES, density_curve, format_curve, plot_curve
+from detector.config import CONFIG_DIR
 from mpchair.core.atomic import check_writable, write_text
-from mpchair.core.clitools import run_holding_warnings
+from mpchair.core.clitools import run_script
 from mpchair.core.errors import InputError
-
-CONFIGS = Path(__file__).resolve().parents[1] / "detector" / "configs"
 
 
 def _mark(text: str) -> tuple[str, float]:
@@ -38,8 +37,8 @@ def _mark(text: str) -> tuple[str, float]:
 def main(argv: list[str] | None = None) -> int:
     """Measure the curve, print its table, write its JSON and plot; 2 with one ``error:`` line on bad input."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dense-config", type=Path, default=CONFIGS / "mpchair_dense.yaml")
-    p.add_argument("--sparse-config", type=Path, default=CONFIGS / "mpchair_sparse.yaml")
+    p.add_argument("--dense-config", type=Path, default=CONFIG_DIR / "mpchair_dense.yaml")
+    p.add_argument("--sparse-config", type=Path, default=CONFIG_DIR / "mpchair_sparse.yaml")
     p.add_argument("--densities", default=",".join(f"{d:g}" for d in DENSITIES), help="comma-separated D values")
     p.add_argument("--frames", type=int, default=3, help="synthetic frames (seeds) per density")
     p.add_argument("--trials", type=int, default=3, help="timed passes over each density's frames")
@@ -54,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args(argv)
     # a warning raised on the way (a checkpoint of another grid): one line each, after the result
-    return run_holding_warnings(lambda: _run(args))
+    return run_script(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

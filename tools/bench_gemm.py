@@ -35,7 +35,7 @@ from detector.device import machine_info, use_device
 from detector.ops import gemm
 from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
-from mpchair.core.clitools import run_holding_warnings
+from mpchair.core.clitools import run_script
 from mpchair.core.errors import InputError
 from mpchair.geometry import frame_density
 
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json-out", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
-    return run_holding_warnings(lambda: _run(args))
+    return run_script(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -18,7 +18,7 @@ from pathlib import Path
 from detector.bench.reference_head import format_reference_head, run_reference_head_bench
 from detector.bench.run import BenchModel, bench_checkpoints
 from mpchair.core.atomic import check_writable, write_text
-from mpchair.core.clitools import run_holding_warnings
+from mpchair.core.clitools import run_script
 from mpchair.core.errors import InputError
 
 
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json-out", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
     # a warning raised on the way (a checkpoint of another grid): one line each, after the result
-    return run_holding_warnings(lambda: _run(args))
+    return run_script(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

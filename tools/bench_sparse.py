@@ -55,7 +55,7 @@ from torch import nn
 
 from detector.bench.timing import COMPONENTS, time_frame
 from detector.checkpoint import load_model
-from detector.config import load_experiment
+from detector.config import CONFIG_DIR, load_experiment
 from detector.data.experiment import load_eval_frames
 from detector.device import MALLOC_REUSE
 from detector.models import build_model
@@ -70,7 +70,6 @@ from detector.sparse.synthetic import clustered_sites, mean_active_neighbours, u
 from mpchair.core.atomic import write_text
 
 PASSIVE_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
-CONFIGS = Path(__file__).resolve().parents[1] / "detector" / "configs"
 #: The issue's targets: (section, row, label, minimum ratio dense / sparse).
 TARGETS = (
     ("backbone", "matterport", "(a) backbone + neck, Matterport 768x512 clustered 0.75%", 15.0),
@@ -210,7 +209,7 @@ def bench_forms(repeats: int) -> list[dict[str, object]]:
 def bench_forms_real(repeats: int, data: Path, frames: int) -> list[dict[str, object]]:
     """The Matterport sparse backbone on real frames (``mpchair_sparse.yaml``, random weights, workspace) with every
     conv of one kind forced to each form: whole-backbone ms per frame, interleaved."""
-    cfg = load_experiment(CONFIGS / "mpchair_sparse.yaml")
+    cfg = load_experiment(CONFIG_DIR / "mpchair_sparse.yaml")
     model = load_model(cfg, None, torch.device("cpu"), seed=0).eval()
     model.workspace = Workspace()
     with torch.no_grad():
@@ -309,7 +308,7 @@ def matterport_points(seed: int = 4, num_points: int = 21095, density: float = 0
     The sites cover ``density`` of the padded 768 x 512 canvas but lie in the real 760 x 500 grid (points outside it
     are cropped by the voxelizer); every site gets at least one point, the rest are spread over the sites at random.
     """
-    m = load_experiment(CONFIGS / "mpchair_dense.yaml").model
+    m = load_experiment(CONFIG_DIR / "mpchair_dense.yaml").model
     x0, y0, z0, x1, y1, z1 = m.point_cloud_range
     vx, vy = m.voxel_size[0], m.voxel_size[1]
     ny_real, nx_real = round((y1 - y0) / vy), round((x1 - x0) / vx)
@@ -327,8 +326,8 @@ def matterport_points(seed: int = 4, num_points: int = 21095, density: float = 0
 
 def bench_end_to_end(repeats: int) -> list[dict[str, object]]:
     """Points → detections with the models built from the Matterport configs (``detector.bench.timing.time_frame``)."""
-    dense_cfg = load_experiment(CONFIGS / "mpchair_dense.yaml").model
-    sparse_cfg = load_experiment(CONFIGS / "mpchair_sparse.yaml").model
+    dense_cfg = load_experiment(CONFIG_DIR / "mpchair_dense.yaml").model
+    sparse_cfg = load_experiment(CONFIG_DIR / "mpchair_sparse.yaml").model
     variants = {
         "dense": dense_cfg,
         "sparse+sparse_exact": dataclasses.replace(sparse_cfg, head="sparse_exact"),

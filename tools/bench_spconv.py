@@ -54,7 +54,7 @@ from detector.device import load_1m, machine_info, oversubscription_warning, usa
 from detector.models.sparse_backbone import SparseBackboneNeck
 from detector.sparse.workspace import Workspace
 from mpchair.core.atomic import check_writable, write_text
-from mpchair.core.clitools import run_holding_warnings
+from mpchair.core.clitools import run_script
 from mpchair.core.errors import InputError
 
 
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json-out", dest="json", type=Path, default=None,
                    help="also write the result as JSON to this file")
     args = p.parse_args(argv)
-    return run_holding_warnings(lambda: _run(args))
+    return run_script(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

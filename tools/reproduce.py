@@ -1,5 +1,5 @@
-"""``make reproduce``: the Sparse PointPillars Matterport-Chair experiment end to end (``detector.reproduce.cli``)."""
+"""``make reproduce``: the Sparse PointPillars Matterport-Chair experiment end to end (``reproduction.cli``)."""
 
-from detector.reproduce.cli import main
+from reproduction.cli import main
 
 raise SystemExit(main())

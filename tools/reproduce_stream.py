@@ -1,5 +1,5 @@
-"""``make reproduce-stream``: streaming AP of dense vs sparse PointPillars (``detector.reproduce.stream.cli``)."""
+"""``make reproduce-stream``: streaming AP of dense vs sparse PointPillars (``reproduction.stream.cli``)."""
 
-from detector.reproduce.stream.cli import main
+from reproduction.stream.cli import main
 
 raise SystemExit(main())

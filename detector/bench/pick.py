@@ -4,7 +4,7 @@
 A deployment that changes the detections by more than that is another model, not a faster copy of the same one: a
 headline ratio must not come from it. A row whose AP, or its model's eager fp32 AP, was not measured (a bench without
 evaluations) is not guarded: it is picked on speed, as before. Used by :func:`detector.bench.run.headline_record` and
-the reproduction's like-for-like table (``detector.reproduce.deploy``), which says which rows it left out and why.
+the reproduction's like-for-like table (``reproduction.deploy``), which says which rows it left out and why.
 """
 
 from __future__ import annotations

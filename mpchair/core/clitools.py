@@ -3,7 +3,8 @@
 * :class:`LazyGroup` registers subcommands by ``"module:attribute"`` so a command imports only what it needs
   (``mpchair houses`` never imports torch). ``--help`` lists every registered command.
 * :func:`run_cli` turns :class:`mpchair.core.errors.InputError`, ``OSError`` (``error: PATH: reason``) and click's usage
-  errors into one ``error: ...`` line and exit status 2, :class:`mpchair.core.errors.RunError` into one line and exit 1.
+  errors into one ``error: ...`` line and exit status 2, :class:`mpchair.core.errors.RunError` into one line and exit 1;
+  :func:`run_script` is the same path for an argparse command line (``tools/``, the experiment's commands).
 """
 
 from __future__ import annotations
@@ -92,6 +93,14 @@ def run_cli(group: click.Group, args: list[str] | None = None) -> None:
     oddities, numpy's floating-point notes) are held and printed after a successful run as one ``warning: ...`` line
     each (repeats once); a failed run prints its error line alone, so the error is never buried.
     """
+    sys.exit(run_script(lambda: group.main(args=args, standalone_mode=False)))
+
+
+def run_script(work: Callable[[], int | None]) -> int:
+    """The console scripts' error path (:func:`run_cli`) around ``work`` (its exit status; None counts as 0), for the
+    argparse command lines of ``tools/`` and the experiment: :class:`InputError` and ``OSError`` are one ``error:``
+    line and status 2, :class:`RunError` status 1, Ctrl-C 130; warnings are held and printed after a success only.
+    Returns the exit status (argparse's own ``--help`` and usage errors exit as argparse does)."""
     held: list[str] = []
 
     def hold(message, category, filename, lineno, file=None, line=None) -> None:  # warnings.showwarning's signature
@@ -101,22 +110,22 @@ def run_cli(group: click.Group, args: list[str] | None = None) -> None:
 
     with warnings.catch_warnings():
         warnings.showwarning = hold
-        code, error = _run_group(group, args)
+        code, error = _exit_status(work)
     if error is not None:
         click.echo(f"error: {error}", err=True)
     elif code == 0:
         for text in held:
             click.echo(f"warning: {text}", err=True)
-    sys.exit(code)
+    return code
 
 
-def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | None]:
-    """``(exit status, error line or None)`` of one run of ``group``."""
+def _exit_status(work: Callable[[], int | None]) -> tuple[int, str | None]:
+    """``(exit status, error line or None)`` of one run of ``work``."""
     try:
         from mpchair.core.limits import check_environment
 
         check_environment()  # a variable a command reads, with a value it cannot use: one line, before any work
-        rv = group.main(args=args, standalone_mode=False)
+        rv = work()
     except InputError as e:
         return 2, str(e)
     except RunError as e:
@@ -138,16 +147,3 @@ def _run_group(group: click.Group, args: list[str] | None) -> tuple[int, str | N
     except click.exceptions.Exit as e:
         return e.exit_code, None
     return (rv if isinstance(rv, int) else 0), None
-
-
-def run_holding_warnings(work: Callable[[], int]) -> int:
-    """Run a ``tools/`` script's ``work`` (its exit status) with every Python warning held; after status 0 print each
-    as one ``warning: ...`` line on stderr (repeats once), so a failed run's ``error:`` line is never buried (what
-    :func:`run_cli` does for the console scripts)."""
-    with warnings.catch_warnings(record=True) as held:
-        warnings.simplefilter("always")
-        code = work()
-    if code == 0:
-        for text in dict.fromkeys(" ".join(str(w.message).split()) for w in held):
-            print(f"warning: {text}", file=sys.stderr)
-    return code

@@ -246,7 +246,7 @@ class Manifest:
     def from_dict(cls, data: Mapping[str, Any], frames: bool = True) -> Manifest:
         """The manifest of :meth:`to_dict`'s data (a missing key is a ``KeyError``, a wrong type a ``TypeError``);
         ``frames=False``: without its per-frame list (``frames`` empty; the list may be absent, as in the run record
-        of ``detector.reproduce.record``)."""
+        of ``reproduction.record``)."""
         if not isinstance(data["config"], dict):
             raise TypeError("config: expected an object")
         records = data["frames"] if frames else ()

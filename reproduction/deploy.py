@@ -25,8 +25,8 @@ from pathlib import Path
 
 from detector.bench.pick import AP_TOLERANCE, ap_exclusion, fastest_within_ap
 from detector.deploy.cpu import cpu_flags, skip_reason
-from detector.reproduce.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
-from detector.reproduce.runner import BIN, REUSE_ENV, Runner
+from reproduction.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
+from reproduction.runner import BIN, REUSE_ENV, Runner
 
 #: (runtime, precision) of the deployed evaluations and bench rows, eager fp32 first.
 VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("torch", "bf16"), ("onnxruntime", "fp32"),
@@ -87,7 +87,7 @@ def _variant_args(variants: list[tuple[str, str]]) -> list[str]:
 
 
 def run_deploy(plan, r: Runner, config) -> None:
-    """The step (``plan``: :class:`detector.reproduce.steps.Plan`; ``config``: its config-path function)."""
+    """The step (``plan``: :class:`reproduction.steps.Plan`; ``config``: its config-path function)."""
     outputs = deploy_outputs(plan.res)
     variants = deployed_variants()
     threads = ["--threads", str(plan.threads)]

@@ -3,7 +3,7 @@ point, ``detector stream-eval`` measuring each model's latency under each settin
 raw and ego, and the oracle at each measured latency.
 
 Each step's output file marks it done (skipped unless ``force``); paths are those of the work folder
-(:func:`~detector.reproduce.stream.sweep.stream_dir`, :func:`~detector.reproduce.stream.sweep.eval_dir`).
+(:func:`~reproduction.stream.sweep.stream_dir`, :func:`~reproduction.stream.sweep.eval_dir`).
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from detector.reproduce.runner import BIN, Runner
-from detector.reproduce.steps import house_ids
-from detector.reproduce.stream.results import read_summary
-from detector.reproduce.stream.sweep import GRIDS, HEADLINE, MODELS, MODES, Scale, Setting, eval_dir, stream_dir
+from reproduction.runner import BIN, Runner
+from reproduction.steps import house_ids
+from reproduction.stream.results import read_summary
+from reproduction.stream.sweep import GRIDS, HEADLINE, MODELS, MODES, Scale, Setting, eval_dir, stream_dir
 
 STEPS = ("houses", "streams", "measure", "score", "report")
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from detector.reproduce.results import ABLATIONS, MODELS, read_run_config, step_records
-from detector.reproduce.steps import step_outputs
-from detector.reproduce.training import trained_schedules
 from mpchair.core.errors import InputError
+from reproduction.results import ABLATIONS, MODELS, read_run_config, step_records
+from reproduction.steps import step_outputs
+from reproduction.training import trained_schedules
 
 
 def train_status(out: Path, model: str) -> str:

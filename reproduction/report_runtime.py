@@ -8,7 +8,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from detector.reproduce.results import (
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, SPARSE_EPOCH_RATIO, SPARSE_TRAIN_SPEEDUP, TABLE_II
+from reproduction.results import (
     ABLATIONS,
     MODELS,
     read_density,
@@ -16,8 +17,7 @@ from detector.reproduce.results import (
     read_reference_head,
     read_run_config,
 )
-from detector.reproduce.training import TrainingTime, training_time
-from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, SPARSE_EPOCH_RATIO, SPARSE_TRAIN_SPEEDUP, TABLE_II
+from reproduction.training import TrainingTime, training_time
 
 #: Copies a figure (source, file name) next to the report and gives its Markdown path relative to the report.
 Figure = Callable[[Path, str], str]

@@ -24,10 +24,10 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from detector.reproduce.results import ABLATIONS
-from detector.reproduce.runner import logged_commands
-from detector.reproduce.scales import Scale, model_epochs
 from detector.train.metrics import format_duration
+from reproduction.results import ABLATIONS
+from reproduction.runner import logged_commands
+from reproduction.scales import Scale, model_epochs
 
 #: Where a reproduction writes this machine's probe time (inside ``results/``, so that the record keeps it).
 PROBE_FILE = Path("results") / "probe.json"
@@ -65,7 +65,7 @@ def this_machine() -> dict:
     """The CPU model, logical CPU count and native-bf16 flag of this machine (as ``detector bench`` records them: a
     model name such as "AMD EPYC" covers CPUs with and without AVX512-BF16)."""
     from detector.device import cpu_model
-    from detector.reproduce.scales import cpu_has_native_bf16
+    from reproduction.scales import cpu_has_native_bf16
 
     return {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "bf16": cpu_has_native_bf16()}
 

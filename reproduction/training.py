@@ -7,9 +7,9 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-from detector.reproduce.results import MODELS, epoch_records, read_run_config, step_records
-from detector.reproduce.runner import logged_commands
-from detector.reproduce.scales import SCALES, SPARSE_EPOCH_RATIO, Scale, epochs_text, model_epochs
+from reproduction.results import MODELS, epoch_records, read_run_config, step_records
+from reproduction.runner import logged_commands
+from reproduction.scales import SCALES, SPARSE_EPOCH_RATIO, Scale, epochs_text, model_epochs
 
 #: {model: (epochs, samples per epoch)} as each run was trained, None for a model not trained.
 Schedules = dict[str, tuple[int, int] | None]

@@ -22,7 +22,7 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
               --runtime --precision      the CPU computes natively: val AP, runtime at 768x512, the CPU budget at
                                          1 Hz (AP drop vs speed; docs/deployment.md)
     ablation-bench  detector bench       the ablation configs beside dense and sparse at the KITTI geometry (the
-                                         vendored KITTI frames) and at 768x512 (detector.reproduce.ablations)
+                                         vendored KITTI frames) and at 768x512 (reproduction.ablations)
     report    docs/results.md            every table and figure, the commands, the paper's numbers beside ours
     record    docs/results-data/         the report's inputs (JSON, tables, training logs, figures, the dataset's
                                          manifest and fingerprint; no weights, no frames): the report can be written
@@ -34,12 +34,12 @@ ablations on this run's data (``--ablations``, ``--ablation-epochs``), then time
 ``--from-record DIR`` first copies a run record (``docs/results-data``: what the ``record`` step wrote) into the work
 folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
 be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
-ablations to the committed run without training the dense and sparse models again (detector.reproduce.record).
+ablations to the committed run without training the dense and sparse models again (reproduction.record).
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
 Before the first command it prints its estimate of how long the steps still to run take on this machine
-(:mod:`detector.reproduce.estimate`: the run record's measured command times, scaled to the scale's sizes and to this
+(:mod:`reproduction.estimate`: the run record's measured command times, scaled to the scale's sizes and to this
 machine's probe).
 
 ``--scale full`` (the default, ``make reproduce``) is the paper's experiment on a schedule chosen to fit one 3-hour
@@ -65,16 +65,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
-from detector.reproduce.ablations import run_ablation_bench, run_ablations
-from detector.reproduce.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
-from detector.reproduce.estimate import estimate, estimate_lines, recorded_times, this_machine, write_probe
-from detector.reproduce.record import (
+from mpchair.core.clitools import run_script
+from mpchair.core.doctable import write_doc_table
+from mpchair.core.errors import InputError
+from mpchair.core.limits import MAX_SEED, max_parallel
+from reproduction.ablations import run_ablation_bench, run_ablations
+from reproduction.checkout import ROOT, require_checkout
+from reproduction.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
+from reproduction.estimate import estimate, estimate_lines, recorded_times, this_machine, write_probe
+from reproduction.record import (
     MAX_FILE_BYTES,
-    RecordError,
     check_dataset,
     check_record_dest,
     read_record,
@@ -82,15 +85,12 @@ from detector.reproduce.record import (
     restore_record,
     save_record,
 )
-from detector.reproduce.report import write_report
-from detector.reproduce.results import ABLATIONS
-from detector.reproduce.runner import ROOT, Runner, checkout_problem
-from detector.reproduce.scales import SCALES, Scale, cpu_has_native_bf16
-from detector.reproduce.status import other_scales, status_lines
-from detector.reproduce.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate, step_outputs
-from mpchair.core.doctable import write_doc_table
-from mpchair.core.errors import InputError
-from mpchair.core.limits import MAX_SEED, max_parallel
+from reproduction.report import write_report
+from reproduction.results import ABLATIONS
+from reproduction.runner import Runner
+from reproduction.scales import SCALES, Scale, cpu_has_native_bf16
+from reproduction.status import other_scales, status_lines
+from reproduction.steps import COMMAND_STEPS, OPT_IN_STEPS, STEPS, Plan, run_generate, step_outputs
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -140,12 +140,13 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _scale(args: argparse.Namespace) -> Scale | str:
-    """The scale with the command line's overrides (``auto`` precision resolved on this CPU), or the error line."""
+def _scale(args: argparse.Namespace) -> Scale:
+    """The scale with the command line's overrides (``auto`` precision resolved on this CPU); an
+    :class:`InputError` for a bad override."""
     sc = SCALES[args.scale]
     if args.epochs is not None:
         if args.epochs < 1:
-            return "--epochs must be >= 1"
+            raise InputError("--epochs must be >= 1")
         sc = dataclasses.replace(sc, epochs=args.epochs)
     if args.precision is not None:
         sc = dataclasses.replace(sc, precision=args.precision)
@@ -157,21 +158,19 @@ def _scale(args: argparse.Namespace) -> Scale | str:
         print(f"training precision: {sc.precision} (auto: native bfloat16 {found})")
     if args.bench_frames is not None:
         if args.bench_frames < 1:
-            return "--bench-frames must be >= 1"
+            raise InputError("--bench-frames must be >= 1")
         sc = dataclasses.replace(sc, bench_frames=args.bench_frames)
     return sc
 
 
-def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool) -> tuple[Scale, list[str]] | str:
+def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool) -> tuple[Scale, list[str]]:
     """``--from-record``: the recorded run's scale (``args.scale`` set to it) and notes, with this invocation's notes
-    and, when it adds steps, one saying when and how; or the error line. The steps added belong to that run, and its
-    report is rewritten whole."""
-    try:
-        meta = read_record(args.from_record)
-    except RecordError as e:
-        return str(e)
+    and, when it adds steps, one saying when and how (an :class:`InputError` for a record that does not fit). The
+    steps added belong to that run, and its report is rewritten whole."""
+    meta = read_record(args.from_record)
     if scale_given and meta.get("scale") != args.scale:
-        return f"--scale {args.scale}, but the record {args.from_record} is of a {meta.get('scale')}-scale run"
+        raise InputError(f"--scale {args.scale}, but the record {args.from_record} is of a {meta.get('scale')}-scale "
+                         "run")
     args.scale, sc = meta["scale"], record_scale(meta)
     if args.precision is not None:
         sc = dataclasses.replace(sc, precision=args.precision)
@@ -190,7 +189,7 @@ def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool)
 
 def _estimate(plan: Plan, record: Path) -> list[str]:
     """The lines saying how long the steps still to run will take here, from ``record``'s measured times and (unless
-    a dry run, which writes nothing) this machine's probe (detector.reproduce.estimate); none without a record."""
+    a dry run, which writes nothing) this machine's probe (reproduction.estimate); none without a record."""
     rec = recorded_times(record)
     if rec is None:
         return [f"estimate: none (no run record with a commands.log at {record})"]
@@ -212,35 +211,27 @@ def _record_dest(args: argparse.Namespace, out: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce.py``: run the steps asked for in the work folder and write the report; 2 on a bad option
-    or a file of the work folder or record that cannot be read (one ``error:`` line naming it, no traceback)."""
-    try:
-        return _main(argv)
-    except (InputError, RecordError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    or a file of the work folder or record that cannot be read (one ``error:`` line naming it, no traceback: the
+    console scripts' error path)."""
+    return run_script(lambda: _main(argv))
 
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    if checkout_problem():
-        print(f"error: {checkout_problem()}", file=sys.stderr)
-        return 2
+    require_checkout()  # it writes the clone's docs/: refused, in one line, anywhere else
     scale_given, args.scale = args.scale is not None, args.scale or "full"
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     bad = [s for s in steps if s not in (*STEPS, *OPT_IN_STEPS)]
     if bad:
-        print(f"error: unknown step(s) {bad}; choose from {list(STEPS + OPT_IN_STEPS)}", file=sys.stderr)
-        return 2
+        raise InputError(f"unknown step(s) {bad}; choose from {list(STEPS + OPT_IN_STEPS)}")
     ablations = tuple(a.strip() for a in args.ablations.split(",") if a.strip())
     if not ablations or [a for a in ablations if a not in ABLATIONS] or (args.ablation_epochs or 1) < 1:
-        print(f"error: --ablations takes a comma-separated subset of {','.join(ABLATIONS)} and --ablation-epochs a "
-              "number >= 1", file=sys.stderr)
-        return 2
+        raise InputError(f"--ablations takes a comma-separated subset of {','.join(ABLATIONS)} and --ablation-epochs "
+                         "a number >= 1")
     most = max_parallel()
     if not (1 <= args.threads <= most and 1 <= args.workers <= most and 0 <= args.seed <= MAX_SEED):
-        print(f"error: --threads and --workers take 1 to {most} (4 per core here), --seed 0 to {MAX_SEED}; got "
-              f"{args.threads}, {args.workers}, {args.seed}", file=sys.stderr)
-        return 2
+        raise InputError(f"--threads and --workers take 1 to {most} (4 per core here), --seed 0 to {MAX_SEED}; got "
+                         f"{args.threads}, {args.workers}, {args.seed}")
     out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     if args.status:
         others = {} if args.out is not None else other_scales(out, args.scale, tuple(sorted(SCALES)))
@@ -249,38 +240,19 @@ def _main(argv: list[str] | None) -> int:
             ((scale, out),) = others.items()
             print(f"(no --scale given and no {args.scale}-scale work folder: the {scale}-scale one)")
             others = {}
-        try:
-            lines = status_lines(out, others)
-        except InputError as e:  # a file of the work folder that cannot be read: say which, never hang or trace
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        print("\n".join(lines))
+        # a file of the work folder that cannot be read is an InputError naming it: never a hang or a traceback
+        print("\n".join(status_lines(out, others)))
         return 0
     if args.from_record is not None:
-        recorded = _recorded_run(args, steps, scale_given)
-        if isinstance(recorded, str):
-            print(f"error: {recorded}", file=sys.stderr)
-            return 2
-        sc, notes = recorded
+        sc, notes = _recorded_run(args, steps, scale_given)
         out = (args.out or ROOT / "out" / f"reproduce-{args.scale}").resolve()
     else:
         sc, notes = _scale(args), list(args.note)
-        if isinstance(sc, str):
-            print(f"error: {sc}", file=sys.stderr)
-            return 2
     if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
-        try:
-            check_record_dest(_record_dest(args, out))
-        except RecordError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        check_record_dest(_record_dest(args, out))
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
-        try:
-            restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
-        except RecordError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
         print(f"restored {len(restored)} file(s) of the record {args.from_record} into {out}")
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
                 force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs)
@@ -291,11 +263,7 @@ def _main(argv: list[str] | None) -> int:
     for run_step in (*COMMAND_STEPS, run_ablations, run_ablation_bench):
         run_step(plan, r)
         if run_step is run_generate and args.from_record is not None and "generate" in steps and not args.dry_run:
-            try:  # what follows must run on the recorded run's dataset
-                check_dataset(args.from_record, plan.data)
-            except RecordError as e:
-                print(f"error: {e}", file=sys.stderr)
-                return 2
+            check_dataset(args.from_record, plan.data)  # what follows must run on the recorded run's dataset
     total = time.perf_counter() - t0
     # only the full and recipe scales replace the committed report and record; a quick check keeps both in its work
     # folder
@@ -307,19 +275,12 @@ def _main(argv: list[str] | None) -> int:
         table = like_for_like(plan.res)
         if full and args.results is None and table:  # the table README.md and two docs lead with
             for doc in LIKE_FOR_LIKE_DOCS:
-                try:
-                    write_doc_table(ROOT / doc, "\n".join(table) + "\n", LIKE_FOR_LIKE_MARKER)
-                except InputError as e:  # a doc that lost its markers: say which, leave it as it was
-                    print(f"error: {e}", file=sys.stderr)
-                    return 2
+                # a doc that lost its markers is an InputError naming it, and stays as it was
+                write_doc_table(ROOT / doc, "\n".join(table) + "\n", LIKE_FOR_LIKE_MARKER)
             print(f"wrote its like-for-like table into {', '.join(LIKE_FOR_LIKE_DOCS)}")
     if "record" in steps and not args.dry_run:
         dest = _record_dest(args, out)
-        try:
-            too_big = save_record(out, dest, args.scale, sc, notes)
-        except RecordError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        too_big = save_record(out, dest, args.scale, sc, notes)
         for rel in too_big:
             print(f"record: left out {rel} (over {MAX_FILE_BYTES >> 20} MB)")
         print(f"wrote the run record {dest}")

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from detector.reproduce.results import ABLATIONS, bench_weights
-from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
-from detector.reproduce.scales import model_epochs
-from detector.reproduce.steps import CONFIGS, Plan, eval_model, extra_step_outputs, train_command
 from mpchair.core.atomic import write_text
+from reproduction.checkout import ROOT
+from reproduction.results import ABLATIONS, bench_weights
+from reproduction.runner import BIN, REUSE_ENV, Runner
+from reproduction.scales import model_epochs
+from reproduction.steps import CONFIGS, Plan, eval_model, extra_step_outputs, train_command
 
 #: The vendored KITTI frames (six frames of the KITTI object training set, cropped to the camera's view as the KITTI
 #: configs' ``fov_crop`` crops them; tests/data/kitti/README.md) and the split that lists them all.

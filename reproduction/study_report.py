@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.eval.bootstrap import GapEstimate, bootstrap_gap, kitti_ap, open3d_ml_ap
-from detector.reproduce.results import ABLATIONS, OPEN3D_ML_JSON
-from detector.reproduce.study import MODELS, STUDY_TRAIN, by_name, read_study_record, read_zip_texts
+from mpchair.core.errors import InputError
 from mpchair.kitti import Labels, parse_labels
 from mpchair.paper import MATTERPORT_CHAIR_AP
+from reproduction.results import ABLATIONS, OPEN3D_ML_JSON
+from reproduction.study import MODELS, STUDY_TRAIN, by_name, read_study_record, read_zip_texts
 
 #: The paper's sparse - dense 3D AP gap on Matterport-Chair (Open3D-ML mAP; mpchair.paper cites where).
 PAPER_GAP_3D = MATTERPORT_CHAIR_AP.sparse_3d_delta
@@ -80,7 +81,7 @@ def _frames(zip_path: Path, ids: list[str], *, results: bool) -> list[Labels]:
     texts = read_zip_texts(zip_path)
     missing = [i for i in ids if i not in texts]
     if missing:
-        raise ValueError(f"{zip_path}: no file for test frame {missing[0]}")
+        raise InputError(f"no file for test frame {missing[0]}", zip_path)
     frames = [parse_labels(texts[i], f"{zip_path}:{i}.txt") for i in ids]
     if results:
         frames = [f if f.score is not None else Labels.empty(with_score=True) for f in frames]
@@ -164,7 +165,7 @@ def _previous_gaps(record: Path, tested: dict[str, list[str]], resamples: int) -
 
 
 def _order(name: str) -> int:
-    from detector.reproduce.study import trainings
+    from reproduction.study import trainings
 
     names = [t.name for t in trainings()]
     by_name(name)

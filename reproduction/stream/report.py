@@ -7,12 +7,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from detector.reproduce.runner import logged_commands
-from detector.reproduce.stream.results import HouseCheck, RunKey, StreamSummary
-from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting
 from mpchair.core.atomic import atomic_open, write_text
 from mpchair.core.doctable import replace_block
 from mpchair.paper import ROBOT_CORES, TABLE_II
+from reproduction.runner import logged_commands
+from reproduction.stream.results import HouseCheck, RunKey, StreamSummary
+from reproduction.stream.sweep import HEADLINE, MODELS, MODES, Setting
 
 BEGIN, END = "<!-- reproduce-stream results: begin -->", "<!-- reproduce-stream results: end -->"
 Runs = dict[RunKey, StreamSummary]

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from detector.reproduce.results import (
+from mpchair.paper import TABLE_III, TABLE_IV
+from reproduction.results import (
     ABLATIONS,
     KittiMetrics,
     Open3dMlMetrics,
@@ -15,7 +16,6 @@ from detector.reproduce.results import (
     read_bench,
     read_eval_outputs,
 )
-from mpchair.paper import TABLE_III, TABLE_IV
 
 #: Their names in the paper (both Sparse+WideConv variants: its text's and its released code's).
 PAPER_NAMES = {"dense": "PointPillars", "sparse": "Sparse PointPillars", "sparse1_dense23": "Sparse1+Dense23",

@@ -1,5 +1,5 @@
 """The reproduction's steps before the report: each one's ``mpchair`` / ``detector`` command lines, run through a
-:class:`~detector.reproduce.runner.Runner`, and the files that mark it done (:func:`step_outputs`).
+:class:`~reproduction.runner.Runner`, and the files that mark it done (:func:`step_outputs`).
 
 A step whose outputs exist is skipped unless ``force``; paths are those of the work folder (``houses/``,
 ``dataset/``, ``runs/<model>/``, ``results/``).
@@ -12,11 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.config import CONFIG_DIR
-from detector.reproduce import deploy
-from detector.reproduce.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
-from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
-from detector.reproduce.scales import Scale, model_epochs
 from mpchair.core.atomic import write_text
+from reproduction import deploy
+from reproduction.checkout import ROOT
+from reproduction.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
+from reproduction.runner import BIN, REUSE_ENV, Runner
+from reproduction.scales import Scale, model_epochs
 
 STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "deploy",
          "ablation-bench", "report", "record")
@@ -341,10 +342,10 @@ def run_curve(plan: Plan, r: Runner) -> None:
 
 def run_deploy(plan: Plan, r: Runner) -> None:
     """The trained models deployed in ONNX Runtime / OpenVINO: AP, runtime and CPU budget
-    (:func:`detector.reproduce.deploy.run_deploy`)."""
+    (:func:`reproduction.deploy.run_deploy`)."""
     deploy.run_deploy(plan, r, _config)
 
 
-#: The steps before the report, in the order they run (the ablation steps: detector.reproduce.ablations).
+#: The steps before the report, in the order they run (the ablation steps: reproduction.ablations).
 COMMAND_STEPS = (run_synth, run_generate, run_stats, run_train, run_eval, run_bench, run_refhead, run_ops, run_viz,
                  run_curve, run_deploy)

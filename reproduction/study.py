@@ -15,7 +15,7 @@ fingerprint, splits, each training's state), the dataset's manifest (less its fr
 ``runs/<training>/{config.yaml, metrics.jsonl (epoch / eval / end records), done}`` and, while it is unfinished, its
 resumable ``last.pt``; per tested training ``test/<training>/{metrics.json, open3d_ml.json, detections.zip}``;
 ``test_labels.zip`` (the test split's ground truth, so the analysis runs without the dataset); ``accuracy.json``,
-``accuracy.md`` and ``curves.png`` (:mod:`detector.reproduce.study_report`).
+``accuracy.md`` and ``curves.png`` (:mod:`reproduction.study_report`).
 """
 
 from __future__ import annotations
@@ -27,11 +27,14 @@ from pathlib import Path
 
 import yaml
 
-from detector.reproduce.results import ABLATIONS, OPEN3D_ML_JSON
-from detector.reproduce.runner import BIN, REUSE_ENV, ROOT, Runner
-from detector.reproduce.scales import SCALES
-from detector.reproduce.steps import CONFIGS, Plan, run_generate, run_synth
 from mpchair.core.atomic import write_bytes, write_text
+from mpchair.core.errors import InputError
+from mpchair.core.text import load_json
+from reproduction.checkout import ROOT
+from reproduction.results import ABLATIONS, OPEN3D_ML_JSON
+from reproduction.runner import BIN, REUSE_ENV, Runner
+from reproduction.scales import SCALES
+from reproduction.steps import CONFIGS, Plan, run_generate, run_synth
 
 #: The seeds of the dense and the sparse model; the ablations train seed 0 only.
 SEEDS = (0, 1, 2)
@@ -71,11 +74,11 @@ def trainings() -> tuple[Training, ...]:
 
 
 def by_name(name: str) -> Training:
-    """The training called ``name`` (``dense_s0``, ...); ValueError naming the choices otherwise."""
+    """The training called ``name`` (``dense_s0``, ...); an :class:`InputError` naming the choices otherwise."""
     for t in trainings():
         if t.name == name:
             return t
-    raise ValueError(f"unknown training {name!r} (choose from {', '.join(t.name for t in trainings())})")
+    raise InputError(f"--training: unknown training {name!r} (choose from {', '.join(t.name for t in trainings())})")
 
 
 def study_config(t: Training) -> dict:
@@ -205,7 +208,7 @@ def read_zip_texts(path: Path) -> dict[str, str]:
     with zipfile.ZipFile(path) as z:
         for info in z.infolist():
             if info.file_size > MAX_MEMBER_BYTES or "/" in info.filename or not info.filename.endswith(".txt"):
-                raise ValueError(f"{path}: unexpected member {info.filename!r} ({info.file_size} bytes)")
+                raise InputError(f"unexpected member {info.filename!r} ({info.file_size} bytes)", path)
             out[info.filename[:-4]] = z.read(info).decode("utf-8")
     return out
 
@@ -237,9 +240,9 @@ def read_study_record(record: Path) -> dict:
     path = record / RECORD_JSON
     if not path.is_file():
         return {}
-    meta = json.loads(path.read_text())
+    meta = load_json(path, "accuracy-study record")
     if not isinstance(meta, dict) or not isinstance(meta.get("trainings", {}), dict):
-        raise ValueError(f"{path}: not an accuracy-study record")
+        raise InputError("not an accuracy-study record", path)
     return meta
 
 

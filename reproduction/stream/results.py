@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.device import Machine
-from detector.reproduce.stream.sweep import HEADLINE, MODELS, MODES, Setting, eval_dir, stream_dir, stream_name
 from mpchair.dataset.manifest import read_manifest
+from reproduction.stream.sweep import HEADLINE, MODELS, MODES, Setting, eval_dir, stream_dir, stream_name
 
 #: (model or ``oracle@<model>``, speed m/s, rate Hz, setting name, mode ``raw`` / ``ego``) of one scored run.
 RunKey = tuple[str, float, float, str, str]

@@ -11,19 +11,8 @@ import time
 from pathlib import Path
 
 from mpchair.core.atomic import atomic_open
+from reproduction.checkout import ROOT
 
-#: The checkout: every command runs in it, and the reports name paths relative to it. The reproduction is the one
-#: part of the package that works on a clone only (it writes the clone's docs/ and README.md); everything a command of
-#: an installed wheel reads is package data (detector.config.CONFIG_DIR, ...).
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def checkout_problem() -> str | None:
-    """Why the reproduction cannot run here (the package is installed, not a clone's), or None."""
-    if (ROOT / "pyproject.toml").is_file() and (ROOT / "tools").is_dir():
-        return None
-    return (f"the reproduction runs in a clone of the repository (it writes its docs/ and README.md); {ROOT} is not "
-            "one (this is an installed package): clone the repository and run make reproduce there")
 #: The console scripts installed next to this interpreter: the venv's ``mpchair`` / ``detector``, not PATH's.
 BIN = Path(sys.executable).parent
 #: glibc's allocator keeps freed memory instead of returning it to the OS (docs/benchmarks.md, "allocator reuse").

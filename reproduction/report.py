@@ -1,5 +1,5 @@
 """``docs/results.md``: every table and figure of a reproduction, the paper's numbers beside ours, and the commands,
-built from the typed records of its step outputs (:mod:`detector.reproduce.results`); a missing output is named
+built from the typed records of its step outputs (:mod:`reproduction.results`); a missing output is named
 ("not run", "n/a"). AP in percent, times in ms per frame unless a name says otherwise."""
 
 from __future__ import annotations
@@ -13,10 +13,14 @@ import numpy as np
 
 from detector.bench.result import BenchResult
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
-from detector.reproduce.deploy import deploy_section
-from detector.reproduce.report_ablations import ablations_section
-from detector.reproduce.report_runtime import density_curve_section, reference_head_section, training_time_section
-from detector.reproduce.results import (
+from mpchair.core.atomic import write_bytes, write_text
+from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, TABLE_II
+from mpchair.paper import MATTERPORT_CHAIR_AP as PAPER_AP
+from reproduction.checkout import ROOT
+from reproduction.deploy import deploy_section
+from reproduction.report_ablations import ablations_section
+from reproduction.report_runtime import density_curve_section, reference_head_section, training_time_section
+from reproduction.results import (
     MODELS,
     EvalOutputs,
     KittiMetrics,
@@ -30,9 +34,8 @@ from detector.reproduce.results import (
     read_sparsity_frame,
     read_text,
 )
-from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import SCALES, Scale, epochs_text, model_epochs
-from detector.reproduce.training import (
+from reproduction.scales import SCALES, Scale, epochs_text, model_epochs
+from reproduction.training import (
     Schedules,
     elapsed_seconds,
     precision_text,
@@ -42,9 +45,6 @@ from detector.reproduce.training import (
     train_split_size,
     trained_schedules,
 )
-from mpchair.core.atomic import write_bytes, write_text
-from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, TABLE_II
-from mpchair.paper import MATTERPORT_CHAIR_AP as PAPER_AP
 
 #: The reference's setup where the paper's numbers came from its released code rather than its text (metres): the
 #: generator's sensor height (the text says 1.0) and the radius of the agent habitat's navmesh was built for.

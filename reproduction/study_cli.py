@@ -18,13 +18,15 @@ A full study is 10 trainings (dense and sparse x seeds 0-2, the four ablations x
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-from detector.reproduce.record import dataset_fingerprint
-from detector.reproduce.runner import ROOT, Runner
-from detector.reproduce.study import (
+from mpchair.core.clitools import run_script
+from mpchair.core.errors import InputError
+from reproduction.checkout import ROOT, require_checkout
+from reproduction.record import dataset_fingerprint
+from reproduction.runner import Runner
+from reproduction.study import (
     Study,
     by_name,
     done_trainings,
@@ -44,8 +46,8 @@ STEPS = ("restore", "dataset", "train", "test", "record")
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=ROOT / "out" / "accuracy", help="work folder (default out/accuracy)")
-    p.add_argument("--record", type=Path, default=ROOT / "docs" / "results-data" / "accuracy",
+    p.add_argument("--out", type=Path, default=None, help="work folder (default out/accuracy)")
+    p.add_argument("--record", type=Path, default=None,
                    help="the study's record (default docs/results-data/accuracy)")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--training", default=None,
@@ -76,25 +78,26 @@ def _status(study: Study) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the steps asked for; 2 on bad input (one line)."""
+    """Run the steps asked for; 2 on bad input (one ``error:`` line, the console scripts' error path)."""
+    return run_script(lambda: _main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     if [s for s in steps if s not in STEPS] or not steps:
-        print(f"error: --steps takes a comma-separated subset of {','.join(STEPS)}", file=sys.stderr)
-        return 2
+        raise InputError(f"--steps takes a comma-separated subset of {','.join(STEPS)}")
     if not (args.minutes > 0 and args.minutes < 1e6) or not 1 <= args.threads <= 256 or args.resamples < 1:
-        print("error: --minutes must be > 0, --threads in 1..256 and --resamples >= 1", file=sys.stderr)
-        return 2
-    study = Study(out=args.out.resolve(), record=args.record.resolve(), threads=args.threads, workers=args.workers)
-    try:
-        if args.status:
-            print("\n".join(_status(study)))
-            return 0
-        chosen = by_name(args.training) if args.training else None
-        return _run(study, steps, chosen, args)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        raise InputError("--minutes must be > 0, --threads in 1..256 and --resamples >= 1")
+    require_checkout()  # it writes the clone's docs/: refused, in one line, anywhere else
+    out = args.out or ROOT / "out" / "accuracy"
+    record = args.record or ROOT / "docs" / "results-data" / "accuracy"
+    study = Study(out=out.resolve(), record=record.resolve(), threads=args.threads, workers=args.workers)
+    if args.status:
+        print("\n".join(_status(study)))
+        return 0
+    chosen = by_name(args.training) if args.training else None
+    return _run(study, steps, chosen, args)
 
 
 def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> int:
@@ -111,10 +114,9 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
             fingerprint = dataset_fingerprint(study.data)
             want = read_study_record(study.record).get("dataset_sha256")
             if want and fingerprint != want:
-                print(f"error: {study.data} is not the dataset of the record {study.record} (sha256 "
-                      f"{fingerprint[:12]} vs {want[:12]}): the code or seed that made it differs, so trainings on it "
-                      "would not belong to the study", file=sys.stderr)
-                return 2
+                raise InputError(f"{study.data} is not the dataset of the record {study.record} (sha256 "
+                                 f"{fingerprint[:12]} vs {want[:12]}): the code or seed that made it differs, so "
+                                 "trainings on it would not belong to the study")
     if "train" in steps:
         t = chosen or next_training(study, done_trainings(study))
         if t is None:
@@ -131,7 +133,7 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
     if "record" in steps and not args.dry_run:
         written = save(study, fingerprint, tuple(args.note))
         print(f"record: wrote {len(written)} file(s) into {study.record}")
-        from detector.reproduce.study_report import write_analysis
+        from reproduction.study_report import write_analysis
 
         data = write_analysis(study.record, args.resamples)
         print(f"record: {study.record / 'accuracy.json'} ({len(data['trainings'])} training(s))")

@@ -30,16 +30,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import sys
 import time
 from pathlib import Path
 
-from detector.reproduce.runner import REUSE_ENV, ROOT, Runner, checkout_problem
-from detector.reproduce.steps import CONFIGS
-from detector.reproduce.stream.report import houses_text, logged_text, plot_curves, results_section, write_section
-from detector.reproduce.stream.results import check_houses, read_runs, stream_frames
-from detector.reproduce.stream.steps import COMMAND_STEPS, STEPS, StreamPlan
-from detector.reproduce.stream.sweep import (
+from mpchair.core.clitools import run_script
+from mpchair.core.errors import InputError
+from reproduction.checkout import ROOT, require_checkout
+from reproduction.runner import REUSE_ENV, Runner
+from reproduction.steps import CONFIGS
+from reproduction.stream.report import houses_text, logged_text, plot_curves, results_section, write_section
+from reproduction.stream.results import check_houses, read_runs, stream_frames
+from reproduction.stream.steps import COMMAND_STEPS, STEPS, StreamPlan
+from reproduction.stream.sweep import (
     GRIDS,
     HEADLINE,
     MODELS,
@@ -50,7 +52,6 @@ from detector.reproduce.stream.sweep import (
     stream_dir,
     sweep_points,
 )
-from mpchair.core.errors import InputError
 
 #: The seed of the held-out houses (make reproduce synthesizes its houses with its --seed, 0 by default).
 HELDOUT_SEED = 1000
@@ -143,39 +144,36 @@ def _relative(path: Path) -> str:
     return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
 
 
-def _check_args(args: argparse.Namespace) -> str | None:
-    """The error line of bad options (None when they are fine)."""
+def _check_args(args: argparse.Namespace) -> None:
+    """An :class:`InputError` for bad options."""
     try:
         threads = [int(t) for t in args.threads.split(",")]
         _floats(args.speeds), _floats(args.rates)
     except ValueError:
-        return "--threads, --speeds and --rates take comma-separated numbers"
+        raise InputError("--threads, --speeds and --rates take comma-separated numbers") from None
     grids = args.grids.split(",")
     if not grids or [g for g in grids if g not in GRIDS]:
-        return f"--grids takes a comma-separated subset of {','.join(GRIDS)}"
+        raise InputError(f"--grids takes a comma-separated subset of {','.join(GRIDS)}")
     if not threads or min(threads) < 1:
-        return "--threads must be >= 1"
+        raise InputError("--threads must be >= 1")
     for name in ("repeats", "sweep_repeats", "heldout_houses", "episodes"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
-            return f"--{name.replace('_', '-')} must be >= 1"
-    return None
+            raise InputError(f"--{name.replace('_', '-')} must be >= 1")
 
 
 def main(argv: list[str] | None = None) -> int:
     """``tools/reproduce_stream.py``: run the steps asked for in the work folder and write the results section; 2 on
-    a bad option or a missing checkpoint."""
+    a bad option or a missing checkpoint (one ``error:`` line: the console scripts' error path)."""
+    return run_script(lambda: _main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    if checkout_problem():
-        print(f"error: {checkout_problem()}", file=sys.stderr)
-        return 2
+    require_checkout()  # it writes the clone's docs/: refused, in one line, anywhere else
     steps = [s.strip() for s in args.steps.split(",") if s.strip()]
     if [s for s in steps if s not in STEPS]:
-        print(f"error: unknown step(s) in {args.steps!r}; choose from {list(STEPS)}", file=sys.stderr)
-        return 2
-    bad = _check_args(args)
-    if bad:
-        print(f"error: {bad}", file=sys.stderr)
-        return 2
+        raise InputError(f"unknown step(s) in {args.steps!r}; choose from {list(STEPS)}")
+    _check_args(args)
     sc = SCALES[args.scale]
     overrides = {k: getattr(args, k) for k in ("heldout_houses", "episodes", "duration", "repeats", "sweep_repeats")
                  if getattr(args, k) is not None}
@@ -187,16 +185,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     missing = [c for c in plan.checkpoints.values() if not c.exists()]
     if missing and not args.dry_run and ({"measure", "score"} & set(steps)):
-        print(f"error: checkpoint(s) not found: {', '.join(map(str, missing))} (run make reproduce first, or pass "
-              "--dense-checkpoint / --sparse-checkpoint)", file=sys.stderr)
-        return 2
+        raise InputError(f"checkpoint(s) not found: {', '.join(map(str, missing))} (run make reproduce first, or pass "
+                         "--dense-checkpoint / --sparse-checkpoint)")
     for run_step in COMMAND_STEPS:
         run_step(plan, r)
     if "report" in steps and not args.dry_run:
-        try:
-            print(f"wrote {_report(args, plan)}")
-        except InputError as e:  # a report doc with one marker of the pair: say which, leave it as it was
-            print(f"error: {e}", file=sys.stderr)
-            return 1
+        # a report doc with one marker of the pair is an InputError naming it, and stays as it was
+        print(f"wrote {_report(args, plan)}")
     print(f"total time {(time.perf_counter() - t0) / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0

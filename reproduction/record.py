@@ -26,12 +26,12 @@ import re
 import shutil
 from pathlib import Path
 
-from detector.reproduce.runner import ROOT
-from detector.reproduce.scales import SCALES, Scale
 from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
 from mpchair.core.text import load_json
+from reproduction.checkout import ROOT
+from reproduction.scales import SCALES, Scale
 
 #: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
 COMMAND = "tools/reproduce.py --steps record"
@@ -49,8 +49,9 @@ MAX_FILE_BYTES = 4 << 20
 DATASET_FILES = ("manifest.json", "ImageSets")
 
 
-class RecordError(Exception):
-    """A record that cannot be restored here (a different dataset, a malformed record.json); the message says why."""
+class RecordError(InputError):
+    """A record that cannot be restored here (a different dataset, a malformed record.json); the message says why.
+    An :class:`InputError`, so the command line prints it as one ``error:`` line and exits 2."""
 
 
 def _kept(out: Path, rel: Path) -> bool:
