@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from mpchair.core.atomic import atomic_open
+from mpchair.core.errors import RunError
 from reproduction.checkout import ROOT
 
 #: The console scripts installed next to this interpreter: the venv's ``mpchair`` / ``detector``, not PATH's.
@@ -39,15 +40,29 @@ class Runner:
             return
         full_env = {**os.environ, **(env or {})}
         t = time.perf_counter()
-        if stdout is not None:
-            with atomic_open(stdout, "w") as f:  # only a finished command leaves its output file
-                subprocess.run(args, check=True, env=full_env, stdout=f, cwd=ROOT)
-        else:
-            subprocess.run(args, check=True, env=full_env, cwd=ROOT)
+        try:
+            if stdout is not None:
+                with atomic_open(stdout, "w") as f:  # only a finished command leaves its output file
+                    subprocess.run(args, check=True, env=full_env, stdout=f, cwd=ROOT)
+            else:
+                subprocess.run(args, check=True, env=full_env, cwd=ROOT)
+        except subprocess.CalledProcessError as e:
+            raise failed_command(Path(args[0]).name, e.returncode) from None
         # An append, not an atomic rewrite: the log outlives this process (a resumed reproduction adds to what the cut
         # one logged), and one short line appended per finished command never leaves an earlier line half-written.
         with open(self.log, "a") as f:
             f.write(f"{time.perf_counter() - t:9.1f} s  {line}\n")
+
+
+def failed_command(name: str, status: int) -> Exception:
+    """What a failed step command becomes: its own output already said why, so one line naming it and its status.
+    A command ended by Ctrl-C / SIGINT (status 130, or -2 for the signal) is an interruption (exit 130, the work
+    folder resumes), anything else a :class:`RunError` (exit 1)."""
+    if status in (130, -2):
+        return KeyboardInterrupt(f"{name} was interrupted; what it saved is kept in the work folder, and the same "
+                                 "command resumes")
+    return RunError(f"{name} failed with exit status {status} (its messages are above); the steps before it are kept, "
+                    "and the same command resumes")
 
 
 def logged_commands(log: str) -> list[tuple[float, str]]:
