@@ -104,9 +104,9 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
     return data
 
 
-#: Subfolders of the run record that another command owns and the record step carries over unchanged: the accuracy
-#: study's record (tools/accuracy_study.py writes docs/results-data/accuracy/).
-NESTED = ("accuracy",)
+#: Entries of the run record that another command owns and the record step carries over unchanged: the accuracy
+#: study's record and its summary (tools/accuracy_study.py writes docs/results-data/accuracy/ and accuracy.json).
+NESTED = ("accuracy", "accuracy.json")
 
 
 def _legacy_record(folder: Path) -> set[str] | None:

@@ -636,13 +636,13 @@ def accuracy_section(record: Path, figure) -> list[str]:
              "plateau\"), the paper's four ablations one seed each, and the sparse - dense gap on the test houses "
              "with a 95 % interval that holds both seed-to-seed spread and test-frame resampling (a paired bootstrap, "
              "detector/eval/bootstrap.py). Each session adds one training to its record "
-             "(docs/results-data/accuracy/, with accuracy.json); until the interval exists, no sentence here or in "
-             "README says whether the paper's gap is reproduced.", "",
+             "(docs/results-data/accuracy/; its machine-readable summary is docs/results-data/accuracy.json); until "
+             "the interval exists, no sentence here or in README says whether the paper's gap is reproduced.", "",
              *md.read_text().rstrip().splitlines(), ""]
     curves = record / "curves.png"
     if curves.is_file() and "| training |" in md.read_text():
-        lines += [f"![validation 3D AP per epoch, dense and sparse, one line per seed]({figure(curves, 'curves.png')})",
-                  ""]
+        lines += ["![validation 3D and BEV AP per epoch, one colour per model, one thin line per seed]"
+                  f"({figure(curves, 'curves.png')})", ""]
     return lines
 
 

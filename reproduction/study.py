@@ -14,8 +14,9 @@ Record (default ``docs/results-data/accuracy``), what a later session restores a
 fingerprint, splits, each training's state), the dataset's manifest (less its frame list) and ImageSets, per training
 ``runs/<training>/{config.yaml, metrics.jsonl (epoch / eval / end records), done}`` and, while it is unfinished, its
 resumable ``last.pt``; per tested training ``test/<training>/{metrics.json, open3d_ml.json, detections.zip}``;
-``test_labels.zip`` (the test split's ground truth, so the analysis runs without the dataset); ``accuracy.json``,
-``accuracy.md`` and ``curves.png`` (:mod:`reproduction.study_report`).
+``test_labels.zip`` (the test split's ground truth, so the analysis runs without the dataset); ``accuracy.md`` and
+``curves.png`` (:mod:`reproduction.study_report`). The analysis's machine-readable summary sits beside the record
+folder, named after it (:func:`summary_path`: ``docs/results-data/accuracy.json`` for the default record).
 """
 
 from __future__ import annotations
@@ -47,6 +48,13 @@ STUDY_TRAIN = {"precision": "fp32", "schedule": "plateau", "eval_every": 1, "epo
                "warmup_epochs": 1.0, "plateau_patience": 5, "plateau_min_delta": 1.0, "plateau_decays": 1,
                "plateau_factor": 0.1}
 RECORD_JSON = "record.json"
+
+
+def summary_path(record: Path) -> Path:
+    """The study's machine-readable summary of record folder ``record``: ``<record>.json`` beside it (the default
+    record docs/results-data/accuracy gives docs/results-data/accuracy.json, where issue 44 asks for it)."""
+    return record.parent / f"{record.name}.json"
+
 #: A zip member larger than this is refused when the record is read (a result file is a few kB).
 MAX_MEMBER_BYTES = 1 << 20
 

@@ -9,7 +9,8 @@ Steps, in order (``--steps`` picks a subset):
               at the plateau rule, the 60-epoch cap, or the time limit (then it is saved and resumes next session)
     test      detector eval on the test split of every finished, untested training (KITTI + Open3D-ML protocol)
     record    the work folder's state into the record (docs/results-data/accuracy): run summaries, a cut training's
-              resumable last.pt, test detections; then the analysis (accuracy.json, accuracy.md, curves.png)
+              resumable last.pt, test detections; then the analysis: accuracy.md and curves.png into the record,
+              its machine-readable summary beside it (docs/results-data/accuracy.json: <record>.json)
 
 A full study is 10 trainings (dense and sparse x seeds 0-2, the four ablations x seed 0); docs/results.md,
 "Accuracy", says how many are in the record and what the gap's interval supports.
@@ -35,6 +36,7 @@ from reproduction.study import (
     read_study_record,
     restore,
     save,
+    summary_path,
     test,
     train,
     trainings,
@@ -48,7 +50,8 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="work folder (default out/accuracy)")
     p.add_argument("--record", type=Path, default=None,
-                   help="the study's record (default docs/results-data/accuracy)")
+                   help="the study's record (default docs/results-data/accuracy); the summary is written beside "
+                        "it as <record>.json")
     p.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated subset of {','.join(STEPS)}")
     p.add_argument("--training", default=None,
                    help="the training to run (default: the first unfinished one of "
@@ -136,5 +139,5 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
         from reproduction.study_report import write_analysis
 
         data = write_analysis(study.record, args.resamples)
-        print(f"record: {study.record / 'accuracy.json'} ({len(data['trainings'])} training(s))")
+        print(f"record: {summary_path(study.record)} ({len(data['trainings'])} training(s))")
     return 0

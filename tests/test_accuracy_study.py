@@ -15,8 +15,8 @@ from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
 from detector.eval.bootstrap import bootstrap_gap, kitti_ap
 from detector.train import train
 from mpchair.kitti import Labels, read_labels
-from reproduction.study import Study, Training, read_zip_texts, restore, save, study_config, trainings
-from reproduction.study_report import markdown, write_analysis
+from reproduction.study import Study, Training, read_zip_texts, restore, save, study_config, summary_path, trainings
+from reproduction.study_report import markdown, plot_curves, write_analysis
 
 
 def _with_scores(labels: Labels, score: float) -> Labels:
@@ -131,7 +131,9 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     assert gap["seeds"] == {"a": 2, "b": 1} and gap["ci95"][0] <= gap["ci95"][1]
     dense_mean = np.mean([by[n]["test"]["ap_3d"] for n in ("dense_s0", "dense_s1")])
     assert gap["mean"] == pytest.approx(by["sparse_s0"]["test"]["ap_3d"] - dense_mean)
-    saved = json.loads((record / "accuracy.json").read_text())
+    assert summary_path(record) == tmp_path / "record.json"  # beside the record folder, named after it
+    saved = json.loads(summary_path(record).read_text())
+    assert not (record / "accuracy.json").exists()  # one summary, not a copy in the record too
     assert saved["gap_3d"]["mean"] == pytest.approx(gap["mean"])
     from reproduction.study_report import analyse
 
@@ -139,20 +141,61 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     assert analyse(record, resamples=21)["gap_3d"]["resamples"] == 21  # other settings: drawn again
     md = (record / "accuracy.md").read_text()
     assert md == markdown(saved) and f"{gap['mean']:+.2f}" in md and "Note: ran here" in md
-    assert (record / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    png = (record / "curves.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    write_analysis(record, resamples=20)
+    assert (record / "curves.png").read_bytes() == png  # same record, same bytes
+
+
+def _eval_line(epoch: int, ap_3d: float, ap_bev: float) -> str:
+    overall = {k: {"overall": {"R40": v, "R11": v}} for k, v in (("3d", ap_3d), ("bev", ap_bev))}
+    return json.dumps({"kind": "eval", "epoch": epoch, "split": "val", "Chair": overall}) + "\n"
+
+
+def test_the_summary_has_every_key_before_any_test_and_the_curves_show_3d_and_bev(tmp_path):
+    """A record with validation curves only (nothing tested yet): the summary still holds splits, trainings (test AP
+    null) and gap_3d / gap_bev with null mean and ci95; accuracy.md says the gap is not measured; curves.png has the
+    3D and the BEV panel side by side and the same bytes when written again."""
+    record = tmp_path / "accuracy"
+    curves = {"dense_s0": [(30.0, 33.0), (40.0, 44.0), (42.0, 45.5)], "dense_s1": [(28.0, 31.0), (39.0, 41.0)],
+              "sparse_s0": [(25.0, 27.0)]}
+    for name, points in curves.items():
+        (record / "runs" / name).mkdir(parents=True)
+        (record / "runs" / name / "metrics.jsonl").write_text(
+            "".join(_eval_line(e, a, b) for e, (a, b) in enumerate(points, 1)))
+    splits = {"train": ["h0", "h1"], "val": ["h2"], "test": ["h3"]}
+    states = {n: {"status": "partial", "model": n.split("_")[0], "seed": int(n[-1])} for n in curves}
+    (record / "record.json").write_text(json.dumps({"split_houses": splits, "trainings": states}))
+    data = write_analysis(record)
+    saved = json.loads((tmp_path / "accuracy.json").read_text())
+    assert saved == data and saved["splits"] == splits
+    by = {t["name"]: t for t in saved["trainings"]}
+    assert [t["name"] for t in saved["trainings"]] == ["dense_s0", "sparse_s0", "dense_s1"]  # the study's order
+    assert by["dense_s0"]["val_ap_3d"] == [30.0, 40.0, 42.0] and by["dense_s0"]["val_ap_bev"] == [33.0, 44.0, 45.5]
+    assert (by["dense_s1"]["model"], by["dense_s1"]["seed"], by["dense_s1"]["epochs"]) == ("dense", 1, 2)
+    assert all(t["test"] is None for t in saved["trainings"])
+    for key in ("gap_3d", "gap_bev"):
+        assert saved[key]["mean"] is None and saved[key]["ci95"] is None
+    assert "Sparse - dense gap: not measured yet" in (record / "accuracy.md").read_text()
+    png = (record / "curves.png").read_bytes()
+    width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    assert width > 2 * height  # two panels side by side
+    plot_curves(saved, tmp_path / "again.png")
+    assert (tmp_path / "again.png").read_bytes() == png
 
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_the_committed_accuracy_record_agrees_with_its_analysis_and_results_md():
-    """docs/results-data/accuracy: accuracy.json is the analysis of the record's files (the curves, states and test
-    AP; a gap's bootstrap is reused while its tested trainings are the same, and checked by its own tests),
-    accuracy.md is written from it, and docs/results.md shows that text."""
+    """docs/results-data/accuracy: its summary docs/results-data/accuracy.json is the analysis of the record's files
+    (the curves, states and test AP; a gap's bootstrap is reused while its tested trainings are the same, and checked
+    by its own tests), accuracy.md is written from it, and docs/results.md shows that text."""
     from reproduction.study_report import analyse
 
     record = ROOT / "docs" / "results-data" / "accuracy"
-    saved = json.loads((record / "accuracy.json").read_text())
+    saved = json.loads((ROOT / "docs" / "results-data" / "accuracy.json").read_text())
+    assert not (record / "accuracy.json").exists()  # the summary lives beside the record, once
     fresh = analyse(record)  # the gaps, when there are any, come back from accuracy.json unless their inputs changed
     assert fresh == saved
     assert set(saved["splits"]) == {"train", "val", "test"} and len(saved["splits"]["test"]) >= 2
@@ -161,3 +204,50 @@ def test_the_committed_accuracy_record_agrees_with_its_analysis_and_results_md()
         assert t["val_epochs"] == list(range(1, len(t["val_ap_3d"]) + 1)) and t["epochs"] == len(t["val_ap_3d"])
     assert (record / "accuracy.md").read_text() == markdown(saved)
     assert (record / "accuracy.md").read_text().strip() in (ROOT / "docs" / "results.md").read_text()
+
+
+def _accuracy_section(results_md: str) -> str:
+    start = results_md.index("\n## Accuracy")
+    end = results_md.find("\n## ", start + 1)
+    return results_md[start:end if end > 0 else None]
+
+
+def test_results_md_prints_the_figures_of_accuracy_json():
+    """docs/results.md's Accuracy section and docs/results-data/accuracy.json give the same figures: the counts of
+    trainings, the houses of each split, each training's row (status, epochs, best val 3D AP, test 3D / BEV AP) and
+    the gap (its mean and interval, or that it is not measured). Read from the text, not through the code that wrote
+    it."""
+    import re
+
+    summary = json.loads((ROOT / "docs" / "results-data" / "accuracy.json").read_text())
+    section = _accuracy_section((ROOT / "docs" / "results.md").read_text())
+    for key in ("splits", "trainings", "gap_3d"):
+        assert key in summary, key
+    assert {"mean", "ci95"} <= set(summary["gap_3d"])
+    trainings = summary["trainings"]
+    done = sum(t["status"] == "done" for t in trainings)
+    assert f"Trainings in the record: {len(trainings)} of 10 started, {done} finished" in section
+    houses = re.search(r"Houses per split: (.*)\.\n", section).group(1)
+    assert dict(part.split(" ", 1) for part in houses.split("; ")) == {
+        k: ", ".join(v) for k, v in summary["splits"].items()}
+    rows = {m.group(1): m.group(2).split(" | ")
+            for m in re.finditer(r"^\| (\w+_s\d) \| (.*) \|$", section, flags=re.MULTILINE)}
+    assert sorted(rows) == sorted(t["name"] for t in trainings)
+
+    def fmt(x):
+        return "–" if x is None else f"{x:.2f}"
+
+    for t in trainings:
+        status, epochs, best, _ended, test_3d, test_bev = rows[t["name"]]
+        test = t["test"] or {}
+        assert (status, int(epochs)) == (t["status"], t["epochs"]) and len(t["val_ap_3d"]) == t["epochs"]
+        assert (best, test_3d, test_bev) == (fmt(max(t["val_ap_3d"], default=None)), fmt(test.get("ap_3d")),
+                                             fmt(test.get("ap_bev"))), t["name"]
+    gap = summary["gap_3d"]
+    if gap["mean"] is None:
+        assert gap["ci95"] is None and "Sparse - dense gap: not measured yet" in section
+    else:
+        lo, hi = gap["ci95"]
+        assert lo <= gap["mean"] <= hi
+        assert (f"3D AP (KITTI Overall R40): {gap['mean']:+.2f}, 95 % interval [{lo:+.2f}, {hi:+.2f}]"
+                in section)

@@ -76,9 +76,11 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     (rec / "accuracy" / "runs").mkdir(parents=True)
     (rec / "accuracy" / "record.json").write_text("{}\n")
     (rec / "accuracy" / "runs" / "last.pt").write_bytes(b"study checkpoint")
+    (rec / "accuracy.json").write_text('{"splits": {}}\n')  # and the study's summary beside it
     assert save_record(out, rec, "full", SCALES["full"], ["a note."]) == []
     assert (rec / "accuracy" / "runs" / "last.pt").read_bytes() == b"study checkpoint"
     assert (rec / "accuracy" / "record.json").read_text() == "{}\n"
+    assert (rec / "accuracy.json").read_text() == '{"splits": {}}\n'
     (rec / "stray.txt").write_text("a user's file\n")  # anything else added is still refused
     with pytest.raises(RecordError, match="stray.txt"):
         save_record(out, rec, "full", SCALES["full"], ["a note."])

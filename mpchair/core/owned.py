@@ -73,8 +73,8 @@ def foreign_entry(folder: Path, command: str, *, legacy: Legacy | None = None,
                   nested: tuple[str, ...] = ()) -> str | None:
     """None when ``folder`` is ``command``'s own (its marker names ``command`` and lists every file in it, or
     ``legacy`` recognises it), else the reason it is not, naming a file it holds that ``command`` did not write.
-    ``nested``: top-level subfolders that another command owns inside this one (left out of the comparison; see
-    :func:`replace_folder`)."""
+    ``nested``: top-level subfolders (or files) that another command owns inside this one (left out of the
+    comparison; see :func:`replace_folder`)."""
     entries = [e for e in _entries(folder) if Path(e).parts[0] not in nested]
     meta = read_marker(folder)
     if meta is not None and meta["made_by"] == command:
@@ -187,13 +187,19 @@ def replace_folder(stage: Path, out: Path, command: str, *, legacy: Legacy | Non
     """Mark the complete folder ``stage`` (beside ``out``, same file system) as ``command``'s and put it at ``out``;
     an ``out`` already there must be ``command``'s own (checked again here: :class:`InputError` otherwise) and is
     removed once swapped out. A symlink ``out`` keeps pointing at the new folder (the folder it names is replaced).
-    ``nested`` subfolders of the old ``out`` belong to another command (e.g. the accuracy study's record inside the
-    run record): they are copied into the new folder unchanged, never judged or dropped."""
+    ``nested`` top-level subfolders and files of the old ``out`` belong to another command (e.g. the accuracy
+    study's record and its summary inside the run record): they are copied into the new folder unchanged, never
+    judged or dropped."""
     if out.is_symlink():
         out = Path(os.path.realpath(out))
     for name in nested:
-        if (out / name).is_dir() and not (out / name).is_symlink() and not (stage / name).exists():
-            shutil.copytree(out / name, stage / name, symlinks=True)
+        src = out / name
+        if src.is_symlink() or (stage / name).exists():
+            continue
+        if src.is_dir():
+            shutil.copytree(src, stage / name, symlinks=True)
+        elif src.is_file():
+            shutil.copy2(src, stage / name)
     write_marker(stage, command)
     if not out.exists():
         stage.rename(out)
