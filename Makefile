@@ -45,7 +45,7 @@ reproduce-stream: venv
 # The accuracy study (issue 44; docs/results.md, "Accuracy"): restores docs/results-data/accuracy, regenerates the
 # house-split dataset (refused unless it is the recorded one), trains the next unfinished training for at most
 # MINUTES, tests finished ones, and writes the record and its analysis back. One session's share at a time: commit
-# docs/results-data/accuracy afterwards.
+# docs/results-data/accuracy and its summary docs/results-data/accuracy.json afterwards.
 MINUTES ?= 100
 accuracy-study: venv
 	$(BIN)/python tools/accuracy_study.py --minutes $(MINUTES)
