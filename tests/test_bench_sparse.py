@@ -33,9 +33,10 @@ def _t(wall: float, cpu: float) -> dict[str, float]:
 
 def test_summary_takes_each_targets_row_and_ratio_of_the_minima() -> None:
     results = {
-        "backbone": [{"case": "matterport 768x512 clustered 0.75%", "timings": {"dense": _t(300, 600),
-                                                                                "sparse": _t(20, 30)}},
-                     {"case": "kitti 504x440 clustered 2.50%", "timings": {"dense": _t(200, 400), "sparse": _t(100, 100)}}],
+        "backbone": [
+            {"case": "matterport 768x512 clustered 0.75%", "timings": {"dense": _t(300, 600), "sparse": _t(20, 30)}},
+            {"case": "kitti 504x440 clustered 2.50%", "timings": {"dense": _t(200, 400), "sparse": _t(100, 100)}},
+        ],
         "e2e": [{"case": "matterport", "timings": {"dense": _t(500, 500), "sparse+sparse_exact": _t(100, 50),
                                                    "sparse+dense_head": _t(1, 1)}}],
     }
