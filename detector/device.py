@@ -6,8 +6,9 @@ from __future__ import annotations
 import math
 import os
 import platform
+import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,22 @@ from mpchair.core.errors import InputError
 MALLOC_ENV: tuple[str, ...] = ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")
 #: The allocator setting under which freed memory is reused instead of returned to the OS after every frame.
 MALLOC_REUSE: dict[str, str] = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
+#: OpenMP's idle threads sleep at once instead of spin-waiting: on a machine whose cores other jobs keep busy, a
+#: spinning thread waits for one that is not scheduled, and the sparse model's many small parallel ops suffer most.
+OMP_PASSIVE: dict[str, str] = {"OMP_WAIT_POLICY": "PASSIVE"}
+
+
+def rerun_under(env: Mapping[str, str], argv: Sequence[str]) -> None:
+    """Return when every variable of ``env`` already has its value here; else replace this process by ``python
+    argv...`` (this interpreter) with ``env`` added to its environment.
+
+    glibc's allocator (:data:`MALLOC_REUSE`) and OpenMP (:data:`OMP_PASSIVE`) read their variables only when the
+    process starts, so a tool that offers them as flags re-runs itself: setting ``os.environ`` would be too late.
+    """
+    if all(os.environ.get(k) == v for k, v in env.items()):
+        return
+    sys.stdout.flush()
+    os.execve(sys.executable, [sys.executable, *argv], {**os.environ, **env})
 
 
 def use_device(device: str, threads: int | None = None) -> torch.device:

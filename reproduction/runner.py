@@ -10,14 +10,16 @@ import sys
 import time
 from pathlib import Path
 
+from detector.device import MALLOC_REUSE
 from mpchair.core.atomic import atomic_open
 from mpchair.core.errors import RunError
 from reproduction.checkout import ROOT
 
 #: The console scripts installed next to this interpreter: the venv's ``mpchair`` / ``detector``, not PATH's.
 BIN = Path(sys.executable).parent
-#: glibc's allocator keeps freed memory instead of returning it to the OS (docs/benchmarks.md, "allocator reuse").
-REUSE_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "68719476736"}
+#: glibc's allocator keeps freed memory instead of returning it to the OS (docs/benchmarks.md, "allocator reuse"): the
+#: variables every timed and trained step runs under (defined once, with the machine record that reports them).
+REUSE_ENV = MALLOC_REUSE
 
 
 class Runner:

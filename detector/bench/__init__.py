@@ -11,10 +11,12 @@
   latency, peak memory (imports ``run``);
 - :mod:`detector.bench.report`: the result as the paper's tables (imports ``timing`` and ``result``; reads only the
   result);
-- :mod:`detector.bench.reference_head` (the total time with the reference's head layout) and
-  :mod:`detector.bench.density` (the backbone ratio against density D): benches of their own, for the tools of the
-  same names (``reference_head`` imports ``timing`` and ``run``, ``density`` :mod:`detector.opcount`; nothing here
-  imports them).
+- :mod:`detector.bench.reference_head` (the total time with the reference's head layout),
+  :mod:`detector.bench.density` (the backbone ratio against density D) and :mod:`detector.bench.sparse_ratios` (dense
+  vs sparse layers, backbone, end to end and training step, with :mod:`detector.bench.conv_forms`): benches of their
+  own, for the tools ``bench_reference_head``, ``bench_density`` and ``bench_sparse`` (``reference_head`` imports
+  ``timing`` and ``run``, ``density`` :mod:`detector.opcount`, ``sparse_ratios`` and ``conv_forms`` ``timing``;
+  nothing here imports them).
 
 The modules import each other directly, in that one direction; this file only re-exports the names callers use. The
 machine a result describes is a :class:`detector.device.Machine` record.

@@ -13,13 +13,18 @@ Components (one :class:`detector.models.PointPillars` stage each, batch 1, eval 
 | ``total`` | Total time | the sum of the six, i.e. first stamp to last stamp of a frame |
 
 On CUDA the device is synchronised before every stamp; stamps are ``time.perf_counter``, reported in ms.
+
+Below the paper's components, :func:`time_calls` is the one timer of plain callables (a conv layer, a backbone, a
+training step), interleaved, wall and CPU time and page faults: ``detector.bench.sparse_ratios`` and
+``detector.bench.conv_forms`` time with it.
 """
 
 from __future__ import annotations
 
 import resource
+import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -48,6 +53,43 @@ def page_faults() -> int:
     """Page faults (minor + major) of this whole process so far (``resource.getrusage``)."""
     r = resource.getrusage(resource.RUSAGE_SELF)
     return int(r.ru_minflt + r.ru_majflt)
+
+
+def time_call(fn: Callable[[], object]) -> tuple[float, float, int]:
+    """Wall seconds, process CPU seconds (all threads, user + system) and page faults (:func:`page_faults`) of one
+    call of ``fn``.
+
+    On a shared machine the CPU time is the steadier measure of the work done; the wall time is what a dedicated
+    machine would show only when the CPU is not oversubscribed.
+    """
+    f0 = page_faults()
+    c0, t0 = time.process_time(), time.perf_counter()
+    fn()
+    dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    return dt, dc, page_faults() - f0
+
+
+def time_calls(fns: Mapping[str, Callable[[], object]], repeats: int,
+               warmup: int = 1) -> dict[str, dict[str, float]]:
+    """``warmup`` untimed rounds, then ``repeats`` timed rounds of every function in turn (interleaved, so load
+    spikes of a shared machine hit all alike): per name ``{"min_ms", "median_ms"}`` (wall), ``"cpu_min_ms"`` and
+    ``"faults"`` (mean page faults per call). The caller sets eval mode / ``torch.no_grad`` as its rows need."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    samples: dict[str, list[tuple[float, float, int]]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            samples[k].append(time_call(fn))
+    return {
+        k: {
+            "min_ms": 1e3 * min(t for t, _, _ in v),
+            "median_ms": 1e3 * statistics.median(t for t, _, _ in v),
+            "cpu_min_ms": 1e3 * min(c for _, c, _ in v),
+            "faults": statistics.mean(f for _, _, f in v),
+        }
+        for k, v in samples.items()
+    }
 
 
 def stamps_to_ms(stamps: Sequence[float]) -> dict[str, float]:
