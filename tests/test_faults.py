@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from helpers_detector import make_tiny_dataset, write_test_config
@@ -439,3 +440,39 @@ def test_train_on_a_corrupt_dataset_writes_nothing(data, tmp_path, capsys):
         assert code == 2 and _one_error_line(err) == (f"error: {bad}: size 10 bytes is not a multiple of 16 "
                                                       "(float32 x, y, z, r rows)")
         assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("workers", "bad", "out"), [(0, "scan", "empty"), (2, "scan", "new"), (2, "label", "new")])
+def test_bad_input_only_the_loader_reads_is_one_line_with_or_without_workers(data, tmp_path, workers, bad, out):
+    # What the pre-run check cannot see (it sizes scans without reading them; GT sampling off, so nothing loads every
+    # frame first): a NaN in a scan, a chair of height 0. Met in a DataLoader worker, torch re-raised it with the
+    # worker's traceback as its message (the third audit's leftover); now the main process raises the same error.
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
+    if bad == "scan":
+        path = root / "training" / "velodyne" / "000001.bin"
+        points = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+        points[3, 1] = np.nan
+        points.tofile(path)
+        want = f"error: {path}: point 3 has a non-finite y (nan); a scan holds finite x, y, z, reflectance"
+    else:
+        path = root / "training" / "label_2" / "000001.txt"
+        lines = path.read_text().splitlines()
+        tokens = lines[0].split()
+        tokens[8] = "0"  # h
+        path.write_text("\n".join([" ".join(tokens), *lines[1:]]) + "\n")
+        want = f"error: {path}: an object has a non-positive dimension (h, w, l must be > 0)"
+    cfg = write_test_config(tmp_path / "cfg.yaml", data=dict(gt_sampling=dict(enabled=False)),
+                            train=dict(batch_size=2, epochs=1, num_workers=workers))
+    run = tmp_path / "new" / "run" if out == "new" else tmp_path / "empty"
+    if out == "empty":
+        run.mkdir()
+    r = _run([sys.executable, "-m", "detector", "train", "--config", str(cfg), "--data", str(root), "--out", str(run),
+              "--threads", "1", "--no-progress"])
+    assert r.returncode == 2 and _one_error_line(r.stderr) == want
+    # a new run that failed before its first checkpoint leaves nothing: the folders it made are gone, a folder that
+    # was there before stays (empty, as it was)
+    if out == "new":
+        assert not (tmp_path / "new").exists()
+    else:
+        assert run.is_dir() and not any(run.iterdir())

@@ -61,7 +61,7 @@ def _write_noisy_results(st, out: Path, same_noise_every_frame: bool = False) ->
             boxes = np.vstack([boxes, fp])
             scores = rng.random(len(boxes))
             write_labels(out / seq.name / f"{i:06d}.txt",
-                         boxes_to_results(boxes, scores, np.full(len(boxes), "Chair"), calib, st.image_size))
+                         boxes_to_results(boxes, scores, np.full(len(boxes), "Chair"), calib, st.meta.image_size))
     return out
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from mpchair.core.errors import InputError
 from mpchair.kitti import Calib, Labels, read_calib, read_labels, read_poses, read_times
-from mpchair.recording.sources import Region, read_stream_meta
+from mpchair.recording.sources import StreamMeta, read_stream_meta
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -49,15 +49,12 @@ class StreamSequence:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Stream:
-    """A stream folder: ``rate_hz``, the labelled ``region``, image ``image_size`` (W, H) of the virtual camera,
-    ``sequences`` in name order and the parsed ``stream.json`` (``meta``)."""
+    """A stream folder: its checked ``stream.json`` (``meta``: the sensor ``rate_hz``, the labelled ``region``, the
+    virtual camera's ``image_size`` (W, H) in pixels, the parsed file) and its ``sequences`` in name order."""
 
     root: Path
-    rate_hz: float
-    region: Region
-    image_size: tuple[int, int]
+    meta: StreamMeta
     sequences: tuple[StreamSequence, ...]
-    meta: dict
 
     @property
     def frames(self) -> int:
@@ -80,5 +77,4 @@ def read_stream(root: str | Path) -> Stream:
         seqs.append(StreamSequence(name, folder, times, poses))
     if not seqs:
         raise InputError("the stream has no sequences", meta.path)
-    return Stream(root=root, rate_hz=meta.rate_hz, region=meta.region, image_size=meta.image_size,
-                  sequences=tuple(seqs), meta=meta.data)
+    return Stream(root=root, meta=meta, sequences=tuple(seqs))

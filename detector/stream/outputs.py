@@ -99,7 +99,7 @@ class ModelRunner:
                            split_dir=seq.name, with_labels=False)
         if self.cfg.data.fov_crop:
             frame = dataclasses.replace(frame, points=frame.points[fov_mask(frame.points, frame.calib,
-                                                                            stream.image_size)])
+                                                                            stream.meta.image_size)])
         return frame
 
     def run(self, frame) -> Output:

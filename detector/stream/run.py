@@ -259,8 +259,8 @@ def query_labels(prep: Prepared, mode: str, sources: list[np.ndarray]) -> list[L
                 out.append(Labels.empty(with_score=True))
                 continue
             out.append(query_results(prep.outputs[s][k], seq.poses[k], seq.poses[i], k == i, mode,
-                                     prep.stream.region, prep.valid[s][i], prep.dontcare[s][i], min_overlap,
-                                     prep.calibs[s][i], prep.stream.image_size))
+                                     prep.stream.meta.region, prep.valid[s][i], prep.dontcare[s][i], min_overlap,
+                                     prep.calibs[s][i], prep.stream.meta.image_size))
     return out
 
 
@@ -298,7 +298,7 @@ def score(prep: Prepared, mode: str) -> dict:
         "latency": {"constant_ms": prep.latency_ms} if prep.latency == "constant" else prep.latency,
         "frames": n,
         "sequences": len(prep.stream.sequences),
-        "rate_hz": prep.stream.rate_hz,
+        "rate_hz": prep.stream.meta.rate_hz,
         "num_gt": {c: int(stream_result.num_gt_overall[c]) for c in prep.classes},
         # what a perfect detector scores on these chairs: below 100 with fewer than 41 (KITTI's recall slots)
         "ap_ceiling": {c: ap_ceiling(int(stream_result.num_gt_overall[c])) for c in prep.classes},
@@ -377,7 +377,7 @@ def save_results(prep: Prepared, out: str | Path) -> Path:
                     if o is not None:
                         write_labels(stage / seq.name / f"{seq.frame_id(i)}.txt",
                                      boxes_to_results(o.boxes, o.scores, o.names, prep.calibs[s][i],
-                                                      prep.stream.image_size))
+                                                      prep.stream.meta.image_size))
             replace_folder(stage, out, SAVE_COMMAND, legacy=_legacy_saved)
         finally:
             shutil.rmtree(stage, ignore_errors=True)

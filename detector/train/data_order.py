@@ -5,16 +5,22 @@ Epoch ``e`` has ``samples_per_epoch`` slots. Slot ``k`` holds frame ``k mod N`` 
 with ``train.shuffle`` the ``k``-th frame of a permutation seeded by ``(seed, e)``; it is augmented with the generator
 ``(seed, e, k)``. Step ``s`` takes the global batch of slots ``[s*G, (s+1)*G)`` with ``G = batch_size * world_size``;
 rank ``r`` takes the ``r``-th per-rank slice. Nothing depends on the worker, the rank count or a resume.
+
+Bad input met while loading (a NaN in a scan, a label the pre-run check cannot see) is the same one-line
+:class:`InputError` with or without DataLoader workers: a worker hands it back as a :class:`LoadFailure` in place of
+the batch and the main process raises it, where torch would re-raise it with the worker's traceback in its message.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import dataclasses
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
 
 from detector.data import Batch, Sample, TrainingSet, collate
+from mpchair.core.errors import InputError
 
 #: One sample of an epoch: ``(epoch, slot, frame index)``.
 SlotKey = tuple[int, int, int]
@@ -43,8 +49,22 @@ def rank_batches(
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class LoadFailure:
+    """An :class:`InputError` met while loading a sample, as plain picklable fields (it crosses from a worker)."""
+
+    message: str
+    path: str | None
+    line: int | None
+
+    def error(self) -> InputError:
+        """The error again, with the same one-line message."""
+        return InputError(self.message, self.path, self.line)
+
+
 class SlotDataset(torch.utils.data.Dataset):
-    """Keys ``(epoch, slot, frame)`` → the augmented sample; slot ``k`` is augmented with generator (seed, epoch, k)."""
+    """Keys ``(epoch, slot, frame)`` → the augmented sample; slot ``k`` is augmented with generator (seed, epoch, k).
+    Bad input gives a :class:`LoadFailure` instead of raising (see the module docstring)."""
 
     def __init__(self, base: TrainingSet) -> None:
         self.base = base
@@ -52,9 +72,20 @@ class SlotDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.base)
 
-    def __getitem__(self, key: SlotKey) -> Sample:
+    def __getitem__(self, key: SlotKey) -> Sample | LoadFailure:
         epoch, slot, frame = key
-        return self.base.sample(epoch, slot, frame)
+        try:
+            return self.base.sample(epoch, slot, frame)
+        except InputError as e:
+            return LoadFailure(e.message, e.path, e.line)
+
+
+def collate_or_failure(items: Sequence[Sample | LoadFailure]) -> Batch | LoadFailure:
+    """The batch of ``items``, or the first :class:`LoadFailure` among them."""
+    for item in items:
+        if isinstance(item, LoadFailure):
+            return item
+    return collate(items)
 
 
 def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int, pin: bool = False) -> Iterator[Batch]:
@@ -67,7 +98,15 @@ def rank_loader(keys: list[list[SlotKey]], base: TrainingSet, workers: int, pin:
     # RNG state in its checkpoints than the uninterrupted run. Samples never use it (slot k: generator (seed, epoch,
     # k)).
     loader = torch.utils.data.DataLoader(
-        SlotDataset(base), batch_sampler=keys, collate_fn=collate, num_workers=workers, pin_memory=pin,
+        SlotDataset(base), batch_sampler=keys, collate_fn=collate_or_failure, num_workers=workers, pin_memory=pin,
         generator=torch.Generator().manual_seed(0),
     )
-    return iter(loader)
+    return _raise_failures(iter(loader))
+
+
+def _raise_failures(batches: Iterator[Batch | LoadFailure]) -> Iterator[Batch]:
+    """``batches`` up to the first :class:`LoadFailure`, which is raised here (in the main process)."""
+    for batch in batches:
+        if isinstance(batch, LoadFailure):
+            raise batch.error()
+        yield batch

@@ -61,7 +61,9 @@ from detector.train.resume import (
 from detector.train.run_folder import (
     DATABASE_FILE,
     check_run_folder,
+    discard_start,
     load_or_build_database,
+    missing_folders,
     shared_database,
     write_run_files,
 )
@@ -216,10 +218,26 @@ def train(
     database, new_database = None, False
     if cfg.data.gt_sampling.enabled and info.is_main:
         database, new_database = load_or_build_database(frames, out / DATABASE_FILE, progress=progress)
-    with process_group(info, dev):
-        # One process per run folder (rank 0 writes for the job); the kernel drops the lock of a killed run.
-        with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
-            return _run(run, checkpoint, database, new_database)
+    made = missing_folders(out)
+    new_run = checkpoint is None and (bool(made) or not any(out.iterdir()))
+    discard = False
+    try:
+        with process_group(info, dev):
+            # One process per run folder (rank 0 writes for the job); the kernel drops the lock of a killed run.
+            with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
+                try:
+                    return _run(run, checkpoint, database, new_database)
+                except InputError:
+                    # Bad input only the loader meets (a NaN in a scan): a new run with no checkpoint yet leaves
+                    # nothing (its files now, under the lock; its folders once the lock file is gone).
+                    discard = info.is_main and new_run and not run.last_path.exists()
+                    if discard:
+                        discard_start(out)
+                    raise
+    finally:
+        for folder in made if discard else ():
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: a file anyone else put there keeps its folder
 
 
 def _experiment(config: str | Path | ExperimentConfig, overrides: Mapping | None, *, epochs: int | None,

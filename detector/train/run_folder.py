@@ -4,7 +4,9 @@ left.
 
 A run folder is new, empty, or a run's (:mod:`mpchair.core.owned`'s marker, or an older run's ``last.pt``, or its
 ``config.yaml`` beside ``metrics.jsonl``): ``detector train`` never takes over a folder that holds other files, and
-removes only temp files with the names its atomic writes give (``.<name>.<12 hex digits>.tmp``).
+removes only temp files with the names its atomic writes give (``.<name>.<12 hex digits>.tmp``). A new run that meets
+bad input before its first checkpoint (a scan only the loader reads) removes the files it wrote and the folders it
+made, so a failed start leaves no run behind.
 
 Rank 0 writes them (the caller holds the folder's lock); the other ranks of a torchrun job read the database after a
 barrier.
@@ -24,11 +26,13 @@ from detector.train.distributed import DistInfo, barrier
 from mpchair.core.atomic import write_text
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
-from mpchair.core.owned import made_by, write_marker
+from mpchair.core.owned import MARKER, made_by, write_marker
 
 DATABASE_FILE = "gt_database.npz"
 #: The command named in a run folder's ownership marker.
 COMMAND = "detector train"
+#: The files a run writes before its first checkpoint: all a failed start removes (with its temp files).
+_START_FILES = (MARKER, "config.yaml", DATABASE_FILE, "metrics.jsonl")
 #: The temp files :mod:`mpchair.core.atomic` names (``.<name>.<12 hex digits>.tmp``): the only ones a run removes.
 _TEMP_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.tmp")
 
@@ -47,6 +51,27 @@ def check_run_folder(out: Path) -> None:
     sample = sorted(p.name for p in out.iterdir())[0]
     raise InputError(f"folder is not empty and is not a training run (it holds {sample}, and no run marker); "
                      "choose another --out (an empty or new folder)", out)
+
+
+def missing_folders(out: Path) -> list[Path]:
+    """``out`` and its parents that do not exist yet, deepest first: the folders a run will make (``[]``: ``out``
+    exists; a failed start removes them again if empty)."""
+    missing = []
+    for p in (out, *out.parents):
+        if p.exists() or p.is_symlink():
+            break
+        missing.append(p)
+    return missing
+
+
+def discard_start(out: Path) -> None:
+    """Undo a new run's start (rank 0, under the folder's lock; the caller knows ``out`` was new or empty and holds no
+    ``last.pt``): remove the files a run writes before its first checkpoint and its temp files, nothing else."""
+    remove_stale_temps(out)
+    for name in _START_FILES:
+        path = out / name
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
 
 
 def load_or_build_database(frames: KittiDataset, path: Path, *, progress: bool) -> tuple[GTDatabase, bool]:
