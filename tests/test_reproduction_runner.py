@@ -31,7 +31,9 @@ def test_an_interrupted_command_exits_130_with_a_resume_line(tmp_path: Path, cap
     """A step command ended by SIGINT alone (as when only the training is stopped) interrupts the experiment."""
     runner = Runner(dry_run=False, log=tmp_path / "commands.log")
     out = tmp_path / "stdout.txt"
-    cmd = [sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGINT)"]
+    # SIG_DFL first: a test run started in the background inherits SIGINT ignored, and the child would then live on
+    cmd = [sys.executable, "-c",
+           "import os, signal; signal.signal(signal.SIGINT, signal.SIG_DFL); os.kill(os.getpid(), signal.SIGINT)"]
     assert run_script(lambda: runner.run(cmd, stdout=out)) == 130
     err = capsys.readouterr().err
     assert err.startswith("interrupted: python") and "resumes" in err and "Traceback" not in err
