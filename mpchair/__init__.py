@@ -11,3 +11,8 @@ folder may import which: ``docs/design.md``.
 """
 
 __version__ = "0.1.0"
+
+# Before anything imports numpy: one OpenBLAS kernel on AVX2 and AVX-512 CPUs (same seed, same bytes; core/blas.py).
+from mpchair.core.blas import pin_openblas_kernel as _pin_openblas_kernel  # noqa: E402
+
+_pin_openblas_kernel()

@@ -254,10 +254,13 @@ def read_study_record(record: Path) -> dict:
     return meta
 
 
-def save(study: Study, fingerprint: str | None, notes: tuple[str, ...] = ()) -> list[str]:
+def save(study: Study, fingerprint: str | None, notes: tuple[str, ...] = (),
+         equivalent: dict | None = None) -> list[str]:
     """Add the work folder's state to the record: dataset files, every training's run summary (and ``last.pt`` while
     unfinished; removed from the record once done), every tested training's results. Files of the record that this
-    work folder does not have are kept (another session's trainings). The paths written."""
+    work folder does not have are kept (another session's trainings). The record keeps the fingerprint it started
+    with; ``equivalent`` (machine, evidence, parts) records ``fingerprint`` as an accepted equivalent of it
+    (:mod:`reproduction.study_dataset`). The paths written."""
     rec, written = study.record, []
 
     def put(rel: str, data: bytes) -> None:
@@ -274,7 +277,9 @@ def save(study: Study, fingerprint: str | None, notes: tuple[str, ...] = ()) -> 
         for p in sorted((study.data / "ImageSets").glob("*.txt")):
             put(f"dataset/ImageSets/{p.name}", p.read_bytes())
         meta["split_houses"] = manifest.get("split_houses")
-    meta["dataset_sha256"] = fingerprint or meta.get("dataset_sha256")
+    meta["dataset_sha256"] = meta.get("dataset_sha256") or fingerprint
+    if equivalent is not None and fingerprint and fingerprint != meta["dataset_sha256"]:
+        meta["dataset_equivalents"] = {**(meta.get("dataset_equivalents") or {}), fingerprint: equivalent}
     test_split = study.data / "ImageSets" / "test.txt"
     if test_split.is_file() and not (rec / "test_labels.zip").is_file():
         put("test_labels.zip", _zip_folder(study.data / "training" / "label_2", test_split.read_text().split()))

@@ -4,7 +4,8 @@ Steps, in order (``--steps`` picks a subset):
 
     restore   copy the record's trainings into the work folder (a cut training continues from its ``last.pt``)
     dataset   mpchair synth + generate: the full scale's 12 houses, 4,800 frames split 8 / 2 / 2 by house; refused
-              (exit 2) unless byte for byte the record's dataset
+              (exit 2) unless byte for byte the record's dataset or one accepted as its equivalent on another class
+              of CPU (--accept-dataset; reproduction/study_dataset.py)
     train     detector train of the next unfinished training (or ``--training``), for at most ``--minutes``: it stops
               at the plateau rule, the 60-epoch cap, or the time limit (then it is saved and resumes next session)
     test      detector eval on the test split of every finished, untested training (KITTI + Open3D-ML protocol)
@@ -34,6 +35,7 @@ from reproduction.study import (
     make_dataset,
     next_training,
     read_study_record,
+    read_zip_texts,
     restore,
     save,
     summary_path,
@@ -41,6 +43,7 @@ from reproduction.study import (
     train,
     trainings,
 )
+from reproduction.study_dataset import accepted, cpu_description, dataset_parts, equivalence_problems
 
 STEPS = ("restore", "dataset", "train", "test", "record")
 
@@ -63,6 +66,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resamples", type=int, default=200, help="bootstrap resamples of the test frames")
     p.add_argument("--note", action="append", default=[],
                    help="a sentence for the record's notes (e.g. the machine a training ran on); repeatable")
+    p.add_argument("--accept-dataset", action="store_true",
+                   help="take a regenerated dataset whose sha256 differs from the record's if its manifest, splits "
+                        "and test labels equal the record's (float bits that differ between CPU classes), and record "
+                        "its fingerprint as an equivalent with this machine's name")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.add_argument("--status", action="store_true", help="print each training's state in the record and exit")
     return p
@@ -103,6 +110,31 @@ def _main(argv: list[str] | None) -> int:
     return _run(study, steps, chosen, args)
 
 
+def _check_dataset(study: Study, fingerprint: str, accept: bool) -> dict | None:
+    """None when the record takes this dataset as it is; with ``accept``, the equivalence entry to record for a
+    dataset that differs only in float bits; otherwise an InputError that says which."""
+    meta = read_study_record(study.record)
+    want = meta.get("dataset_sha256")
+    if not want or accepted(meta, fingerprint):
+        return None
+    head = (f"{study.data} is not byte for byte the dataset of the record {study.record} (sha256 {fingerprint[:12]} "
+            f"vs {want[:12]})")
+    problems = equivalence_problems(study.data, study.record, read_zip_texts(study.record / "test_labels.zip"))
+    if problems:
+        raise InputError(f"{head}, and not an equivalent: {'; '.join(problems[:5])}. The code, houses or seed that "
+                         "made it differ, so trainings on it would not belong to the study")
+    if not accept:
+        raise InputError(f"{head}, though its manifest, splits and test labels equal the record's: float bits that "
+                         "differ between CPU classes (docs/generate.md, 'Determinism'). Re-run with --accept-dataset "
+                         "to record it as an equivalent made on this machine")
+    cpu = cpu_description()
+    print(f"[dataset] accepted {fingerprint[:12]} as an equivalent of {want[:12]} (made on {cpu})")
+    return {"cpu": cpu, "date": time.strftime("%Y-%m-%d", time.gmtime()),
+            "evidence": "manifest (less its frame list: every total of frames, points, boxes kept and rejected per "
+                        "reason), ImageSets and every test label file equal to the record's",
+            "parts_sha256": dataset_parts(study.data)}
+
+
 def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     study.out.mkdir(parents=True, exist_ok=True)
@@ -110,16 +142,12 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
     if "restore" in steps and not args.dry_run:
         names = restore(study)
         print(f"restored {len(names)} training(s) from {study.record}: {', '.join(names) or 'none'}")
-    fingerprint = None
+    fingerprint, equivalent = None, None
     if "dataset" in steps:
         make_dataset(study, r)
         if not args.dry_run:
             fingerprint = dataset_fingerprint(study.data)
-            want = read_study_record(study.record).get("dataset_sha256")
-            if want and fingerprint != want:
-                raise InputError(f"{study.data} is not the dataset of the record {study.record} (sha256 "
-                                 f"{fingerprint[:12]} vs {want[:12]}): the code or seed that made it differs, so "
-                                 "trainings on it would not belong to the study")
+            equivalent = _check_dataset(study, fingerprint, args.accept_dataset)
     if "train" in steps:
         t = chosen or next_training(study, done_trainings(study))
         if t is None:
@@ -134,7 +162,7 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
             if study.done(t) and not study.tested(t):
                 test(study, t, r)
     if "record" in steps and not args.dry_run:
-        written = save(study, fingerprint, tuple(args.note))
+        written = save(study, fingerprint, tuple(args.note), equivalent)
         print(f"record: wrote {len(written)} file(s) into {study.record}")
         from reproduction.study_report import write_analysis
 
