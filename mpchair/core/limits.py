@@ -75,7 +75,10 @@ def check_environment() -> None:
     """:class:`InputError` for an environment variable the project reads that holds a value it cannot use:
     ``DETECTOR_GEMM`` (auto | mkl), torchrun's ``WORLD_SIZE`` / ``RANK`` / ``LOCAL_RANK`` (whole numbers, the rank
     below the world size, a world of more than one process only with torchrun's ``MASTER_ADDR`` / ``MASTER_PORT``),
-    ``MPLBACKEND`` (a matplotlib backend)."""
+    ``MPLBACKEND`` (a matplotlib backend), ``MPCHAIR_EMBREE_ISA`` (an Embree ISA name or native)."""
+    from mpchair.scan.embree import requested_isa
+
+    requested_isa()  # MPCHAIR_EMBREE_ISA
     gemm = os.environ.get("DETECTOR_GEMM")
     if gemm is not None and gemm not in ("auto", "mkl"):
         raise InputError(f"environment variable DETECTOR_GEMM={gemm!r}: choose auto or mkl (or unset it)")

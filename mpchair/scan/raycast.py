@@ -23,6 +23,7 @@ import numpy as np
 
 from mpchair.core.errors import InputError
 from mpchair.core.jit import njit_cached
+from mpchair.scan.embree import open_scene
 
 #: Ray-triangle cosines below this count as grazing when recomputing ``t`` from the face plane (then the backend's
 #: float32 hit position is used instead, since the plane equation is ill-conditioned there).
@@ -97,7 +98,8 @@ def _plane_distances(face, normal, offset, origins, directions, t):  # pragma: n
 
 
 class EmbreeRaycaster:
-    """Embree (Intel) through embreex, the engine behind trimesh's ``ray_pyembree.RayMeshIntersector``; the default.
+    """Embree (Intel), the engine behind trimesh's ``ray_pyembree.RayMeshIntersector``; the default. The library is
+    embreex's, driven with its instruction set pinned (:mod:`mpchair.scan.embree`) where possible, else through embreex.
 
     The embreex scene is built directly (as trimesh's ``_EmbreeWrap`` does) rather than through
     ``RayMeshIntersector.intersects_first``, which copies and re-normalises every direction array: that overhead
@@ -107,14 +109,18 @@ class EmbreeRaycaster:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
         v, f = _check_mesh(vertices, faces)
         self.centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
         self._v = v - self.centre
-        self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(scene=self._scene, vertices=self._v.astype(np.float32), indices=f.astype(np.int32))
+        # Embree with its ISA pinned (the same bits on AVX2 and AVX-512 CPUs: mpchair/scan/embree.py); embreex's own
+        # device where no ISA is pinned or the library is not found
+        self._pinned = open_scene(self._v.astype(np.float32), f)
+        if self._pinned is None:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(scene=self._scene, vertices=self._v.astype(np.float32), indices=f.astype(np.int32))
         a, b, c = self._v[f[:, 0]], self._v[f[:, 1]], self._v[f[:, 2]]
         n = np.cross(b - a, c - a)
         norm = np.linalg.norm(n, axis=1)
@@ -130,14 +136,20 @@ class EmbreeRaycaster:
             return t, np.zeros(0, dtype=np.int64)
         oc = o - self.centre
         o32 = _ray_origins(oc, n)
-        face = self._scene.run(o32, d32).astype(np.int64)
+        if self._pinned is not None:
+            face, tfar = self._pinned.run(o32, d32)
+        else:
+            face, tfar = self._scene.run(o32, d32).astype(np.int64), None
         # t on the hit face's plane, in float64, along the float32 direction Embree traced (one compiled pass:
         # the numpy version's gathers and temporaries cost half as much as the raycast itself).
         grazing = _plane_distances(face, self._normal, self._offset, oc, d32, t)
-        if grazing.any():  # grazing hits: ask Embree for its own (float32) distance
+        if grazing.any():  # grazing hits: Embree's own (float32) distance
             g = np.flatnonzero(grazing)
-            res = self._scene.run(np.ascontiguousarray(o32[g]), np.ascontiguousarray(d32[g]), output=1)
-            t[g] = np.asarray(res["tfar"], dtype=np.float64)
+            if tfar is None:
+                res = self._scene.run(np.ascontiguousarray(o32[g]), np.ascontiguousarray(d32[g]), output=1)
+                tfar = np.zeros(n, dtype=np.float32)
+                tfar[g] = res["tfar"]
+            t[g] = np.asarray(tfar[g], dtype=np.float64)
         return t, face
 
     def first_faces(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -145,7 +157,10 @@ class EmbreeRaycaster:
         o, d32 = _check_rays(origins, directions)
         if len(d32) == 0:
             return np.zeros(0, dtype=np.int64)
-        return self._scene.run(_ray_origins(o - self.centre, len(d32)), d32).astype(np.int64)
+        o32 = _ray_origins(o - self.centre, len(d32))
+        if self._pinned is not None:
+            return self._pinned.run(o32, d32)[0]
+        return self._scene.run(o32, d32).astype(np.int64)
 
 
 class Open3DRaycaster:
