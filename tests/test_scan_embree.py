@@ -43,14 +43,16 @@ def test_the_binding_gives_embreexs_hits_on_the_same_isa():
     lo, hi = v32.min(0), v32.max(0)
     o = (lo + (hi - lo) * rng.random((20000, 3))).astype(np.float32)
     d = rng.normal(size=(20000, 3)).astype(np.float32)
-    ours_face, ours_t = PinnedEmbreeScene(v32, f, None).run(o, d)
+    ours = PinnedEmbreeScene(v32, f, None).run(o, d, output=1)
+    ours_face, ours_t = ours["primID"], ours["tfar"]
     scene = rtcore_scene.EmbreeScene()
     TriangleMesh(scene=scene, vertices=v32, indices=f.astype(np.int32))
     theirs = scene.run(o, d, output=1)
     assert np.array_equal(ours_face, np.asarray(theirs["primID"], dtype=np.int64))
     assert np.array_equal(ours_t, np.asarray(theirs["tfar"], dtype=np.float32))
     assert 0 < (ours_face >= 0).sum() < len(d)  # hits and misses both exercised
-    shared_face, _ = PinnedEmbreeScene(v32, f, None).run(o[:1], d)  # one origin for every ray
+    assert np.array_equal(PinnedEmbreeScene(v32, f, None).run(o, d), ours_face)  # faces only, as embreex's default
+    shared_face = PinnedEmbreeScene(v32, f, None).run(o[:1], d)  # one origin for every ray
     assert np.array_equal(shared_face, scene.run(np.repeat(o[:1], len(d), axis=0), d).astype(np.int64))
 
 

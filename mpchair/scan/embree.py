@@ -177,9 +177,11 @@ class PinnedEmbreeScene:
             raise RuntimeError(f"Embree error {err} building the scene")
         self._buf = np.zeros(48, dtype=np.float32)
 
-    def run(self, origins32: np.ndarray, directions32: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(face (N,) int64, -1 on a miss; tfar (N,) float32, 1e37 on a miss) of the first hit of each ray; origins
-        (N,3) or (1,3) and directions (N,3) float32, in the scene's (recentred) frame."""
+    def run(self, origins32: np.ndarray, directions32: np.ndarray, output: int | None = None):
+        """The first hit of each ray, as embreex's ``EmbreeScene.run`` gives it: origins (N,3) or (1,3) (or a stride-0
+        view of one row) and directions (N,3) float32 in the scene's (recentred) frame; returns the hit faces (N,)
+        int64 (-1 on a miss), or with ``output`` a dict of ``primID`` (the same) and ``tfar`` (N,) float32 (1e37 on
+        a miss)."""
         d = np.ascontiguousarray(directions32, dtype=np.float32)
         n = len(d)
         shared = origins32.shape[0] != n or origins32.strides[0] == 0
@@ -188,7 +190,7 @@ class PinnedEmbreeScene:
         tfar = np.empty(n, dtype=np.float32)
         if n:
             self._trace(self._scene, o, shared, d, self._buf, face, tfar)
-        return face, tfar
+        return {"primID": face, "tfar": tfar} if output else face
 
     def __del__(self):
         lib = getattr(self, "_lib", None)

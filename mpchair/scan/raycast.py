@@ -113,9 +113,9 @@ class EmbreeRaycaster:
         self.centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
         self._v = v - self.centre
         # Embree with its ISA pinned (the same bits on AVX2 and AVX-512 CPUs: mpchair/scan/embree.py); embreex's own
-        # device where no ISA is pinned or the library is not found
-        self._pinned = open_scene(self._v.astype(np.float32), f)
-        if self._pinned is None:
+        # device where no ISA is pinned or the library is not found. Both scenes have embreex's ``run``.
+        self._scene = open_scene(self._v.astype(np.float32), f)
+        if self._scene is None:
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
 
@@ -136,20 +136,14 @@ class EmbreeRaycaster:
             return t, np.zeros(0, dtype=np.int64)
         oc = o - self.centre
         o32 = _ray_origins(oc, n)
-        if self._pinned is not None:
-            face, tfar = self._pinned.run(o32, d32)
-        else:
-            face, tfar = self._scene.run(o32, d32).astype(np.int64), None
+        face = np.asarray(self._scene.run(o32, d32), dtype=np.int64)
         # t on the hit face's plane, in float64, along the float32 direction Embree traced (one compiled pass:
         # the numpy version's gathers and temporaries cost half as much as the raycast itself).
         grazing = _plane_distances(face, self._normal, self._offset, oc, d32, t)
-        if grazing.any():  # grazing hits: Embree's own (float32) distance
+        if grazing.any():  # grazing hits: ask Embree for its own (float32) distance
             g = np.flatnonzero(grazing)
-            if tfar is None:
-                res = self._scene.run(np.ascontiguousarray(o32[g]), np.ascontiguousarray(d32[g]), output=1)
-                tfar = np.zeros(n, dtype=np.float32)
-                tfar[g] = res["tfar"]
-            t[g] = np.asarray(tfar[g], dtype=np.float64)
+            res = self._scene.run(np.ascontiguousarray(o32[g]), np.ascontiguousarray(d32[g]), output=1)
+            t[g] = np.asarray(res["tfar"], dtype=np.float64)
         return t, face
 
     def first_faces(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -157,10 +151,7 @@ class EmbreeRaycaster:
         o, d32 = _check_rays(origins, directions)
         if len(d32) == 0:
             return np.zeros(0, dtype=np.int64)
-        o32 = _ray_origins(o - self.centre, len(d32))
-        if self._pinned is not None:
-            return self._pinned.run(o32, d32)[0]
-        return self._scene.run(o32, d32).astype(np.int64)
+        return np.asarray(self._scene.run(_ray_origins(o - self.centre, len(d32)), d32), dtype=np.int64)
 
 
 class Open3DRaycaster:
