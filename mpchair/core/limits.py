@@ -71,14 +71,25 @@ def _int_env(name: str, low: int) -> int | None:
     return value
 
 
+#: What ``MPCHAIR_EMBREE_ISA`` accepts: an Embree ISA name, or ``native`` (Embree's own choice; mpchair/scan/embree.py).
+EMBREE_ISA_CHOICES = ("sse2", "sse4.2", "avx", "avx2", "avx512", "native")
+
+
+def embree_isa_env() -> str | None:
+    """``MPCHAIR_EMBREE_ISA`` checked (None when unset); :class:`InputError` naming the choices otherwise."""
+    env = os.environ.get("MPCHAIR_EMBREE_ISA")
+    if env is not None and env not in EMBREE_ISA_CHOICES:
+        raise InputError(f"environment variable MPCHAIR_EMBREE_ISA={env!r}: choose one of "
+                         f"{', '.join(EMBREE_ISA_CHOICES)} (or unset it)")
+    return env
+
+
 def check_environment() -> None:
     """:class:`InputError` for an environment variable the project reads that holds a value it cannot use:
     ``DETECTOR_GEMM`` (auto | mkl), torchrun's ``WORLD_SIZE`` / ``RANK`` / ``LOCAL_RANK`` (whole numbers, the rank
     below the world size, a world of more than one process only with torchrun's ``MASTER_ADDR`` / ``MASTER_PORT``),
     ``MPLBACKEND`` (a matplotlib backend), ``MPCHAIR_EMBREE_ISA`` (an Embree ISA name or native)."""
-    from mpchair.scan.embree import requested_isa
-
-    requested_isa()  # MPCHAIR_EMBREE_ISA
+    embree_isa_env()
     gemm = os.environ.get("DETECTOR_GEMM")
     if gemm is not None and gemm not in ("auto", "mkl"):
         raise InputError(f"environment variable DETECTOR_GEMM={gemm!r}: choose auto or mkl (or unset it)")

@@ -24,19 +24,17 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
 import platform
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.errors import InputError
+from mpchair.core.blas import _cpu_flags
+from mpchair.core.limits import embree_isa_env
 
 #: The ISA pinned on x86-64 CPUs with AVX2 (Embree's name).
 PINNED_ISA = "avx2"
-#: The ISA names ``MPCHAIR_EMBREE_ISA`` accepts (Embree's device configuration names) and ``native``.
-ISA_CHOICES = ("sse2", "sse4.2", "avx", "avx2", "avx512", "native")
 _ROBUST = 4  # RTC_SCENE_FLAG_ROBUST
 _TRIANGLE = 0  # RTC_GEOMETRY_TYPE_TRIANGLE
 _INDEX, _VERTEX = 0, 1  # RTC_BUFFER_TYPE_*
@@ -47,8 +45,6 @@ _TFAR0 = np.float32(1e37)  # embreex's initial tfar (also what a miss keeps)
 
 def _cpu_has_avx2() -> bool:
     """Whether the CPU runs Embree's AVX2 kernels (AVX2, FMA, BMI1/2 and LZCNT, which /proc/cpuinfo calls abm)."""
-    from mpchair.core.blas import _cpu_flags
-
     flags = _cpu_flags()
     return {"avx2", "fma", "bmi1", "bmi2"} <= flags and bool({"abm", "lzcnt"} & flags)
 
@@ -56,11 +52,8 @@ def _cpu_has_avx2() -> bool:
 def requested_isa() -> str | None:
     """The ISA to pin (Embree's name), or None for Embree's own choice: ``MPCHAIR_EMBREE_ISA`` if set (validated),
     else :data:`PINNED_ISA` on Linux x86-64 CPUs with AVX2, else None."""
-    env = os.environ.get("MPCHAIR_EMBREE_ISA")
+    env = embree_isa_env()
     if env is not None:
-        if env not in ISA_CHOICES:
-            raise InputError(f"environment variable MPCHAIR_EMBREE_ISA={env!r}: choose one of "
-                             f"{', '.join(ISA_CHOICES)} (or unset it)")
         return None if env == "native" else env
     if sys.platform == "linux" and platform.machine() in ("x86_64", "AMD64") and _cpu_has_avx2():
         return PINNED_ISA
