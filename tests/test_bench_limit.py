@@ -10,6 +10,7 @@ from dataclasses import fields
 import numpy as np
 import pytest
 import torch
+from helpers_tools import load_tool
 
 from detector.bench import limit
 from detector.bench.limit import (
@@ -178,3 +179,7 @@ def test_help(capsys) -> None:
     text = capsys.readouterr().out
     for flag in ("--threads", "--repeats", "--profile-repeats", "--json-out"):
         assert flag in text
+
+
+def test_tool_is_the_packages_front_end() -> None:
+    assert load_tool("bench_limit").main is main
