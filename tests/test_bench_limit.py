@@ -28,7 +28,7 @@ from detector.bench.limit import (
 from detector.bench.spconv_peer import SiteFrame
 from detector.checkpoint import load_model
 from detector.config import load_experiment
-from detector.ops.gemm import HAVE_ONEDNN
+from detector.ops.gemm import HAVE_ONEDNN, bucket_rows
 from detector.sparse import Workspace
 from detector.sparse.phases import _NO_PHASE, OTHER, PHASES, PhaseRecorder, phase, recording
 
@@ -53,23 +53,26 @@ def _frame(seed: int, shape: tuple[int, int], n: int, channels: int) -> tuple[Si
     return SiteFrame(f"random-{seed}", feats, coords), {(int(y), int(x)) for y, x in yx}
 
 
-def _brute_force(sites: set[tuple[int, int]], cfg) -> tuple[int, int]:
-    """(exact, GEMM-form) MACs of the sparse backbone + neck from Python sets, without ``detector.sparse``: floor(c/2)
-    parents per block, 3x3 neighbours on each block's set, each block-1 site's parent on the level's set."""
+def _brute_force(sites: set[tuple[int, int]], cfg) -> tuple[int, int, int]:
+    """(exact, GEMM-form, executed) MACs of the sparse backbone + neck from Python sets, without ``detector.sparse``:
+    floor(c/2) parents per block, 3x3 neighbours on each block's set, each block-1 site's parent on the level's set;
+    executed: the GEMM forms' row counts rounded up to oneDNN's buckets (the transposed levels' + 1 zero row)."""
     m = cfg.model
     chans = [m.pfn_channels, *m.layer_channels]
     grids = [tuple(m.output_shape)]
     sets = [sites]
-    exact = gemm = 0
+    exact = gemm = executed = 0
     for i in range(len(m.layer_channels)):
         h, w = grids[-1][0] // 2, grids[-1][1] // 2
         down = {(y // 2, x // 2) for y, x in sets[-1] if y // 2 < h and x // 2 < w}
         cc = chans[i] * chans[i + 1]
         exact += sum(1 for y, x in sets[-1] if y // 2 < h and x // 2 < w) * cc  # one tap per input
         gemm += len(down) * 4 * cc  # (M, 4 C) x (4 C, O)
+        executed += bucket_rows(len(down)) * 4 * cc
         pairs = sum((y + dy, x + dx) in down for y, x in down for dy in (-1, 0, 1) for dx in (-1, 0, 1))
         exact += m.layer_nums[i] * pairs * chans[i + 1] ** 2
         gemm += m.layer_nums[i] * len(down) * 9 * chans[i + 1] ** 2
+        executed += m.layer_nums[i] * bucket_rows(len(down)) * 9 * chans[i + 1] ** 2
         sets.append(down)
         grids.append((h, w))
     block1 = sets[1]
@@ -77,7 +80,8 @@ def _brute_force(sites: set[tuple[int, int]], cfg) -> tuple[int, int]:
         cc = m.layer_channels[i] * c_out
         exact += sum((y // u, x // u) in sets[i + 1] for y, x in block1) * cc
         gemm += (len(block1) if u == 1 else len(sets[i + 1]) * u * u) * cc  # every coarse site x every slot
-    return exact, gemm
+        executed += (bucket_rows(len(block1)) if u == 1 else bucket_rows(len(sets[i + 1]) + 1) * u * u) * cc
+    return exact, gemm, executed
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -85,10 +89,10 @@ def test_exact_and_gemm_macs_equal_a_brute_force_count(smoke, seed: int) -> None
     cfg, net = smoke
     frame, sites = _frame(seed, tuple(cfg.model.output_shape), 60 + 40 * seed, cfg.model.pfn_channels)
     work, layers = frame_work(net, cfg, frame)
-    exact, gemm = _brute_force(sites, cfg)
+    exact, gemm, executed = _brute_force(sites, cfg)
     assert work.exact_macs == exact
     if HAVE_ONEDNN:  # fp32 inference takes every GEMM form in oneDNN (else "auto" may take a rulebook)
-        assert work.gemm_macs == gemm
+        assert work.gemm_macs == gemm and work.executed_macs == executed
     assert work.exact_macs < work.gemm_macs <= work.executed_macs
     assert work.pillars == len(sites) and len(work.sites) == 3
     assert sum(lc.macs for lc in layers) == work.exact_macs

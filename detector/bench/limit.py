@@ -174,21 +174,22 @@ class LimitResult:
 
 # --- work ----------------------------------------------------------------------------------------------------------
 
-def executed_rows(layer: LayerCount) -> int:
-    """The GEMM form's row count of one layer: sites (SubM), outputs (down-conv), coarse sites (+ the zero row of a
-    transposed conv onto another set)."""
-    if layer.kind == "sparse_convT" and layer.kernel > 1:
-        return layer.in_sites + 1
-    return layer.out_sites if layer.kind in ("subm", "sparse_down") else layer.in_sites
-
-
 def executed_macs(layer: LayerCount, onednn: bool) -> int:
-    """``layer.macs_computed`` at oneDNN's bucketed row count (:func:`detector.ops.gemm.bucket_rows`) when
-    ``onednn`` and the layer runs its GEMM form, else ``macs_computed`` itself."""
-    rows = executed_rows(layer)
-    if not onednn or rows == 0 or layer.macs_computed % rows:
-        return layer.macs_computed  # a rulebook form (its MACs are not rows x a fixed width): no bucketing
-    return layer.macs_computed // rows * bucket_rows(rows)
+    """``layer.macs_computed`` at oneDNN's bucketed row count (:func:`detector.ops.gemm.bucket_rows`) where
+    ``onednn`` and the layer runs its GEMM form: rows = sites (SubM), outputs (down-conv), coarse sites (a
+    transposed conv; + the appended zero row when it writes another site set), each row ``k^2 C_in C_out`` MACs.
+    A rulebook form's count is not bucketed."""
+    width = layer.kernel**2 * layer.c_in * layer.c_out
+    if layer.kind in ("subm", "sparse_down"):
+        rows = gemm_rows = layer.out_sites
+    elif layer.kind == "sparse_convT":
+        gemm_rows = layer.in_sites
+        rows = gemm_rows + (1 if layer.kernel > 1 else 0)
+    else:
+        return layer.macs_computed
+    if not onednn or layer.macs_computed != gemm_rows * width or gemm_rows == 0:
+        return layer.macs_computed
+    return bucket_rows(rows) * width
 
 
 def frame_work(model: PointPillars, cfg: ExperimentConfig, frame: SiteFrame) -> tuple[FrameWork, list[LayerCount]]:
