@@ -16,10 +16,13 @@ and the sparse rows bound the active sites after block i by ``min(D HW, HW / 4^i
   backbone's own index machinery (``detector.sparse.indices``: the SubM neighbour tables, ``floor(c / 2)`` down
   tables, the transposed conv's parent lookup on the block-1 set). This is what a gather-scatter sparse engine must
   multiply; it is never above the bound (tested on real-ish and uniform-random sites).
-- ``sparse_computed``: what ``detector.sparse`` actually multiplies, zero rows included: the one-GEMM SubM path does
-  all ``k^2`` taps of every site and the 2x2 down-conv multiplies an ``(M, 4 C_in)`` buffer with empty slots; a
-  transposed conv multiplies only the (target, parent tap) pairs, as the exact count. This one *can* exceed the bound
-  (the down-conv).
+- ``sparse_computed``: what ``detector.sparse`` actually multiplies, zero rows included, in the form each layer
+  runs in the counting context (float32 inference: ``detector.sparse.conv.subm_algorithm`` / ``up_algorithm``, the
+  engine's own choice): the one-GEMM SubM form does all ``k^2`` taps of every site (in oneDNN it is taken at any
+  fill), the 2x2 down-conv multiplies an ``(M, 4 C_in)`` buffer with empty slots, the transposed conv's GEMM form
+  multiplies every coarse site by all ``s^2`` slots' weights (``M s^2 C_in C_out``), its rulebook form only the
+  (target, parent tap) pairs. The rows oneDNN's bucketing adds (``detector.ops.gemm.bucket_rows``) are not counted.
+  This one *can* exceed the bound (the down-conv, the transposed GEMM form).
 
 Conv types are ``"3x3 conv"`` (dense 3x3 of stride 1 and 2 together, and SubM 3x3, as the table), ``"2x2 conv"``
 (sparse down), ``"9x9 conv"`` (Sparse+WideConv), ``"1x1 convT"``, ``"2x2 convT"``, ``"4x4 convT"``; blocks are
@@ -42,7 +45,7 @@ from tqdm import tqdm
 from detector.config import ExperimentConfig, ModelConfig, load_experiment
 from detector.models import build_model
 from detector.sparse import SparseConv2d, SparseConvTranspose2d, SparseTensor, SubMConv2d
-from detector.sparse.conv import GEMM_MIN_FILL
+from detector.sparse.conv import GEMM_MIN_FILL, subm_algorithm, transposed_matrix, up_algorithm
 from detector.sparse.indices import down_table, up_table, wide_down_table
 from mpchair.paper import (
     KITTI_DENSITY,
@@ -135,11 +138,10 @@ class _Recorder:
         if isinstance(module, SubMConv2d):
             x: SparseTensor = args[0]
             k = module.kernel_size
-            table = module.table(x).table  # (N, k*k) neighbour rows, -1 = inactive: exactly the rulebook
+            table = module.table(x)  # (N, k*k) neighbour rows, -1 = inactive: exactly the rulebook
             n = x.num_active
-            pairs = int((table >= 0).sum())
-            fill = pairs / max(1, n * k * k)
-            gemm = module.algorithm == "gemm" or (module.algorithm == "auto" and fill >= GEMM_MIN_FILL)
+            pairs = int((table.table >= 0).sum())
+            gemm = subm_algorithm(module.algorithm, table, x.features, module.weight) == "gemm"
             computed = (n * k * k if gemm else pairs) * module.in_channels * module.out_channels
             macs = pairs * module.in_channels * module.out_channels
             return LayerCount(name, f"{k}x{k} conv", block, "subm", k, module.in_channels, module.out_channels,
@@ -156,7 +158,11 @@ class _Recorder:
             pairs = int(t.in_rows.numel())  # (input, output, tap) triples; k = s: each input meets one tap
             m = int(t.out_coords.shape[0])
             cc = module.in_channels * module.out_channels
-            computed = m * s * s * cc if k == s else pairs * cc  # one dense (M, s*s*C) matmul, or per-tap products
+            # one (M, k*k*C) matmul with empty slots (k = s: both forms; the wide conv's GEMM form), or the wide
+            # conv's rulebook: per-tap products of the pairs only
+            full = k == s or module.algorithm == "gemm" or (module.algorithm == "auto"
+                                                            and t.fill(k * k) >= GEMM_MIN_FILL)
+            computed = m * k * k * cc if full else pairs * cc
             return LayerCount(name, f"{k}x{k} conv", block, "sparse_down", k, module.in_channels,
                               module.out_channels, x.spatial_shape, x.num_active, m, pairs, pairs * cc, computed,
                               layer_bound("sparse_down", k, module.in_channels, module.out_channels, x.spatial_shape,
@@ -171,7 +177,10 @@ class _Recorder:
             else:
                 t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
                 pairs = int((t.parent_rows >= 0).sum())  # each target site takes one tap of its parent
-                computed = pairs * cc  # detector.sparse groups targets by slot: only the products targets need
+                form = up_algorithm(module.algorithm, t, x.num_active, s, x.features,
+                                    transposed_matrix(module.weight))
+                # the GEMM form: every coarse site times every slot's weight; the rulebook: the products targets need
+                computed = (x.num_active * s * s if form == "gemm" else pairs) * cc
             return LayerCount(name, f"{s}x{s} convT", block, "sparse_convT", s, module.in_channels,
                               module.out_channels, x.spatial_shape, x.num_active, target.num_active, pairs,
                               pairs * cc, computed,

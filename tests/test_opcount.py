@@ -159,3 +159,33 @@ def test_count_dataset_on_scenes(tmp_path, capsys) -> None:
     coords = torch.tensor([[0, 10, 10], [0, 10, 11], [0, 40, 30]])
     types = _by_type(sparse_counts(model, coords, wide))
     assert types["9x9 conv"] == 2 * 64 * 64 + 2 * 128 * 128 + 4 * 256 * 256
+
+
+def test_sparse_computed_counts_the_form_the_engine_runs(smoke) -> None:
+    """``sparse_computed`` is what the engine multiplies in the form it takes: in fp32 inference with oneDNN the
+    one-GEMM SubM form at any fill (all k^2 taps of every site) and the transposed conv's GEMM form (every coarse site
+    times all s^2 slots); under MKL "auto" picks by fill, and a low-fill SubM / level takes the rulebook (exact)."""
+    from detector.ops.gemm import HAVE_ONEDNN, gemm_backend
+
+    cfg, model = smoke
+    m = cfg.model
+    rng = np.random.default_rng(7)
+    yx = _sites(rng, m.output_shape, 40, clustered=False)  # isolated sites: fill ~1/9, so the forms differ
+    coords = torch.from_numpy(np.column_stack([np.zeros(len(yx), dtype=np.int64), yx]).astype(np.int64))
+    with gemm_backend("mkl"):
+        mkl = sparse_counts(model, coords, m)
+    layers = sparse_counts(model, coords, m)
+    for lc, lm in zip(layers, mkl):
+        cc = lc.c_in * lc.c_out
+        if lc.kind == "sparse_down":
+            assert lc.macs_computed == lm.macs_computed == lc.out_sites * 4 * cc
+        elif lc.kind == "sparse_convT" and lc.kernel == 1:
+            assert lc.macs_computed == lm.macs_computed == lc.macs == lc.in_sites * cc
+        elif lc.kind == "sparse_convT":
+            assert lm.macs_computed == lm.macs  # fewer than half the products needed: the rulebook
+            if HAVE_ONEDNN:
+                assert lc.macs_computed == lc.in_sites * lc.kernel**2 * cc > lc.macs
+        else:
+            assert lm.macs_computed == lm.macs  # fill < 0.7: the rulebook
+            if HAVE_ONEDNN:
+                assert lc.macs_computed == lc.in_sites * 9 * cc > lc.macs

@@ -40,6 +40,7 @@ from detector.sparse import (
 )
 from detector.sparse.conv import init_weight_
 from detector.sparse.indices import Downsample
+from detector.sparse.phases import phase
 from detector.sparse.tensor import scatter_to_dense
 from detector.sparse.workspace import inference_workspace
 
@@ -205,14 +206,15 @@ class SparseBackboneNeck(nn.Module):
         levels = [deblock(s, target).features for deblock, s in zip(self.deblocks, sparse_outs)]
         # one scatter of the concatenated levels: the canvas is written once (it dominates the sparse model's time)
         ws = inference_workspace(target.workspace)
-        if len(levels) == 1:
-            feats = levels[0]
-        elif ws is None:
-            feats = torch.cat(levels, dim=1)
-        else:
-            width = sum(lv.shape[1] for lv in levels)
-            feats = torch.cat(levels, dim=1, out=ws.take(self, "levels", (target.num_active, width), levels[0].dtype,
-                                                          levels[0].device))
+        with phase("scatter"):  # each site's levels written into its one row
+            if len(levels) == 1:
+                feats = levels[0]
+            elif ws is None:
+                feats = torch.cat(levels, dim=1)
+            else:
+                width = sum(lv.shape[1] for lv in levels)
+                feats = torch.cat(levels, dim=1, out=ws.take(self, "levels", (target.num_active, width),
+                                                              levels[0].dtype, levels[0].device))
         return target, feats, sparse_outs
 
     def neck_rows(self, x: SparseTensor) -> SparseTensor:

@@ -24,10 +24,19 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from detector.ops.gemm import linear, linear_rows, row_buffer, train_linear, uses_onednn
+from detector.ops.gemm import linear, row_buffer, train_linear, uses_onednn
 from detector.sparse.autograd import GatherUnique, SubMGemm
-from detector.sparse.indices import Downsample, SubMTable, down_table, subm_table, up_table, wide_down_table
+from detector.sparse.indices import (
+    Downsample,
+    SubMTable,
+    UpTable,
+    down_table,
+    subm_table,
+    up_table,
+    wide_down_table,
+)
 from detector.sparse.modules import SparseModule
+from detector.sparse.phases import phase
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import Workspace, inference_workspace
 
@@ -119,12 +128,13 @@ def padded_rows(features: Tensor, workspace: Workspace | None = None, owner: obj
     """``(N, C)`` → ``(N + 1, C)`` with a zero last row: the sentinel the gather tables point missing neighbours at.
     With a workspace the rows are cast to :func:`compute_dtype` on the way (bf16 inference gathers half the bytes)."""
     n, c = features.shape
-    if workspace is None:
-        return torch.cat([features, features.new_zeros(1, c)], dim=0)
-    out = workspace.take(owner, "padded", (n + 1, c), compute_dtype(features), features.device)
-    out[:n].copy_(features)
-    out[n].zero_()
-    return out
+    with phase("gather"):
+        if workspace is None:
+            return torch.cat([features, features.new_zeros(1, c)], dim=0)
+        out = workspace.take(owner, "padded", (n + 1, c), compute_dtype(features), features.device)
+        out[:n].copy_(features)
+        out[n].zero_()
+        return out
 
 
 def _training(*tensors: Tensor) -> bool:
@@ -149,18 +159,23 @@ def gather_gemm(padded: Tensor, index: Tensor, matrix: Tensor, workspace: Worksp
     if uses_onednn(padded, w):
         # inference in oneDNN (detector.ops.gemm): the gather fills the first m rows of a bucket-sized matrix, the
         # rows past them are ignored (each output row depends on its own input row only)
-        cols = row_buffer(m, kc, padded, workspace, owner, "cols")
-        torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
-        return linear(cols, w)[:m]
+        with phase("gather"):
+            cols = row_buffer(m, kc, padded, workspace, owner, "cols")
+            torch.index_select(padded, 0, index, out=cols.view(-1, c)[: index.numel()])
+        with phase("gemm"):
+            return linear(cols, w)[:m]
     if workspace is None:
         # training's product in oneDNN at a bucketed row count where it applies (detector.ops.gemm.train_linear)
-        if unique and _training(padded):
-            return train_linear(GatherUnique.apply(padded, index).view(m, kc), matrix)
-        return train_linear(padded.index_select(0, index).view(m, kc), matrix)
-    cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
-    torch.index_select(padded, 0, index, out=cols)
-    out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
-    return torch.mm(cols.view(m, kc), w.t(), out=out)
+        with phase("gather"):
+            rows = GatherUnique.apply(padded, index) if unique and _training(padded) else padded.index_select(0, index)
+        with phase("gemm"):
+            return train_linear(rows.view(m, kc), matrix)
+    with phase("gather"):
+        cols = workspace.take(owner, "cols", (index.numel(), c), padded.dtype, padded.device)
+        torch.index_select(padded, 0, index, out=cols)
+    with phase("gemm"):
+        out = workspace.take(owner, "out", (m, o), padded.dtype, padded.device)
+        return torch.mm(cols.view(m, kc), w.t(), out=out)
 
 
 def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: int,
@@ -174,30 +189,51 @@ def gemm_gather(features: Tensor, index: Tensor, matrix: Tensor, out_channels: i
     if uses_onednn(features, matrix):
         # inference in oneDNN (detector.ops.gemm): the features and a zero row (whose s products are zero: the
         # sentinel row m * s) in a bucket-sized matrix; rows past them give products no index names
-        rows = row_buffer(m + 1, features.shape[1], features, workspace, owner, "padded")
-        rows[:m].copy_(features)
-        rows[m].zero_()
-        prod = linear(rows, matrix.t()).view(-1, o)
-        if workspace is None:
-            return prod.index_select(0, index)
-        out = workspace.take(owner, "out", (index.numel(), o), features.dtype, features.device)
-        return torch.index_select(prod, 0, index, out=out)
+        with phase("gather"):
+            rows = row_buffer(m + 1, features.shape[1], features, workspace, owner, "padded")
+            rows[:m].copy_(features)
+            rows[m].zero_()
+        with phase("gemm"):
+            prod = linear(rows, matrix.t()).view(-1, o)
+        with phase("gather"):
+            if workspace is None:
+                return prod.index_select(0, index)
+            out = workspace.take(owner, "out", (index.numel(), o), features.dtype, features.device)
+            return torch.index_select(prod, 0, index, out=out)
     if workspace is None:
-        prod = torch.cat([train_linear(features, matrix.t()).view(m * s, o), features.new_zeros(1, o)], dim=0)
-        # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
-        return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
+        with phase("gemm"):
+            prod = torch.cat([train_linear(features, matrix.t()).view(m * s, o), features.new_zeros(1, o)], dim=0)
+        with phase("gather"):
+            # each target reads its own (parent, slot) row: a unique gather, whose backward writes rows
+            return GatherUnique.apply(prod, index) if _training(prod) else prod.index_select(0, index)
     dtype = compute_dtype(features)
-    prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
-    torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
-    prod[m * s].zero_()
-    out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
-    return torch.index_select(prod, 0, index, out=out)
+    with phase("gemm"):
+        prod = workspace.take(owner, "products", (m * s + 1, o), dtype, features.device)
+        torch.mm(features.to(dtype), matrix.to(dtype), out=prod[: m * s].view(m, s * o))
+        prod[m * s].zero_()
+    with phase("gather"):
+        out = workspace.take(owner, "out", (index.numel(), o), dtype, features.device)
+        return torch.index_select(prod, 0, index, out=out)
 
 
 def _add_bias(out: Tensor, bias: Tensor | None, in_place: bool) -> Tensor:
     if bias is None:
         return out
-    return out.add_(bias) if in_place else out + bias
+    with phase("bn_relu"):
+        return out.add_(bias) if in_place else out + bias
+
+
+def subm_algorithm(algorithm: SubMAlgorithm, table: SubMTable, features: Tensor, weight: Tensor) -> SubMAlgorithm:
+    """The form :func:`subm_conv2d` runs: ``algorithm`` unless it is ``"auto"``, which takes ``"gemm"`` from
+    ``GEMM_MIN_FILL``, in bf16 (the one GEMM keeps every sum in fp32; the rulebook adds the offsets' bf16 products)
+    and wherever the product runs in oneDNN (whose GEMM is 2.2x MKL's on AMD CPUs; the rulebook's per-tap products
+    run in MKL), else ``"rulebook"``. ``detector.opcount`` asks it too, to count what runs."""
+    if algorithm != "auto":
+        return algorithm
+    if low_precision(features) or uses_onednn(features, weight):
+        return "gemm"
+    with phase("table"):
+        return "gemm" if table.fill >= GEMM_MIN_FILL else "rulebook"
 
 
 def subm_conv2d(
@@ -219,29 +255,35 @@ def subm_conv2d(
     n, c = features.shape
     o, _, kh, kw = weight.shape
     k = kh * kw
-    if algorithm == "auto":
-        # in bf16 the one GEMM also keeps every sum in fp32 (the rulebook adds the offsets' bf16 products)
-        # (and in oneDNN, whose GEMM is 2.2x MKL's on AMD CPUs: the rulebook's per-tap products run in MKL)
-        algorithm = ("gemm" if table.fill >= GEMM_MIN_FILL or low_precision(features) or uses_onednn(features, weight)
-                     else "rulebook")
+    algorithm = subm_algorithm(algorithm, table, features, weight)
     if algorithm == "gemm" and workspace is None and _training(features, weight):
         # training: the same product, with the backward that gathers (a mirrored SubM) instead of scatter-adding
-        out = SubMGemm.apply(features, weight, table.padded)
+        with phase("table"):
+            index = table.padded
+        with phase("gemm"):  # the gather runs inside the autograd function
+            out = SubMGemm.apply(features, weight, index)
     elif algorithm == "gemm":
-        out = gather_gemm(padded_rows(features, workspace, owner), table.padded, conv_matrix(weight), workspace, owner)
+        with phase("table"):
+            index = table.padded
+        out = gather_gemm(padded_rows(features, workspace, owner), index, conv_matrix(weight), workspace, owner)
     elif algorithm == "rulebook":
         # unbind: one view per tap whose backward stacks the K gradients once (slicing each tap out of the matrix
         # made every tap's backward fill and add a whole (O, K, C) gradient)
         taps = conv_matrix(weight).view(o, k, c).unbind(1)
         centre = k // 2
-        out = torch.mm(features, taps[centre].t())
-        in_rows, out_rows, counts = table.pairs()
+        with phase("gemm"):
+            out = torch.mm(features, taps[centre].t())
+        with phase("table"):
+            in_rows, out_rows, counts = table.pairs()
         if in_rows.numel():
-            gathered = features.index_select(0, in_rows)
+            with phase("gather"):
+                gathered = features.index_select(0, in_rows)
             others = [j for j in range(k) if j != centre]
-            parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
-            # in place into the fresh centre product (mm does not need its output for the backward)
-            out.index_add_(0, out_rows, torch.cat(parts, dim=0))
+            with phase("gemm"):
+                parts = [torch.mm(g, taps[j].t()) for g, j in zip(gathered.split(counts), others) if g.shape[0]]
+            with phase("scatter"):
+                # in place into the fresh centre product (mm does not need its output for the backward)
+                out.index_add_(0, out_rows, torch.cat(parts, dim=0))
     else:
         raise ValueError(f"unknown SubM algorithm {algorithm!r}")
     return _add_bias(out, bias, workspace is not None)
@@ -281,11 +323,13 @@ class SubMConv2d(SparseModule):
     def table(self, x: SparseTensor) -> SubMTable:
         """The neighbour table of ``x``'s sites for this kernel size (cached under ``indice_key`` if one is set)."""
         if self.indice_key is None:
-            return subm_table(x.coords, x.spatial_shape, x.lookup(), self.kernel_size)
+            with phase("table"):
+                return subm_table(x.coords, x.spatial_shape, x.lookup(), self.kernel_size)
         key = ("subm", self.indice_key, self.kernel_size)
         t = x.cache.get(key)
         if t is None:
-            t = subm_table(x.coords, x.spatial_shape, x.lookup(), self.kernel_size)
+            with phase("table"):
+                t = subm_table(x.coords, x.spatial_shape, x.lookup(), self.kernel_size)
             x.cache[key] = t
         return t
 
@@ -360,25 +404,28 @@ class SparseConv2d(SparseModule):
             raise ValueError(f"expected {self.in_channels} input channels, got {x.features.shape[1]}")
         k, s, c = self.kernel_size, self.stride, self.in_channels
         ws = inference_workspace(x.workspace)
-        if k != s:
-            t = wide_down_table(x.coords, x.spatial_shape, k, s)
-        else:
-            t = down_table(x.coords, x.spatial_shape, s, self.downsample)
         kk = k * k
-        algorithm = self.algorithm
-        if algorithm == "auto":
-            algorithm = "gemm" if k == s or t.fill(kk) >= GEMM_MIN_FILL else "rulebook"
+        with phase("table"):
+            if k != s:
+                t = wide_down_table(x.coords, x.spatial_shape, k, s)
+            else:
+                t = down_table(x.coords, x.spatial_shape, s, self.downsample)
+            algorithm = self.algorithm
+            if algorithm == "auto":
+                algorithm = "gemm" if k == s or t.fill(kk) >= GEMM_MIN_FILL else "rulebook"
+            index = t.gather_index(x.num_active, kk) if algorithm == "gemm" else None
         w = conv_matrix(self.weight)  # (O, k*k*C)
         m = t.out_coords.shape[0]
-        if algorithm == "gemm":
-            out = gather_gemm(padded_rows(x.features, ws, self), t.gather_index(x.num_active, kk), w, ws, self,
-                              unique=k == s)
+        if index is not None:
+            out = gather_gemm(padded_rows(x.features, ws, self), index, w, ws, self, unique=k == s)
         elif k == s:
-            f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
-            # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
-            # deterministic
-            buf = f.new_zeros(m * kk, c).index_put((t.out_rows * kk + t.slots,), f)
-            out = buf.view(m, kk * c) @ w.t()
+            with phase("scatter"):
+                f = x.features if t.in_rows.numel() == x.num_active else x.features.index_select(0, t.in_rows)
+                # each (output, slot) cell receives at most one input, so index_put (no accumulation) is exact and
+                # deterministic
+                buf = f.new_zeros(m * kk, c).index_put((t.out_rows * kk + t.slots,), f)
+            with phase("gemm"):
+                out = buf.view(m, kk * c) @ w.t()
         else:
             out = self._per_tap(x.features, t, w)
         out = _add_bias(out, self.bias, ws is not None)
@@ -388,20 +435,38 @@ class SparseConv2d(SparseModule):
         """The wide conv's rulebook: per tap, the products of its (input, output) pairs, added into the output rows."""
         kk = self.kernel_size**2
         taps = w.view(self.out_channels, kk, self.in_channels).unbind(1)  # one backward stack, not kk fills
-        order = torch.argsort(t.slots, stable=True)
-        counts = torch.bincount(t.slots, minlength=kk).tolist()
-        gathered = features.index_select(0, t.in_rows[order])
-        parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
+        with phase("table"):
+            order = torch.argsort(t.slots, stable=True)
+            counts = torch.bincount(t.slots, minlength=kk).tolist()
+        with phase("gather"):
+            gathered = features.index_select(0, t.in_rows[order])
+        with phase("gemm"):
+            parts = [g @ taps[j].t() for j, g in enumerate(gathered.split(counts)) if g.shape[0]]
         if not parts:
             return features.new_zeros(t.out_coords.shape[0], self.out_channels)
-        prods = torch.cat(parts, dim=0)  # bf16 under autocast
-        return prods.new_zeros(t.out_coords.shape[0], self.out_channels).index_add_(0, t.out_rows[order], prods)
+        with phase("scatter"):
+            prods = torch.cat(parts, dim=0)  # bf16 under autocast
+            return prods.new_zeros(t.out_coords.shape[0], self.out_channels).index_add_(0, t.out_rows[order], prods)
 
     def extra_repr(self) -> str:
         return (
             f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, stride={self.stride}, "
             f"bias={self.bias is not None}, downsample={self.downsample!r}"
         )
+
+
+def up_algorithm(algorithm: ConvAlgorithm, table: UpTable, num_coarse: int, stride: int, features: Tensor,
+                 matrix: Tensor) -> ConvAlgorithm:
+    """The form a transposed conv over ``table`` runs: ``algorithm`` unless it is ``"auto"``, which takes ``"gemm"``
+    wherever the product runs in oneDNN or at least ``UP_GEMM_MIN_FILL`` of the ``num_coarse * stride**2`` products
+    are needed, else ``"rulebook"``. ``detector.opcount`` asks it too, to count what runs."""
+    if algorithm != "auto":
+        return algorithm
+    if uses_onednn(features, matrix):
+        return "gemm"
+    with phase("table"):
+        needed = int((table.parent_rows >= 0).sum())
+    return "gemm" if needed >= UP_GEMM_MIN_FILL * num_coarse * stride * stride else "rulebook"
 
 
 class SparseConvTranspose2d(SparseModule):
@@ -449,28 +514,36 @@ class SparseConvTranspose2d(SparseModule):
         if s == 1 and target.coords is x.coords:
             # same site set: a plain 1x1 matmul
             dt = compute_dtype(x.features)
-            if uses_onednn(x.features, w):
-                out = linear_rows(x.features, w.t(), workspace=ws, owner=self)  # oneDNN (detector.ops.gemm)
+            if uses_onednn(x.features, w):  # oneDNN (detector.ops.gemm) at a bucketed row count
+                with phase("gather"):
+                    rows = row_buffer(x.num_active, c, x.features, ws, self)
+                    rows[: x.num_active].copy_(x.features)
+                with phase("gemm"):
+                    out = linear(rows, w.t())[: x.num_active]
             else:
-                out = train_linear(x.features, w.t()) if ws is None else torch.mm(
-                    x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
+                with phase("gemm"):
+                    out = train_linear(x.features, w.t()) if ws is None else torch.mm(
+                        x.features.to(dt), w.to(dt), out=ws.take(self, "out", (x.num_active, o), dt, w.device))
         else:
-            t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
-            algorithm = self.algorithm
-            if algorithm == "auto":
-                needed = int((t.parent_rows >= 0).sum())
-                algorithm = ("gemm" if needed >= UP_GEMM_MIN_FILL * x.num_active * s * s
-                             or uses_onednn(x.features, w) else "rulebook")
+            with phase("table"):
+                t = up_table(target.coords, x.spatial_shape, x.lookup(), s)
+            algorithm = up_algorithm(self.algorithm, t, x.num_active, s, x.features, w)
             if algorithm == "gemm":
-                out = gemm_gather(x.features, t.gather_index(x.num_active, s), w, o, ws, self)
+                with phase("table"):
+                    index = t.gather_index(x.num_active, s)
+                out = gemm_gather(x.features, index, w, o, ws, self)
             else:
                 slot_w = w.view(c, s * s, o).unbind(1)
-                rows, parents, counts = t.by_slot(s)
-                g = x.features.index_select(0, parents)
-                parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
-                y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
-                # targets without an active parent stay zero (+ bias)
-                out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
+                with phase("table"):
+                    rows, parents, counts = t.by_slot(s)
+                with phase("gather"):
+                    g = x.features.index_select(0, parents)
+                with phase("gemm"):
+                    parts = [gi @ slot_w[j] for j, gi in enumerate(g.split(counts)) if gi.shape[0]]
+                with phase("scatter"):
+                    y = torch.cat(parts, dim=0) if parts else g.new_zeros(0, o)
+                    # targets without an active parent stay zero (+ bias)
+                    out = y.new_zeros(target.num_active, o).index_copy(0, rows, y)
         out = _add_bias(out, self.bias, ws is not None)
         return target.replace_feature(out)
 

@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from detector.sparse.modules import SparseModule
+from detector.sparse.phases import phase
 from detector.sparse.tensor import SparseTensor
 from detector.sparse.workspace import inference_workspace
 
@@ -27,12 +28,14 @@ class SparseBatchNorm(nn.BatchNorm1d, SparseModule):
             # into the running buffers
             return x
         ws = inference_workspace(x.workspace)
-        if ws is None or self.training or self.running_mean is None or self.running_var is None:
-            return x.replace_feature(super().forward(x.features))
-        # inference into a reused buffer: batch_norm's own kernel (its out= form), so the values are the same
-        f = x.features
-        out = ws.take(self, "out", f.shape, f.dtype, f.device)
-        return x.replace_feature(batch_norm_into(self, f, out))
+        with phase("bn_relu"):
+            if ws is None or self.training or self.running_mean is None or self.running_var is None:
+                out = super().forward(x.features)
+            else:
+                # inference into a reused buffer: batch_norm's own kernel (its out= form), so the values are the same
+                f = x.features
+                out = batch_norm_into(self, f, ws.take(self, "out", f.shape, f.dtype, f.device))
+        return x.replace_feature(out)
 
 
 def batch_norm_into(norm: nn.modules.batchnorm._BatchNorm, x: Tensor, out: Tensor) -> Tensor:
@@ -51,7 +54,8 @@ class SparseReLU(SparseModule):
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         ws = inference_workspace(x.workspace)
-        if ws is None:
-            return x.replace_feature(F.relu(x.features))
         f = x.features
-        return x.replace_feature(torch.clamp_min(f, 0, out=ws.take(self, "out", f.shape, f.dtype, f.device)))
+        with phase("bn_relu"):
+            out = F.relu(f) if ws is None else torch.clamp_min(f, 0, out=ws.take(self, "out", f.shape, f.dtype,
+                                                                                 f.device))
+        return x.replace_feature(out)

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from detector.sparse.indices import SiteLookup, flat_keys
+from detector.sparse.phases import phase
 from detector.sparse.workspace import Workspace, inference_workspace
 
 
@@ -95,7 +96,8 @@ class SparseTensor:
         """``(N,)`` int64 flat site keys ``(b * H + iy) * W + ix`` (cached)."""
         k = self.cache.get("keys")
         if k is None:
-            k = flat_keys(self.coords, self.spatial_shape)
+            with phase("table"):
+                k = flat_keys(self.coords, self.spatial_shape)
             self.cache["keys"] = k
         return k
 
@@ -105,8 +107,9 @@ class SparseTensor:
         if lk is None:
             ws = inference_workspace(self.workspace)
             origin = self.cache.get("origin")
-            lk = SiteLookup(self.keys(), self.spatial_shape, self.batch_size,
-                            workspace=None if origin is None else ws, owner=origin)
+            with phase("table"):
+                lk = SiteLookup(self.keys(), self.spatial_shape, self.batch_size,
+                                workspace=None if origin is None else ws, owner=origin)
             self.cache["lookup"] = lk
         return lk
 
@@ -115,13 +118,14 @@ class SparseTensor:
         h, w = self.spatial_shape
         ws, origin = inference_workspace(self.workspace), self.cache.get("origin")
         keys = self.keys()
-        if ws is not None and origin is not None:
-            ones = torch.ones(1, dtype=torch.bool, device=keys.device).expand(keys.numel())
-            return ws.scatter(origin, "mask", (self.batch_size * h * w,), (keys,), ones, fill=False).view(
-                self.batch_size, h, w)
-        m = torch.zeros(self.batch_size * h * w, dtype=torch.bool, device=self.coords.device)
-        m[keys] = True
-        return m.view(self.batch_size, h, w)
+        with phase("scatter"):
+            if ws is not None and origin is not None:
+                ones = torch.ones(1, dtype=torch.bool, device=keys.device).expand(keys.numel())
+                return ws.scatter(origin, "mask", (self.batch_size * h * w,), (keys,), ones, fill=False).view(
+                    self.batch_size, h, w)
+            m = torch.zeros(self.batch_size * h * w, dtype=torch.bool, device=self.coords.device)
+            m[keys] = True
+            return m.view(self.batch_size, h, w)
 
     def dense(self, channels_first: bool = True) -> Tensor:
         """Zero-filled canvas ``(B, C, H, W)`` (or ``(B, H, W, C)`` with ``channels_first=False``).
@@ -153,6 +157,12 @@ def scatter_to_dense(
     the big canvas is made. With a ``workspace`` (inference) the canvas is ``owner``'s reused buffer, zero but for
     this call's sites (:meth:`Workspace.scatter`), valid until ``owner`` scatters again; keys must then be unique.
     """
+    with phase("scatter"):
+        return _scatter_to_dense(features, keys, spatial_shape, batch_size, channels_first, workspace, owner)
+
+
+def _scatter_to_dense(features: Tensor, keys: Tensor, spatial_shape: tuple[int, int], batch_size: int,
+                      channels_first: bool, workspace: Workspace | None, owner: object | None) -> Tensor:
     h, w = spatial_shape
     n, c = features.shape
     hw = h * w
