@@ -7,6 +7,7 @@ runs the command (a forked child, or ``python tests/helpers_faults.py SUFFIX -- 
 not changed.
 
     python tests/helpers_faults.py eval/epoch_001/metrics.json -- detector train --config ...
+    python tests/helpers_faults.py --stop .frames/000002.json -- mpchair generate ...   (stopped there instead)
 """
 
 from __future__ import annotations
@@ -26,9 +27,10 @@ def _under(dst, folder: Path | None) -> bool:
     return folder is None or Path(os.path.abspath(dst)).is_relative_to(Path(os.path.abspath(folder)))
 
 
-def kill_at_replace(when: int | str, folder: Path | None = None) -> None:
-    """From now on, SIGKILL this process just before the ``when``-th ``os.replace`` into ``folder`` (1-based) or
-    before the first whose destination ends with ``when`` (a path suffix)."""
+def kill_at_replace(when: int | str, folder: Path | None = None, sig: int = signal.SIGKILL) -> None:
+    """From now on, send this process ``sig`` (SIGKILL) just before the ``when``-th ``os.replace`` into ``folder``
+    (1-based) or before the first whose destination ends with ``when`` (a path suffix). With SIGSTOP the process
+    waits there, stopped, for the test to signal it (a Ctrl-C at that exact moment), then goes on."""
     real = os.replace
     count = 0
 
@@ -37,7 +39,7 @@ def kill_at_replace(when: int | str, folder: Path | None = None) -> None:
         if _under(dst, folder):
             count += 1
             if count == when or (isinstance(when, str) and str(dst).replace(os.sep, "/").endswith(when)):
-                os.kill(os.getpid(), signal.SIGKILL)
+                os.kill(os.getpid(), sig)
         return real(src, dst, *args, **kwargs)
 
     os.replace = replace
@@ -98,9 +100,11 @@ def tree(path: Path) -> dict[str, bytes]:
 
 
 def main(argv: list[str]) -> None:
-    """``SUFFIX -- mpchair|detector ARGS...``: run the CLI, SIGKILLed before the rename onto ``*SUFFIX``."""
+    """``[--stop] SUFFIX -- mpchair|detector ARGS...``: run the CLI, SIGKILLed (with ``--stop``: stopped with
+    SIGSTOP) before the rename onto ``*SUFFIX``."""
     sep = argv.index("--")
-    kill_at_replace(argv[0])
+    stop = argv[0] == "--stop"
+    kill_at_replace(argv[1 if stop else 0], sig=signal.SIGSTOP if stop else signal.SIGKILL)
     prog, args = argv[sep + 1], argv[sep + 2 :]
     if prog == "detector":
         from detector.cli import main as cli

@@ -113,17 +113,20 @@ def test_an_export_on_a_full_disk_names_the_folder_and_keeps_the_older_export(mo
             assert tree(disk) == older  # the older export as it was; no work folder, no lock file
 
 
-def test_a_full_tmpdir_under_a_deployed_eval_names_the_temporary_folder(model, tmp_path, tiny_disk):
-    """``eval --runtime onnxruntime`` exports the graph into a temporary folder under TMPDIR (``bench`` does the
-    same through the same helper): a full TMPDIR is one line naming the file there and saying so."""
+@pytest.mark.parametrize("command", ["eval", "bench"])
+def test_a_full_tmpdir_under_a_deployed_eval_names_the_temporary_folder(model, tmp_path, tiny_disk, command):
+    """``eval --runtime onnxruntime`` and ``bench --runtime onnxruntime`` export the graph into a temporary folder
+    under TMPDIR: a full TMPDIR is one line naming the file there and saying so (the third audit: no path)."""
     pytest.importorskip("onnxruntime")
     cfg, ckpt, data = model
     _fill(tiny_disk, 16 << 10)  # room for Python's probe of TMPDIR (a TMPDIR it cannot write is skipped), not the graph
-    res = subprocess.run([sys.executable, "-m", "detector.cli", "eval", "--config", cfg, "--data", data,
-                          "--checkpoint", ckpt, "--runtime", "onnxruntime", "--out", tmp_path / "ev"],
+    args = {"eval": ["--out", tmp_path / "ev"],
+            "bench": ["--split", "val", "--frames", "1", "--trials", "1", "--warmup", "0", "--no-progress"]}[command]
+    res = subprocess.run([sys.executable, "-m", "detector.cli", command, "--config", cfg, "--data", data,
+                          "--checkpoint", ckpt, "--runtime", "onnxruntime", "--threads", "1", *map(str, args)],
                          capture_output=True, text=True, timeout=600,
                          env={**os.environ, "TMPDIR": str(tiny_disk), "PYTHONPATH": str(ROOT)})
     line = _one_line(res.stderr)
-    assert res.returncode == 2 and line.startswith(f"error: {tiny_disk}/detector-eval-"), line
+    assert res.returncode == 2 and line.startswith(f"error: {tiny_disk}/detector-{command}-"), line
     assert "No space left on device (a temporary folder for the exported graphs: free space there or set TMPDIR" in line
     assert sorted(p.name for p in tiny_disk.iterdir()) == ["filler"] and not (tmp_path / "ev").exists()

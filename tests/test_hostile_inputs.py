@@ -32,6 +32,7 @@ def _one_line(err: str) -> str:
 @pytest.mark.parametrize("args, needle", [
     (["eval", "--config", "c.yaml", "--data", "d", "--threads", "100000"], "--threads"),
     (["stream-eval", "--config", "c.yaml", "--data", "d", "--threads", "0"], "--threads"),
+    (["stream-eval", "--config", "c.yaml", "--data", "d", "--threads", "100000"], "--threads"),
     (["stream-eval", "--config", "c.yaml", "--data", "d", "--repeats", str(10**20)], "--repeats"),
     (["stream-eval", "--config", "c.yaml", "--data", "d", "--warmup", "100000"], "--warmup"),
     (["bench", "--config", "c.yaml", "--threads", "100000"], "--threads"),
@@ -181,11 +182,14 @@ def test_status_on_odd_work_folders_is_one_line_or_skips_odd_lines(tmp_path, cap
 
     step = '{"kind": "step", "step": 1, "epoch": 0, "time_s": 0.5}\n'
     for name, config in (("zero", good.replace("batch_size: 2", "batch_size: 0")),
-                         ("yaml", "train: [1, 2\n"), ("fifo", good), ("dir", good)):
+                         ("yaml", "train: [1, 2\n"), ("fifo", good), ("dir", good), ("devzero", good)):
         work = _work_with_run(tmp_path / name, config, step)
         if name == "fifo":
             (work / "runs/dense/metrics.jsonl").unlink()
             os.mkfifo(work / "runs/dense/metrics.jsonl")
+        if name == "devzero":  # read whole, it grew ~1 GB/s (the third audit)
+            (work / "runs/dense/metrics.jsonl").unlink()
+            (work / "runs/dense/metrics.jsonl").symlink_to("/dev/zero")
         if name == "dir":
             (work / "runs/dense/metrics.jsonl").unlink()
             (work / "runs/dense/metrics.jsonl").mkdir()
@@ -350,6 +354,19 @@ def test_from_record_with_a_malformed_results_json_is_one_line(content, tmp_path
     code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
     line = _one_line(capsys.readouterr().err)
     assert code == 2 and "eval_dense/metrics.json" in line, line
+
+
+@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, '{"files": ' + "[" * 100_000])
+def test_from_record_with_a_record_json_nested_deep_is_one_line(text, tmp_path, capsys):
+    """``--from-record`` on a record whose record.json nests 100,000 deep (the third audit: a traceback): one line
+    naming the file, exit 2, and no work folder."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "record.json").write_text(text)
+    code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 2 and str(rec / "record.json") in line and "nested deeper than" in line, line
+    assert sorted(os.listdir(tmp_path)) == ["rec"]
 
 
 def test_a_checkpoint_of_another_format_says_so(tmp_path):

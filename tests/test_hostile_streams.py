@@ -137,3 +137,22 @@ def test_a_latency_out_of_range_is_one_line(tmp_path, capsys, latency):
     lines = err.strip().splitlines()
     assert code == 2 and lines == [f"error: --latency-ms must be >= 0 and at most 3.6e+06 (an hour), got "
                                    f"{float(latency)}"], err
+
+
+@pytest.mark.parametrize("command", sorted(READERS))
+def test_a_killed_recordings_temporaries_are_removed_by_the_next_recording(tmp_path, capsys, command):
+    """A killed ``view --mcap / --rerun`` (or ``stream-eval --mcap``) left its ``.OUT.<12 hex>.tmp`` (up to 15 MB,
+    never removed: the third audit); the next recording of the same file removes it. A user's file that only looks
+    like one (another name pattern) stays, byte for byte."""
+    pytest.importorskip("rerun" if "rerun" in command else "mcap")
+    data = small_stream(tmp_path / "st")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    name = READERS[command][2]
+    dead = out_dir / f".{name}.0123456789ab.tmp"  # a killed writer's: nobody holds its lock
+    dead.write_bytes(b"x" * 100_000)
+    mine = out_dir / f".{name}.draft.tmp"
+    mine.write_text("mine")
+    code, err, out = _read_with(command, data, out_dir, capsys)
+    assert code == 0 and out.stat().st_size > 0, err
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted([name, mine.name]) and mine.read_text() == "mine"

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 
 import pytest
-from helpers_detector import detector_cli, write_test_config
+from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
 
 from detector.infer import write_results
 from detector.train.run_folder import remove_stale_temps
@@ -202,6 +202,33 @@ def test_eval_never_replaces_a_data_folder_it_did_not_write(tmp_path):
     write_results(legacy, ["000001"], labels)
     assert sorted(os.listdir(legacy / "data")) == [MARKER, "000001.txt"]
     assert sorted(os.listdir(legacy)) == ["data"]
+
+
+@pytest.mark.parametrize("runtime", ["torch", "onnxruntime"])
+def test_eval_on_the_command_line_refuses_a_users_data_folder_before_any_work(tmp_path, capsys, runtime):
+    """The third audit's case as a user meets it: ``detector eval --out DIR`` replaced ``DIR/data/`` whole (a user's
+    ``DIR/data/raw/measurements.csv`` deleted). Now one line naming ``DIR/data``, exit 2, before the inference (or a
+    deployed runtime's export), and ``DIR`` holds what it held."""
+    import torch
+
+    from detector.checkpoint import Checkpoint, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    if runtime != "torch":
+        pytest.importorskip(runtime)
+    config = write_test_config(tmp_path / "slim.yaml")
+    torch.manual_seed(0)
+    ckpt = tmp_path / "w.pt"
+    save_checkpoint(ckpt, Checkpoint(model=build_model(load_experiment(config).model).state_dict()))
+    data = make_tiny_dataset(tmp_path / "ds", n_frames=2)
+    out = tmp_path / "ev"
+    before = _user_folder(out / "data")
+    code, _, err = detector_cli(["eval", "--config", config, "--data", data, "--checkpoint", ckpt, "--out", out,
+                                 "--runtime", runtime, "--threads", "1"], capsys)
+    line = _one_line(err)
+    assert code == 2 and line.startswith(f"error: {out / 'data'}: will not replace this folder"), line
+    assert _snapshot(out / "data") == before and os.listdir(out) == ["data"]
 
 
 # --- detector train --out ------------------------------------------------------------------------------------------

@@ -143,7 +143,13 @@ def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, prot
     if config is None or data is None or checkpoint is None:
         raise InputError("checkpoint mode needs --config, --data and --checkpoint")
     try:
-        from detector.infer import METRICS_FILES, RESULTS_SUBDIR, default_results_dir, evaluate_checkpoint
+        from detector.infer import (
+            METRICS_FILES,
+            RESULTS_SUBDIR,
+            check_results_dir,
+            default_results_dir,
+            evaluate_checkpoint,
+        )
     except ImportError as e:
         if e.name == "detector.infer":  # the module or the function is missing (not one of its own imports)
             raise InputError("checkpoint evaluation is not available in this build (detector.infer."
@@ -152,6 +158,7 @@ def _checkpoint_mode(config, data, checkpoint, split, out, device, threads, prot
     split = split or "val"
     out = out if out is not None else default_results_dir(checkpoint, split)
     check_writable(out, folder=True)  # before the inference, not after it
+    check_results_dir(out)  # and OUT/data is new or this command's own, before a deployed runtime's export too
     if deployed[:2] != ("torch", "fp32"):
         result = _deployed_mode(config, data, checkpoint, split, out, device, threads, protocol, *deployed)
     else:

@@ -12,7 +12,7 @@ import contextlib
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import NamedTuple, get_args
 
@@ -64,6 +64,7 @@ from detector.train.run_folder import (
     discard_start,
     load_or_build_database,
     missing_folders,
+    remove_empty_folders,
     shared_database,
     write_run_files,
 )
@@ -220,24 +221,19 @@ def train(
         database, new_database = load_or_build_database(frames, out / DATABASE_FILE, progress=progress)
     made = missing_folders(out)
     new_run = checkpoint is None and (bool(made) or not any(out.iterdir()))
-    discard = False
-    try:
-        with process_group(info, dev):
-            # One process per run folder (rank 0 writes for the job); the kernel drops the lock of a killed run.
-            with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
-                try:
-                    return _run(run, checkpoint, database, new_database)
-                except InputError:
-                    # Bad input only the loader meets (a NaN in a scan): a new run with no checkpoint yet leaves
-                    # nothing (its files now, under the lock; its folders once the lock file is gone).
-                    discard = info.is_main and new_run and not run.last_path.exists()
-                    if discard:
-                        discard_start(out)
-                    raise
-    finally:
-        for folder in made if discard else ():
-            with contextlib.suppress(OSError):
-                folder.rmdir()  # only if empty: a file anyone else put there keeps its folder
+    # The stack's callbacks run last, once the lock below is released (its file removed from the folder).
+    with contextlib.ExitStack() as after_lock, process_group(info, dev):
+        # One process per run folder (rank 0 writes for the job); the kernel drops the lock of a killed run.
+        with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
+            try:
+                return _run(run, checkpoint, database, new_database)
+            except InputError:
+                # Bad input only the loader meets (a NaN in a scan): a new run with no checkpoint yet leaves nothing
+                # (its files now, under the lock; the folders it made once the lock file is gone).
+                if info.is_main and new_run and not run.last_path.exists():
+                    discard_start(out)
+                    after_lock.callback(remove_empty_folders, made)
+                raise
 
 
 def _experiment(config: str | Path | ExperimentConfig, overrides: Mapping | None, *, epochs: int | None,
@@ -432,11 +428,11 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
                             world_size=run.info.world_size, total_steps=run.total_steps, last_good=run.last_path)
     parts.ddp.train()
     # leave=False: the epoch's line replaces its finished bar
-    bar = tqdm(total=run.steps_per_epoch, initial=at.step_in_epoch, desc=f"epoch {at.epoch + 1}/{tc.epochs}",
-               unit="step", disable=not run.show_bars, dynamic_ncols=True, leave=False)
     sums, steps, last_loss, stopped = ZERO_LOSSES, 0, None, False
     t_epoch = time.perf_counter()
-    try:  # closed on Ctrl-C too, so that the interrupt's message starts on a line of its own
+    # closed on Ctrl-C too, so that the interrupt's message starts on a line of its own
+    with tqdm(total=run.steps_per_epoch, initial=at.step_in_epoch, desc=f"epoch {at.epoch + 1}/{tc.epochs}",
+              unit="step", disable=not run.show_bars, dynamic_ncols=True, leave=False) as bar:
         for batch in rank_loader(keys, base, tc.num_workers, pin=pin_memory(settings.device)):
             if run.reached_max_steps(at.step) or run.out_of_time():
                 stopped = True
@@ -466,8 +462,6 @@ def _train_epoch(run: RunPlan, parts: ModelAndOptimiser, base: TrainingSet, at: 
             if run.info.is_main and saves.due():
                 _save(run, parts, at, run.last_path)
                 saves.saved()
-    finally:
-        bar.close()
     return _EpochPart(at=at, sums=sums, steps=steps, seconds=time.perf_counter() - t_epoch, stopped=stopped,
                       last_loss=last_loss)
 
@@ -498,18 +492,25 @@ def _save(run: RunPlan, parts: ModelAndOptimiser, at: Position, path: Path) -> N
             step_in_epoch=at.step_in_epoch, step=at.step, global_batch=run.global_batch, scheduler=parts.scheduler))
 
 
+@contextlib.contextmanager
+def _mode_kept(model: nn.Module) -> Iterator[nn.Module]:
+    """``model``, back in the training or eval mode it had when the block ends (however it ends)."""
+    was_training = model.training
+    try:
+        yield model
+    finally:
+        model.train(was_training)
+
+
 def _evaluate(run: RunPlan, model: nn.Module, at: Position, log: MetricsLog) -> None:
     """The evaluation of the weights after epoch ``at.epoch`` on the eval split (rank 0; the others wait): results
     under ``RUN/eval/epoch_NNN/``, the AP in the log and a line. Nothing when the dataset lacks the split."""
     if run.info.is_main and imageset_path(run.data_dir, run.eval_split).is_file():
         t_eval = time.perf_counter()
-        was_training = model.training
-        try:
+        with _mode_kept(model):  # the evaluation switches the model to eval mode; training goes on after it
             result = evaluate_model(model, run.cfg, run.data_dir, run.eval_split,
                                     run.out / "eval" / f"epoch_{at.epoch:03d}", device=run.device,
                                     progress=run.show_bars).to_json_dict()
-        finally:
-            model.train(was_training)
         log.eval(epoch=at.epoch, step=at.step, split=run.eval_split, result=result)
         run.say(validation_line(epoch=at.epoch, epochs=run.cfg.train.epochs, split=run.eval_split, result=result,
                                 classes=run.cfg.eval.classes, seconds=time.perf_counter() - t_eval))

@@ -14,6 +14,7 @@ barrier.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 from pathlib import Path
@@ -62,6 +63,14 @@ def missing_folders(out: Path) -> list[Path]:
             break
         missing.append(p)
     return missing
+
+
+def remove_empty_folders(folders: list[Path]) -> None:
+    """Remove each of ``folders`` (deepest first, as :func:`missing_folders` lists them) that is empty: a file anyone
+    else put there keeps its folder."""
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def discard_start(out: Path) -> None:

@@ -366,8 +366,11 @@ def _run(plan: _Plan, *, t0: float, fresh: bool, existed: bool) -> GenerateSumma
     tasks = [FrameTask(hp * req.frames + i, hid, i) for hp, hid in enumerate(req.houses) for i in range(req.frames)]
     mine = [tasks[g] for g in shard_frames(n_total, req.shard)]
     pending = [t for t in mine if not record_path(out, t.fid).is_file()]
-    fids = {t.fid for t in pending}
-    job.remove_temps(_frame_folders(out), owned=lambda name: name[1:7] in fids)  # this shard's frames' only
+    # Temps of every frame of this shard, done or not: under the shard's lock nothing else writes them (its workers
+    # died with the run that forked them), and a temp beside a finished frame would otherwise stay for good. Other
+    # shards' frames are left to their own runs.
+    shard_fids = {t.fid for t in mine}
+    job.remove_temps(_frame_folders(out), owned=lambda name: name[1:7] in shard_fids)
     resumed = len(mine) - len(pending)
     if pending:
         warm_up(plan.frame_settings.sensor)  # before forking: the workers inherit the loaded kernels
