@@ -38,7 +38,9 @@ reproduce-ablations: venv
 
 # Streaming AP (sAP) of make reproduce's trained models on a robot driving through held-out houses, at 768 x 512 and
 # 288 x 144 under 2 and 1 threads (docs/streaming.md); `make reproduce-stream SCALE=small` is a few-minute check. The
-# scripts are front-ends of reproduction/.
+# full scale writes its record (results JSON, commands.log, machine record) into docs/results-data/stream and
+# docs/streaming.md's results block from it; `tools/reproduce_stream.py --from-record docs/results-data/stream
+# --steps report` writes the block again from the record alone. The scripts are front-ends of reproduction/.
 reproduce-stream: venv
 	$(BIN)/python tools/reproduce_stream.py --scale $(SCALE)
 

@@ -105,8 +105,9 @@ def _recorded_bytes(out: Path, rel: str) -> bytes:
 
 
 #: Entries of the run record that another command owns and the record step carries over unchanged: the accuracy
-#: study's record and its summary (tools/accuracy_study.py writes docs/results-data/accuracy/ and accuracy.json).
-NESTED = ("accuracy", "accuracy.json")
+#: study's record and its summary (tools/accuracy_study.py writes docs/results-data/accuracy/ and accuracy.json) and
+#: the streaming run's record (tools/reproduce_stream.py's record step writes docs/results-data/stream/).
+NESTED = ("accuracy", "accuracy.json", "stream")
 
 
 def _legacy_record(folder: Path) -> set[str] | None:

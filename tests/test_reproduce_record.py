@@ -77,7 +77,10 @@ def test_the_record_keeps_the_reports_inputs_and_leaves_out_weights_frames_and_g
     (rec / "accuracy" / "record.json").write_text("{}\n")
     (rec / "accuracy" / "runs" / "last.pt").write_bytes(b"study checkpoint")
     (rec / "accuracy.json").write_text('{"splits": {}}\n')  # and the study's summary beside it
+    (rec / "stream").mkdir()  # and the streaming record (tools/reproduce_stream.py's record step)
+    (rec / "stream" / "record.json").write_text('{"files": []}\n')
     assert save_record(out, rec, "full", SCALES["full"], ["a note."]) == []
+    assert (rec / "stream" / "record.json").read_text() == '{"files": []}\n'
     assert (rec / "accuracy" / "runs" / "last.pt").read_bytes() == b"study checkpoint"
     assert (rec / "accuracy" / "record.json").read_text() == "{}\n"
     assert (rec / "accuracy.json").read_text() == '{"splits": {}}\n'

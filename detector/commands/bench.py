@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
 
@@ -46,6 +47,10 @@ from mpchair.core import limits
                    "--duration s and report CPU share, deadline misses, latency p50 / p95 and peak RSS.")
 @click.option("--duration", type=limits.FiniteFloat(0.0, 1e6), default=30.0, show_default=True,
               help="Seconds per row in --rate mode.")
+@click.option("--runs", type=click.IntRange(1, 100), default=1, show_default=True,
+              help="Run the whole bench this many times, each in a process of its own, one after another: every "
+                   "ratio reported as median [min-max] over the runs (the JSON's 'repeated'; the tables are the "
+                   "first run's).")
 @click.option("--json", "as_json", is_flag=True, help="Print the full result as JSON instead of the table.")
 @click.option("--json-out", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Also write the full result as JSON to this file (the table is still printed).")
@@ -55,7 +60,8 @@ from mpchair.core import limits
 def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...], split: str, frames: int, trials: int,
           warmup: int, device: str, threads: int | None, seed: int, peer: str | None, runtimes: tuple[str, ...],
           precisions: tuple[str, ...], calibration_split: str, calibration_frames: int, rate: float | None,
-          duration: float, as_json: bool, json_out: str | None, markdown: bool, no_progress: bool) -> None:
+          duration: float, runs: int, as_json: bool, json_out: str | None, markdown: bool,
+          no_progress: bool) -> None:
     """Per-component runtime (ms per frame) of one or more models, as the paper's Tables II / IV.
 
     \b
@@ -71,6 +77,8 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
     --runtime / --precision (each repeatable): every model x runtime x precision is one row, all interleaved per
     frame; a headline line compares the fastest sparse row with the fastest dense row (docs/deployment.md).
     --rate HZ --duration S: the CPU budget instead of the tables (each row alone, in its own process).
+    --runs N (>= 3 for a spread worth quoting): the same bench N times in separate processes; each ratio as the
+    median with its min-max over the runs (docs/benchmarks.md).
     Allocator: CPU timings depend on glibc's; compare with
       MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736 detector bench ...
     Example:
@@ -97,6 +105,19 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
             click.echo(f"warning: {warning}", err=True)
     variant = Variant(runtimes=runtimes or ("torch",), precisions=precisions or ("fp32",),
                       calibration_split=calibration_split, calibration_frames=calibration_frames)
+    if runs > 1:
+        from detector.bench.repeat import child_args, format_repeated, run_repeated
+
+        if rate is not None:
+            raise InputError("--runs repeats the runtime tables: drop --rate (the budget runs each row alone already)")
+        ctx = click.get_current_context()
+        result, rep, data = run_repeated(child_args(ctx.params, ctx.command.params, Path("run.json")), runs,
+                                         echo=lambda line: click.echo(line, err=True))
+        if json_out:
+            write_text(json_out, json.dumps(data, indent=2) + "\n")
+        click.echo(json.dumps(data, indent=2) if as_json else
+                   format_table(result, markdown=markdown) + "\n\n" + format_repeated(rep))
+        return
     if rate is not None:
         from detector.bench.budget import run_budget
         from detector.bench.report import format_budget

@@ -8,6 +8,10 @@ the 2.5th and 97.5th percentiles of all pairs' gaps pooled (seed-to-seed spread 
 spread the pool), the point estimate the mean over pairs of the gap on the whole test split. With one seed per model
 the interval holds frame resampling only, which the summary says (``seeds``).
 
+Frames that are not independent draws (the consecutive frames of one streaming episode see the same chairs) are
+resampled in groups: with ``groups`` each resample draws whole groups (episodes) with replacement and pools their
+frames, so the interval reflects how much the gap varies between episodes, not between neighbouring frames.
+
 AP is the KITTI protocol's (:func:`detector.eval.evaluate`, ``overall`` level, R40) or the reference's Open3D-ML mAP
 (:func:`detector.eval.evaluate_open3d_ml`), in percent.
 """
@@ -36,11 +40,20 @@ class GapEstimate:
     seeds: tuple[int, int]
     resamples: int
     frames: int
+    groups: int | None = None
 
     def to_json(self) -> dict:
         return {"mean": self.mean, "ci95": list(self.ci95), "pair_gaps": list(self.pair_gaps),
                 "seeds": {"a": self.seeds[0], "b": self.seeds[1]}, "resamples": self.resamples,
-                "frames": self.frames}
+                "frames": self.frames, **({} if self.groups is None else {"groups": self.groups})}
+
+    @classmethod
+    def from_json(cls, d: dict) -> GapEstimate:
+        """The estimate of :meth:`to_json`'s data."""
+        return cls(mean=float(d["mean"]), ci95=(float(d["ci95"][0]), float(d["ci95"][1])),
+                   pair_gaps=tuple(float(x) for x in d["pair_gaps"]), seeds=(int(d["seeds"]["a"]),
+                                                                              int(d["seeds"]["b"])),
+                   resamples=int(d["resamples"]), frames=int(d["frames"]), groups=d.get("groups"))
 
     def verdict(self, reference: float) -> str:
         """What the interval supports about the gap against ``reference`` (e.g. the paper's sparse - dense gap)."""
@@ -76,26 +89,34 @@ def open3d_ml_ap(cls: str, metric: str = "3d") -> APFunction:
 
 
 def bootstrap_gap(gt: Sequence[Labels], a: Sequence[Sequence[Labels]], b: Sequence[Sequence[Labels]],
-                  ap: APFunction, *, resamples: int = 200, seed: int = 0) -> GapEstimate:
+                  ap: APFunction, *, resamples: int = 200, seed: int = 0,
+                  groups: Sequence[Sequence[int]] | None = None) -> GapEstimate:
     """The gap ``AP(b) - AP(a)`` with its pooled paired-bootstrap 95 % interval (module docstring). ``gt[f]``: the
     ground truth of test frame f; ``a[i][f]`` / ``b[j][f]``: seed i of model A's / seed j of model B's detections
-    on it. Same arguments and seed, same result."""
+    on it; ``groups``: the frame indices of each group (e.g. a stream's episodes) that a resample draws whole (None:
+    every frame on its own). Same arguments and seed, same result."""
     n = len(gt)
     if n == 0 or not a or not b:
         raise ValueError("bootstrap_gap needs test frames and at least one seed of each model")
     if any(len(d) != n for d in (*a, *b)):
         raise ValueError("every seed's detections must cover every test frame")
+    if groups is not None and (not groups or sorted(i for g in groups for i in g) != list(range(n))):
+        raise ValueError("groups must split the test frames: every frame in exactly one group")
     full_a = [ap(gt, d) for d in a]
     full_b = [ap(gt, d) for d in b]
     pair_gaps = [fb - fa for fa in full_a for fb in full_b]
     rng = np.random.default_rng(seed)
     pooled = []
     for _ in range(resamples):
-        idx = rng.integers(0, n, n)
+        if groups is None:
+            idx = rng.integers(0, n, n)
+        else:
+            idx = [i for k in rng.integers(0, len(groups), len(groups)) for i in groups[k]]
         g = [gt[i] for i in idx]
         aps_a = [ap(g, [d[i] for i in idx]) for d in a]
         aps_b = [ap(g, [d[i] for i in idx]) for d in b]
         pooled += [fb - fa for fa in aps_a for fb in aps_b]
     lo, hi = (float(x) for x in np.percentile(pooled, [2.5, 97.5])) if pooled else (float("nan"), float("nan"))
     return GapEstimate(mean=float(np.mean(pair_gaps)), ci95=(lo, hi), pair_gaps=tuple(pair_gaps),
-                       seeds=(len(a), len(b)), resamples=resamples, frames=n)
+                       seeds=(len(a), len(b)), resamples=resamples, frames=n,
+                       groups=None if groups is None else len(groups))

@@ -15,12 +15,20 @@ Steps (each a list of exact ``mpchair`` / ``detector`` command lines, run as sub
     score     detector stream-eval    ego and raw from the saved outputs, replaying the measured latencies exactly
                                       (--results, --latency LOG); and the oracle (a perfect detector) at each
                                       measured median latency on the headline stream: what the latency alone costs
-    report    docs/streaming.md       the results section between its markers: the tables, the highest rate each
-                                      model keeps up with, the curves (PNG), the speed at which sparse overtakes dense
+    gaps      (in this process)       per setting, the sparse - dense sAP gap on the headline stream with its 95 %
+                                      interval over episodes (whole episodes resampled: reproduction.stream.gaps)
+    report    docs/streaming.md       the results section between its markers: the tables, the outcome per grid, what
+                                      sAP cannot see, the gaps, the highest rate each model keeps up with, the curves
+                                      (PNG), the speed at which sparse overtakes dense
+    record    docs/results-data/stream  the report's inputs (every summary and latency log, the gaps, the streams'
+                                      stream.json, commands.log, the held-out check) and the machine record
+                                      (reproduction.stream.record): the report can be written again from it alone
 
 A step whose outputs exist is skipped (``--force`` redoes it). ``--scale full`` (the default) replaces the results
-section of ``docs/streaming.md``; ``--scale small`` is a few-minute end-to-end check that writes
-``<work folder>/streaming.md`` instead. The trained models default to ``make reproduce``'s
+section of ``docs/streaming.md`` and the record ``docs/results-data/stream``; ``--scale small`` is a few-minute
+end-to-end check that writes ``<work folder>/streaming.md`` and ``<work folder>/record`` instead.
+``--from-record docs/results-data/stream --steps report`` writes the results section from the record alone (where
+there is no record yet, a block that says so and quotes no result). The trained models default to ``make reproduce``'s
 (``out/reproduce-full/runs/{dense,sparse}/last.pt``), and its dataset (``--dataset``) is what the streamed houses are
 checked against.
 """
@@ -30,6 +38,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -38,8 +47,26 @@ from mpchair.core.errors import InputError
 from reproduction.checkout import ROOT, require_checkout
 from reproduction.runner import REUSE_ENV, Runner
 from reproduction.steps import CONFIGS
-from reproduction.stream.report import houses_text, logged_text, plot_curves, results_section, write_section
-from reproduction.stream.results import check_houses, read_runs, stream_frames
+from reproduction.stream.gaps import gap_path, read_gap, stream_gap, write_gap
+from reproduction.stream.record import (
+    MAX_FILE_BYTES,
+    RECORD_JSON,
+    RecordPlan,
+    check_record_dest,
+    machine_record,
+    read_stream_record,
+    restore_stream_record,
+    save_stream_record,
+)
+from reproduction.stream.report import (
+    houses_text,
+    logged_text,
+    no_record_section,
+    plot_curves,
+    results_section,
+    write_section,
+)
+from reproduction.stream.results import house_check, read_runs, stream_frames
 from reproduction.stream.steps import COMMAND_STEPS, STEPS, StreamPlan
 from reproduction.stream.sweep import (
     GRIDS,
@@ -48,8 +75,8 @@ from reproduction.stream.sweep import (
     SCALES,
     THREADS,
     Scale,
+    eval_dir,
     settings,
-    stream_dir,
     sweep_points,
 )
 
@@ -95,6 +122,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="report file (default: docs/streaming.md for --scale full, <work folder>/streaming.md else)")
     p.add_argument("--note", action="append", default=[],
                    help="a sentence for the report's opening line, e.g. how the run deviated (repeatable)")
+    p.add_argument("--from-record", type=Path, default=None, metavar="DIR",
+                   help="write the report from a streaming record alone (the record step's folder, e.g. "
+                        "docs/results-data/stream; with --steps report); where DIR holds none yet, the block that "
+                        "says so")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="where the record step writes (default: docs/results-data/stream for --scale full, "
+                        "<work folder>/record otherwise)")
     p.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     return p
@@ -116,25 +150,43 @@ def _plan(args: argparse.Namespace, sc: Scale, steps: list[str], out: Path) -> S
                       force=args.force, dry_run=args.dry_run)
 
 
-def _report(args: argparse.Namespace, plan: StreamPlan) -> Path:
-    """Write the results section of the report (docs/streaming.md for the full scale) and its curves; its path."""
-    speeds, rates = _floats(args.speeds), _floats(args.rates)
-    runs = read_runs(plan.out, list(plan.points), list(plan.settings))
-    doc = args.docs or (ROOT / "docs" / "streaming.md" if args.scale == "full" else plan.out / "streaming.md")
-    img_dir = doc.parent / "img" / ("streaming" if args.scale == "full" else "streaming-" + args.scale)
-    figures = plot_curves(runs, plan.settings[0], speeds, rates, img_dir)
+def _record_plan(args: argparse.Namespace, plan: StreamPlan) -> RecordPlan:
+    """What the report and the record need of this invocation besides the work folder's files."""
+    return RecordPlan(scale=args.scale, sizes=plan.scale, grids=tuple(args.grids.split(",")),
+                      threads=tuple(int(t) for t in args.threads.split(",")), speeds=tuple(_floats(args.speeds)),
+                      rates=tuple(_floats(args.rates)), heldout_seed=plan.heldout_seed,
+                      checkpoints={m: _relative(c) for m, c in plan.checkpoints.items()}, notes=tuple(args.note))
+
+
+def _report(rec: RecordPlan, out: Path, doc: Path, dataset: Path, record: tuple[str, dict] | None = None) -> Path:
+    """Write the results section of ``doc`` from work folder ``out`` (a run's, or a record restored into it) and its
+    curves beside ``doc``; ``record``: the record's folder (as the docs name it) and machine record, named in the
+    opening note. ``doc``."""
+    speeds, rates = list(rec.speeds), list(rec.rates)
+    sets = settings(list(rec.grids), list(rec.threads))
+    points = sweep_points(speeds, rates)
+    runs = read_runs(out, points, sets)
+    img_dir = doc.parent / "img" / ("streaming" if rec.scale == "full" else "streaming-" + rec.scale)
+    figures = plot_curves(runs, sets[0], speeds, rates, img_dir)
     rel = {k: os.path.relpath(v, doc.parent) for k, v in figures.items()}
-    frames = stream_frames(plan.out, list(plan.points))
-    sc = plan.scale
-    check = check_houses(stream_dir(plan.out, *HEADLINE), args.dataset)
-    note = (f"Written by `tools/reproduce_stream.py --scale {args.scale}` ({len(check.streamed) if check else 0} "
+    frames = stream_frames(out, points)
+    check = house_check(out, dataset)
+    gaps = {s.name: g for s in sets if (g := read_gap(gap_path(out, s))) is not None}
+    sc = rec.sizes
+    made = ""
+    if record is not None:
+        name, machine = record
+        made = (f" Record: `{name}` (its machine.json: {machine.get('cpu')}, widest vector ISA "
+                f"{machine.get('widest_vector_isa')}, torch {machine.get('torch')}, written {machine.get('date_utc')} "
+                "UTC).")
+    note = (f"Written by `tools/reproduce_stream.py --scale {rec.scale}` ({len(check.streamed) if check else 0} "
             f"house(s) x {sc.episodes} episode(s), episodes cut at {sc.duration:g} s; frames per stream: "
-            + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {logged_text(plan.out / 'commands.log')}; "
+            + ", ".join(f"{k} {n}" for k, n in frames.items()) + f"; {logged_text(out / 'commands.log')}; "
             "latencies are this machine's under its load at the time, see the machine line). "
-            f"Models: {_relative(plan.checkpoints['dense'])} and {_relative(plan.checkpoints['sparse'])}, loaded "
-            "into each grid's model (conv weights do not depend on the grid)."
-            + "".join(" " + n.strip() for n in args.note) + "\n\n" + houses_text(check, plan.heldout_seed))
-    write_section(doc, results_section(runs, list(plan.settings), speeds, rates, rel, note))
+            f"Models: {rec.checkpoints.get('dense')} and {rec.checkpoints.get('sparse')}, loaded into each grid's "
+            "model (conv weights do not depend on the grid)." + made
+            + "".join(" " + n.strip() for n in rec.notes) + "\n\n" + houses_text(check, rec.heldout_seed))
+    write_section(doc, results_section(runs, sets, speeds, rates, rel, note, gaps))
     return doc
 
 
@@ -142,6 +194,26 @@ def _relative(path: Path) -> str:
     """``path`` relative to the checkout when it lies in it (the report reads the same on every machine)."""
     path = path.resolve()
     return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def run_gaps(plan: StreamPlan) -> None:
+    """The ``gaps`` step: per setting whose two models were scored on the headline stream, the sparse - dense sAP gap
+    with its 95 % interval over episodes (:mod:`reproduction.stream.gaps`; in this process, from the saved outputs
+    and latency logs)."""
+    for s in plan.settings:
+        target = gap_path(plan.out, s)
+        if not plan.todo("gaps", target):
+            continue
+        if plan.dry_run:
+            print(f"[gaps] {s.name}: episode bootstrap of the sparse - dense sAP gap -> {target}")
+            continue
+        need = [eval_dir(plan.out, *HEADLINE, s, m) / f for m in MODELS for f in ("latency.json", "outputs")]
+        if not all(p.exists() for p in need):
+            print(f"[gaps] {s.name}: not measured, skipped")
+            continue
+        t0 = time.perf_counter()
+        write_gap(plan.out, s, stream_gap(plan.out, s, resamples=plan.scale.gap_resamples))
+        print(f"[gaps] {s.name}: wrote {target} ({time.perf_counter() - t0:.0f} s)")
 
 
 def _check_args(args: argparse.Namespace) -> None:
@@ -167,6 +239,29 @@ def main(argv: list[str] | None = None) -> int:
     return run_script(lambda: _main(argv))
 
 
+def _from_record(args: argparse.Namespace, steps: list[str]) -> int:
+    """``--from-record DIR --steps report``: the results block written from the record alone, restored into a
+    temporary work folder (or ``--out``); where ``DIR`` holds no record yet, the block that says so."""
+    if set(steps) != {"report"}:
+        raise InputError("--from-record writes the report from a record: give --steps report")
+    record = args.from_record
+    name = _relative(record)
+    if not (record / RECORD_JSON).exists():
+        doc = args.docs or ROOT / "docs" / "streaming.md"
+        write_section(doc, no_record_section(name))
+        print(f"no streaming record at {record}: wrote the block that says so into {doc}")
+        return 0
+    rec, _, machine = read_stream_record(record)
+    with tempfile.TemporaryDirectory(prefix="reproduce-stream-record-") as tmp:
+        out = (args.out or Path(tmp)).resolve()
+        restored = restore_stream_record(record, out)
+        print(f"restored {len(restored)} file(s) of the record {record} into {out}")
+        doc = args.docs or (ROOT / "docs" / "streaming.md" if rec.scale == "full" else out / "streaming.md")
+        # the house check is the record's (house_check.json): no training dataset is read
+        print(f"wrote {_report(rec, out, doc, out / 'no-dataset', (name, machine))}")
+    return 0
+
+
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     require_checkout()  # it writes the clone's docs/: refused, in one line, anywhere else
@@ -174,11 +269,16 @@ def _main(argv: list[str] | None) -> int:
     if [s for s in steps if s not in STEPS]:
         raise InputError(f"unknown step(s) in {args.steps!r}; choose from {list(STEPS)}")
     _check_args(args)
+    if args.from_record is not None:
+        return _from_record(args, steps)
     sc = SCALES[args.scale]
     overrides = {k: getattr(args, k) for k in ("heldout_houses", "episodes", "duration", "repeats", "sweep_repeats")
                  if getattr(args, k) is not None}
     sc = dataclasses.replace(sc, **overrides)
     out = (args.out or ROOT / "out" / f"reproduce-stream-{args.scale}").resolve()
+    dest = args.record or (ROOT / "docs" / "results-data" / "stream" if args.scale == "full" else out / "record")
+    if "record" in steps:  # before any step runs: a --record folder that is not this step's is never replaced
+        check_record_dest(dest)
     out.mkdir(parents=True, exist_ok=True)
     r = Runner(args.dry_run, out / "commands.log")
     plan = _plan(args, sc, steps, out)
@@ -189,8 +289,17 @@ def _main(argv: list[str] | None) -> int:
                          "--dense-checkpoint / --sparse-checkpoint)")
     for run_step in COMMAND_STEPS:
         run_step(plan, r)
+    run_gaps(plan)
+    rec = _record_plan(args, plan)
+    machine = machine_record() if "record" in steps and not args.dry_run else None
     if "report" in steps and not args.dry_run:
+        doc = args.docs or (ROOT / "docs" / "streaming.md" if args.scale == "full" else plan.out / "streaming.md")
         # a report doc with one marker of the pair is an InputError naming it, and stays as it was
-        print(f"wrote {_report(args, plan)}")
+        print(f"wrote {_report(rec, out, doc, args.dataset, None if machine is None else (_relative(dest), machine))}")
+    if "record" in steps and not args.dry_run:
+        house_check(out, args.dataset)  # the held-out check goes into the record (a later report has no dataset)
+        for rel in save_stream_record(out, dest, rec, machine):
+            print(f"record: left out {rel} (over {MAX_FILE_BYTES >> 20} MB)")
+        print(f"wrote the streaming record {dest}")
     print(f"total time {(time.perf_counter() - t0) / 60:.1f} min ({args.scale} scale, steps {','.join(steps)})")
     return 0

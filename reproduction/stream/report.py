@@ -7,10 +7,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from detector.eval.bootstrap import GapEstimate
 from mpchair.core.atomic import atomic_open, write_text
 from mpchair.core.doctable import replace_block
 from mpchair.paper import ROBOT_CORES, TABLE_II
 from reproduction.runner import logged_commands
+from reproduction.stream.gaps import StreamGap
 from reproduction.stream.results import HouseCheck, RunKey, StreamSummary
 from reproduction.stream.sweep import HEADLINE, MODELS, MODES, Setting
 
@@ -210,17 +212,110 @@ def _sweep_lines(runs: Runs, axis: str, xs: list[float], setting: Setting, figur
     return lines
 
 
+#: What sAP cannot see, said in every results block (a property of the metric, true of any run).
+SAP_BLIND_SPOT = (
+    "What sAP cannot see: **latency below one sensor period.** A model that finishes a frame within the period is "
+    "scored against the next frame whatever its latency (staleness exactly one frame, {period:g} ms at {rate:g} Hz), "
+    "so every latency under the period gives the same sAP: sAP measures whether a model keeps up and how stale its "
+    "outputs are in whole frames, not how much faster than the period it is or how much CPU it leaves free (the "
+    "keeps-up table's).")
+
+
+def _keeps_up(ego: StreamSummary | None) -> bool | None:
+    """Whether a model kept up with the headline stream: 95 % of its frames within one sensor period (p95 latency at
+    most the period); None when not measured."""
+    if ego is None or ego.latency_ms.p95 is None:
+        return None
+    return ego.latency_ms.p95 <= 1000.0 / HEADLINE[1]
+
+
+def _ahead(dense: float | None, sparse: float | None) -> str:
+    if dense is None or sparse is None:
+        return "not scored"
+    return "dense" if dense > sparse else "sparse" if sparse > dense else "neither (level)"
+
+
+def outcome_lines(runs: Runs, settings: list[Setting]) -> list[str]:
+    """Per grid, under the first thread budget, on the headline stream: which model keeps up, and both models' raw
+    and ego sAP 3D with who is ahead (the outcome the tables hold, in words)."""
+    lines = []
+    budget = settings[0].threads if settings else None
+    for s in [s for s in settings if s.threads == budget]:
+        got = {(m, mode): runs.get((m, *HEADLINE, s.name, mode)) for m in MODELS for mode in MODES}
+        if any(v is None for v in got.values()):
+            continue
+        kept = []
+        for m in MODELS:
+            ego = got[(m, "ego")]
+            said = {True: "keeps up", False: "does not keep up", None: "was not timed"}[_keeps_up(ego)]
+            kept.append(f"{m} {said} (p95 {_f(ego.latency_ms.p95)} ms, {100 * ego.frames_processed:.0f} % of frames "
+                        "processed)")
+        sap = {k: v.ap() for k, v in got.items()}
+        lines.append(
+            f"- **{s.text}**: {'; '.join(kept)}. Raw sAP 3D dense {_f(sap[('dense', 'raw')], 2)} against sparse "
+            f"{_f(sap[('sparse', 'raw')], 2)} ({_ahead(sap[('dense', 'raw')], sap[('sparse', 'raw')])} ahead), ego "
+            f"sAP 3D dense {_f(sap[('dense', 'ego')], 2)} against sparse {_f(sap[('sparse', 'ego')], 2)} "
+            f"({_ahead(sap[('dense', 'ego')], sap[('sparse', 'ego')])} ahead).")
+    if not lines:
+        return []
+    v0, f0 = HEADLINE
+    return ["", f"Outcome on the headline stream ({v0:g} m/s, {f0:g} Hz; keeps up = p95 latency within the "
+            f"{1000 / f0:g} ms sensor period), per grid at {budget} thread{'s' * (budget != 1)}:", "", *lines]
+
+
+def blind_spot_lines(runs: Runs, settings: list[Setting]) -> list[str]:
+    """:data:`SAP_BLIND_SPOT`, with this run's evidence: each model and grid measured under several thread budgets
+    that all keep up, its raw sAP 3D at each latency."""
+    v0, f0 = HEADLINE
+    evidence = []
+    for grid in dict.fromkeys(s.grid for s in settings):
+        for m in MODELS:
+            kept = [(s, runs[(m, v0, f0, s.name, "raw")]) for s in settings if s.grid == grid
+                    and (m, v0, f0, s.name, "raw") in runs and _keeps_up(runs.get((m, v0, f0, s.name, "ego")))]
+            if len(kept) > 1:
+                evidence.append(f"{m} at {grid.replace('x', ' x ')} scores raw sAP 3D "
+                                + ", ".join(f"{_f(r.ap(), 2)} at {_f(r.latency_ms.median)} ms ({s.threads} "
+                                            f"thread{'s' * (s.threads != 1)})" for s, r in kept))
+    text = SAP_BLIND_SPOT.format(period=1000 / f0, rate=f0)
+    if evidence:
+        text += " In this run: " + "; ".join(evidence) + "."
+    return ["", text]
+
+
+def gap_lines(gaps: dict[str, StreamGap], settings: list[Setting]) -> list[str]:
+    """The sparse - dense sAP gap per setting and mode with its 95 % interval over episodes (whole episodes
+    resampled)."""
+    found = [(s, gaps[s.name]) for s in settings if s.name in gaps]
+    if not found:
+        return ["", "Sparse - dense sAP gap with an interval over episodes: not computed in this run (the gaps step)."]
+    first = found[0][1]
+
+    def cell(g: GapEstimate | None) -> str:
+        if g is None:
+            return "n/a"
+        lo, hi = g.ci95
+        return f"{g.mean:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+
+    rows = [f"| {s.text} | {cell(g.gaps.get('raw'))} | {cell(g.gaps.get('ego'))} |" for s, g in found]
+    return ["", f"Sparse - dense sAP gap ({first.metric.upper()} R40, points) on the headline stream, with its 95 % "
+            f"interval over episodes: {first.resamples} resamples of the {first.episodes} episodes ({first.frames} "
+            "frames), whole episodes drawn with replacement, the same ones for both models (an interval that holds "
+            "0: the two models cannot be told apart on these episodes):", "",
+            "| grid, threads | raw sAP gap [95 % CI] | ego sAP gap [95 % CI] |", "|---|---|---|", *rows]
+
+
 def results_section(runs: Runs, settings: list[Setting], speeds: list[float], rates: list[float],
-                    figures: dict[str, str], note: str) -> str:
+                    figures: dict[str, str], note: str, gaps: dict[str, StreamGap] | None = None) -> str:
     """The markdown between the markers: ``runs[(model, speed, rate, setting name, mode)]`` = stream-eval summaries;
     ``settings``: headline first; ``figures``: the curves' paths relative to the page, by axis; ``note``: the opening
-    lines."""
+    lines; ``gaps``: the episode-bootstrap gaps by setting name."""
     v0, f0 = HEADLINE
     lines = [note, "", f"Headline stream: {v0:g} m/s, {f0:g} Hz, every setting (Chair, AP R40 in percent over every "
              "labelled chair, IoU 0.5; sAP = streaming AP; the offline AP is each grid's, whatever the threads):", "",
              "| model | grid, threads | offline AP 3D / BEV | sAP raw 3D / BEV | sAP ego 3D / BEV | latency median / "
              "p95 (ms) | staleness mean / p95 (ms) | staleness mean / p95 (frames) | frames processed |",
              "|---|---|---|---|---|---|---|---|---|", *_headline_rows(runs, settings),
+             *outcome_lines(runs, settings), *blind_spot_lines(runs, settings), *gap_lines(gaps or {}, settings),
              *_keep_up_lines(runs, settings), *_machine_lines(runs)]
     for axis, xs in (("speed", speeds), ("rate", rates)):
         lines += _sweep_lines(runs, axis, xs, settings[0], figures.get(axis))
@@ -269,3 +364,16 @@ def write_section(doc: Path, section: str) -> None:
     if BEGIN not in text and END not in text:
         text = text.rstrip("\n") + ("\n\n" if text else "") + f"{BEGIN}\n{END}\n"
     write_text(doc, replace_block(text, BEGIN, END, section, doc))
+
+
+def no_record_section(record: str) -> str:
+    """The results block where no streaming record exists (``record``: its folder as the docs name it): it says so and
+    how a quiet session fills it, and quotes no result."""
+    v0, f0 = HEADLINE
+    return "\n".join([
+        f"**No record yet.** `{record}` holds no streaming record, so this block quotes no result. A session on an "
+        "otherwise idle machine (the latencies are measured, not simulated) fills it with `make reproduce-stream` "
+        "(after `make reproduce`, whose trained models it streams): its record step writes the results JSON, the "
+        f"command log and the machine record into `{record}` and this block from them; "
+        f"`tools/reproduce_stream.py --from-record {record} --steps report` writes the block again from the record "
+        "alone.", "", SAP_BLIND_SPOT.format(period=1000 / f0, rate=f0)]) + "\n"

@@ -10,7 +10,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detector.device import Machine
+from mpchair.core.atomic import write_text
+from mpchair.core.errors import InputError
+from mpchair.core.text import load_json
 from mpchair.dataset.manifest import read_manifest
+from reproduction.checkout import ROOT
 from reproduction.stream.sweep import HEADLINE, MODELS, MODES, Setting, eval_dir, stream_dir, stream_name
 
 #: (model or ``oracle@<model>``, speed m/s, rate Hz, setting name, mode ``raw`` / ``ego``) of one scored run.
@@ -130,6 +134,16 @@ class HouseCheck:
     overlap: tuple[str, ...]
     dataset: Path | None
 
+    def to_json(self) -> dict:
+        return {"streamed": list(self.streamed), "trained": list(self.trained), "overlap": list(self.overlap),
+                "dataset": None if self.dataset is None else str(self.dataset)}
+
+    @classmethod
+    def from_json(cls, d: dict) -> HouseCheck:
+        """The check of :meth:`to_json`'s data."""
+        return cls(streamed=tuple(d["streamed"]), trained=tuple(d["trained"]), overlap=tuple(d["overlap"]),
+                   dataset=None if d.get("dataset") is None else Path(d["dataset"]))
+
 
 def trained_houses(dataset: Path) -> dict[str, dict[str, str]] | None:
     """{house id: {file: sha256}} of the houses of ``mpchair generate``'s dataset folder that have a frame in its
@@ -164,3 +178,35 @@ def check_houses(stream: Path, dataset: Path) -> HouseCheck | None:
     overlap = tuple(h for h in streamed if h in trained
                     or frozenset((houses[h].get("files_sha256") or {}).values()) in same_files)
     return HouseCheck(streamed, tuple(trained), overlap, dataset)
+
+
+#: The held-out check as the report made it (kept in the record: a later report has no training dataset to check).
+HOUSE_CHECK_JSON = "house_check.json"
+
+
+def house_check(out: Path, dataset: Path) -> HouseCheck | None:
+    """:func:`check_houses` of work folder ``out``'s headline stream against ``dataset`` when both are there (and
+    written to ``out/house_check.json`` for the record), else the check a run made before (restored from a record),
+    else None."""
+    saved = out / HOUSE_CHECK_JSON
+    stream = stream_dir(out, *HEADLINE)
+    if (stream / "stream.json").is_file() and ((dataset / "manifest.json").is_file() or not saved.is_file()):
+        check = check_houses(stream, dataset)
+        if check is not None:
+            d = check.to_json()
+            if check.dataset is not None:
+                d["dataset"] = _relative(check.dataset)
+            write_text(saved, json.dumps(d, indent=1) + "\n")
+        return check
+    if saved.is_file():
+        try:
+            return HouseCheck.from_json(load_json(saved, "held-out house check"))
+        except (AttributeError, KeyError, TypeError) as e:
+            raise InputError(f"not a held-out house check ({type(e).__name__}: {e})", saved) from None
+    return None
+
+
+def _relative(path: Path) -> str:
+    """``path`` relative to the checkout when it lies in it (a record reads the same in every clone)."""
+    path = path.resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)

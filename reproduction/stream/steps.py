@@ -16,7 +16,7 @@ from reproduction.steps import house_ids
 from reproduction.stream.results import read_summary
 from reproduction.stream.sweep import GRIDS, HEADLINE, MODELS, MODES, Scale, Setting, eval_dir, stream_dir
 
-STEPS = ("houses", "streams", "measure", "score", "report")
+STEPS = ("houses", "streams", "measure", "score", "gaps", "report", "record")
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,8 @@ def settings(grids: list[str], threads: list[int]) -> list[Setting]:
 @dataclasses.dataclass(frozen=True)
 class Scale:
     """Sizes of one scale: held-out houses synthesized for the streams, episodes per house, episode cap (s), latency
-    repeats on the headline stream and on the sweep's other streams, warm-up runs."""
+    repeats on the headline stream and on the sweep's other streams, warm-up runs, and the episode resamples of the
+    gaps step's intervals."""
 
     heldout_houses: int
     episodes: int
@@ -53,10 +54,11 @@ class Scale:
     repeats: int
     sweep_repeats: int
     warmup: int
+    gap_resamples: int = 200
 
 
 SCALES = {
-    "small": Scale(heldout_houses=1, episodes=1, duration=8.0, repeats=1, sweep_repeats=1, warmup=2),
+    "small": Scale(heldout_houses=1, episodes=1, duration=8.0, repeats=1, sweep_repeats=1, warmup=2, gap_resamples=20),
     # the protocol's 5 episodes per house (12 s each, look-around included: ~1,200 frames at 10 Hz on 2 houses) and
     # median of 3 repeats on the headline stream; the sweep's other streams time 1 run per processed frame (a model
     # that cannot keep up is busy for the whole stream on every repeat: docs/streaming.md, "Departures"). 12 s, not
