@@ -19,27 +19,18 @@ from __future__ import annotations
 
 import hashlib
 import json
-import platform
 from pathlib import Path
-
-from mpchair.core.blas import _cpu_flags
 
 
 def cpu_description() -> str:
     """The CPU in a few words (model name and its widest vector ISA), for the record's notes."""
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    flags = _cpu_flags()
+    from detector.deploy.cpu import cpu_flags
+    from detector.device import cpu_model
+
+    flags = cpu_flags()
     isa = ("AVX512-BF16" if "avx512_bf16" in flags else "AVX-512" if "avx512f" in flags
            else "AVX2 only" if "avx2" in flags else "no AVX2")
-    return f"{model} ({isa})"
+    return f"{cpu_model()} ({isa})"
 
 
 def dataset_parts(dataset: Path) -> dict[str, str]:
