@@ -156,3 +156,19 @@ def test_a_killed_recordings_temporaries_are_removed_by_the_next_recording(tmp_p
     code, err, out = _read_with(command, data, out_dir, capsys)
     assert code == 0 and out.stat().st_size > 0, err
     assert sorted(p.name for p in out_dir.iterdir()) == sorted([name, mine.name]) and mine.read_text() == "mine"
+
+
+@pytest.mark.parametrize("command", sorted(READERS))
+def test_every_stream_reader_refuses_a_stream_file_nested_deep_with_one_line(tmp_path, capsys, command):
+    """The third audit: ``stream.json`` nested 100,000 levels deep ended each reader in a RecursionError traceback.
+    Through the command line now: one line naming the file, exit 2, no recording and no temporary."""
+    pytest.importorskip("rerun" if "rerun" in command else "mcap")
+    data = small_stream(tmp_path / "st")
+    (data / "stream.json").write_text('{"rate_hz": 10, "sequences": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    code, err, _ = _read_with(command, data, out_dir, capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0] == f"error: {data / 'stream.json'}: nested deeper than 64 levels", err
+    assert list(out_dir.iterdir()) == []

@@ -296,3 +296,35 @@ def test_an_export_whose_weights_lie_outside_its_folder_is_refused_and_nan_weigh
     _onnx_with_external_weights(nan, [float("nan"), 1.0])
     with pytest.warns(UserWarning, match="NaN or infinite values"):
         verify_export(nan, "onnx", ["model.onnx", "weights.bin"])
+
+
+def test_an_export_of_all_nan_weights_warns_in_one_line_naming_the_export(tmp_path, capsys):
+    """The third audit: ``detector export`` of a checkpoint whose weights are all NaN wrote the graph without a word.
+    Through the command line: the export is written (exit 0, a ``wrote`` line: the graph is a valid graph), followed
+    by one ``warning:`` line naming the folder asked for (not the hidden work folder) and the NaN weights."""
+    pytest.importorskip("onnx")
+    import torch
+
+    from detector.checkpoint import Checkpoint, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    config = write_test_config(tmp_path / "slim.yaml")
+    weights = build_model(load_experiment(config).model).state_dict()
+    nan = {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in weights.items()}
+    ckpt = tmp_path / "nan.pt"
+    save_checkpoint(ckpt, Checkpoint(model=nan))
+    out = tmp_path / "exported"
+    code, stdout, err = detector_cli(["export", "--config", config, "--checkpoint", ckpt, "--format", "onnx",
+                                      "--out", out], capsys)
+    lines = err.strip().splitlines()
+    assert code == 0 and stdout.startswith(f"wrote {out}/") and len(lines) == 1, (stdout, err)
+    assert lines[0].startswith(f"warning: {out}: the exported weights hold NaN or infinite values ("), err
+    assert sorted(os.listdir(out)) == [MARKER, "deploy.json", "model.onnx"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".exported.work")]
+
+    finite = tmp_path / "finite"  # the same export of finite weights: no warning (the line above is the NaNs')
+    save_checkpoint(ckpt, Checkpoint(model=weights))
+    code, _, err = detector_cli(["export", "--config", config, "--checkpoint", ckpt, "--format", "onnx",
+                                 "--out", finite], capsys)
+    assert code == 0 and err == "", err
