@@ -8,15 +8,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
+import signal
 from pathlib import Path
 
 import pytest
 from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
+from helpers_faults import kill_at_swap, run_forked
 
 from detector.infer import write_results
 from detector.train.run_folder import remove_stale_temps
 from mpchair.core.errors import InputError
-from mpchair.core.owned import MARKER, check_replaceable, read_marker, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import (MARKER, check_replaceable, clear_leftovers, read_marker, remove_leftovers,
+                                replace_folder, work_dir)
 from mpchair.kitti import Labels
 from reproduction.cli import main as reproduce_main
 from reproduction.record import RECORD_JSON, RecordError, save_record
@@ -94,6 +98,37 @@ def test_leftovers_of_a_killed_run_are_removed_only_when_marked_as_the_commands(
     assert other.is_dir() and _snapshot(users) == before
 
 
+
+@pytest.mark.parametrize("moment", ["before", "after", "between"])
+def test_a_replace_killed_at_its_swap_leaves_a_complete_folder_and_the_next_run_clears_up(tmp_path, moment):
+    """SIGKILL at the final swap (issue 47: an export killed in its final rename left ``.OUT.old<pid>`` and
+    ``.OUT.work*`` for good, and OUT briefly did not exist). Before or after the exchange, OUT holds the old or the
+    new folder, complete; where the file system lacks the exchange and the kill lands between its two renames, OUT is
+    missing until the next run puts the old folder back. Either way the next run leaves OUT complete and removes the
+    command's leftovers, and only those (a user's ``.out.old7`` stays)."""
+    out = tmp_path / "out"
+    replace_folder(_stage(tmp_path, "out", {"a.txt": "old"}), out, "cmd")
+    old = _snapshot(out)
+    users = tmp_path / ".out.old7"
+    mine = _user_folder(users)
+    stage = _stage(tmp_path, "out", {"a.txt": "new", "b.txt": "new"})
+    status = run_forked(lambda: (kill_at_swap(moment), replace_folder(stage, out, "cmd")))
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, status
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".out.") and p != users)
+    if moment == "between":
+        assert not out.exists() and len(left) == 2 and re.fullmatch(r"\.out\.old\d+", left[0]), left
+    else:
+        assert left == [stage.name] and read_marker(out)["files"] == (["a.txt"] if moment == "before" else
+                                                                     ["a.txt", "b.txt"])
+    new = _snapshot(out) if moment == "after" else None
+
+    clear_leftovers(out, "cmd")  # what the next run does first, under the output's lock
+    assert _snapshot(out) == (new if moment == "after" else old)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out.")] == [users.name]
+    assert _snapshot(users) == mine
+    replace_folder(_stage(tmp_path, "out", {"c.txt": "next"}), out, "cmd")
+    assert read_marker(out)["files"] == ["c.txt"] and (out / "c.txt").read_text() == "next"
+
 # --- tools/reproduce.py --steps record -----------------------------------------------------------------------------
 
 
@@ -170,11 +205,16 @@ def test_export_replaces_only_its_own_folder_follows_a_symlink_and_clears_a_kill
 
     killed = work_dir(tmp_path, ".exported.work", "detector export")  # what an export killed mid-way leaves
     (killed / "fp32.onnx").write_bytes(b"x" * 1000)
+    swap = work_dir(tmp_path, ".exported.work", "detector export")  # and one killed inside its final swap, on a
+    (swap / "model.onnx").write_bytes(b"y" * 1000)                  # file system without RENAME_EXCHANGE
+    status = run_forked(lambda: (kill_at_swap("between"), replace_folder(swap, out, "detector export")))
+    assert os.WIFSIGNALED(status) and not out.exists()  # the older export waits at .exported.old<pid>
     not_ours = tmp_path / ".exported.old123"
     not_ours.mkdir()
     (not_ours / "keep.txt").write_text("mine")
     code, stdout, _ = export(out)
     assert code == 0 and "wrote" in stdout and not killed.exists() and (not_ours / "keep.txt").is_file()
+    assert sorted(os.listdir(out)) == [MARKER, "deploy.json", "model.onnx"]
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".exported")) == [".exported.old123"]
 
     link = tmp_path / "link"

@@ -30,7 +30,7 @@ from detector.deploy.extra import require
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
-from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import check_replaceable, clear_leftovers, replace_folder, work_dir
 
 MANIFEST = "deploy.json"
 #: The command named in the export folder's ownership marker.
@@ -109,7 +109,7 @@ def export_folder(config: str | Path, checkpoint: str | Path | None, fmt: str, o
     check_output(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with folder_lock(out.parent / f".{out.name}.export.lock", "detector export", folder=out):
-        remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), COMMAND, legacy=_legacy_export)
+        clear_leftovers(out, COMMAND, legacy=_legacy_export)
         try:
             work = work_dir(out.parent, f".{out.name}.work", COMMAND)
             try:
