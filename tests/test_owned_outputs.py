@@ -224,6 +224,31 @@ def test_export_replaces_only_its_own_folder_follows_a_symlink_and_clears_a_kill
     assert link.is_symlink() and sorted(p.name for p in link.iterdir()) == [MARKER, "deploy.json", "model.onnx"]
 
 
+
+def test_a_second_export_on_a_busy_folder_names_that_folder(tmp_path, capsys, monkeypatch):
+    """The third audit: the export lock's error named ``.`` (the lock's folder) instead of OUT. A live second process
+    holds ``detector export``'s lock of ``exp`` (a relative ``--out``, as a user types it): the export is refused
+    with one line naming ``exp`` and the holder, exit 2, and writes nothing."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("onnx")
+    monkeypatch.chdir(tmp_path)
+    config = write_test_config(tmp_path / "slim.yaml")
+    hold = ("import sys; from mpchair.core.lock import folder_lock\n"
+            "with folder_lock('.exp.export.lock', 'detector export', folder='exp'):\n"
+            "    print('held', flush=True); sys.stdin.read()")
+    holder = subprocess.Popen([sys.executable, "-c", hold], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    try:
+        assert holder.stdout.readline() == "held\n"
+        code, _, err = detector_cli(["export", "--config", config, "--format", "onnx", "--out", "exp"], capsys)
+    finally:
+        holder.communicate("")
+    assert code == 2 and _one_line(err).startswith(f"error: exp: another detector export is writing this folder "
+                                                   f"(pid {holder.pid})"), err
+    assert not (tmp_path / "exp").exists()
+
 # --- detector eval's OUT/data --------------------------------------------------------------------------------------
 
 
