@@ -172,3 +172,29 @@ def test_every_stream_reader_refuses_a_stream_file_nested_deep_with_one_line(tmp
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert lines[0] == f"error: {data / 'stream.json'}: nested deeper than 64 levels", err
     assert list(out_dir.iterdir()) == []
+
+
+def test_the_picture_of_a_frame_refuses_a_nan_point_with_one_line(tmp_path, capsys):
+    """The third audit's NaN scan points passed ``mpchair view`` itself too (the bird's-eye PNG of one frame): now one
+    line naming the scan, exit 2, no picture; the same frame without the NaN is drawn."""
+    from mpchair.cli import main as mpchair_main
+
+    data = small_stream(tmp_path / "st")
+    png = tmp_path / "frame.png"
+
+    def view() -> tuple[int, str]:
+        with pytest.raises(SystemExit) as e:
+            mpchair_main(["view", str(data), "--sequence", "00", "--frame", "1", "--out", str(png)])
+        return e.value.code, capsys.readouterr().err
+
+    code, err = view()
+    assert code == 0 and png.stat().st_size > 0, err
+    png.unlink()
+    scan = data / "sequences" / "00" / "velodyne" / "000001.bin"
+    points = read_velodyne(scan)
+    points[3, 2] = np.nan
+    write_velodyne(scan, points)
+    code, err = view()
+    assert code == 2 and err.strip().splitlines() == [
+        f"error: {scan}: point 3 has a non-finite z (nan); a scan holds finite x, y, z, reflectance"], err
+    assert not png.exists() and not list(tmp_path.glob(".frame.png.*"))
