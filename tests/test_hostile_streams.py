@@ -60,14 +60,17 @@ READERS = {
     "stream-eval": ("detector", ["stream-eval", "--data", "{data}", "--oracle", "--latency-ms", "0", "--quiet",
                                  "--mcap"], "out.mcap"),
 }
+#: The picture of one frame of a stream (``mpchair view --out``), which reads that frame's scan alone.
+PICTURE = {"view --out": ("mpchair", ["view", "{data}", "--sequence", "00", "--frame", "1", "--out"], "frame.png")}
 
 
 def _read_with(command: str, data: Path, out_dir: Path, capsys) -> tuple[int, str, Path]:
-    """Run ``command`` of :data:`READERS` on the stream ``data`` in this process: ``(exit status, stderr, output)``."""
+    """Run ``command`` of :data:`READERS` or :data:`PICTURE` on the stream ``data`` in this process: ``(exit status,
+    stderr, output)``."""
     from detector.cli import main as detector_main
     from mpchair.cli import main as mpchair_main
 
-    prog, args, name = READERS[command]
+    prog, args, name = {**READERS, **PICTURE}[command]
     out = out_dir / name
     with pytest.raises(SystemExit) as e:
         (mpchair_main if prog == "mpchair" else detector_main)([a.format(data=data) for a in args] + [str(out)])
@@ -90,11 +93,13 @@ def test_every_stream_reader_refuses_the_same_rate(tmp_path, capsys, command, ra
     assert list(out_dir.iterdir()) == []  # no recording, no temporary
 
 
-@pytest.mark.parametrize("command", sorted(READERS))
+@pytest.mark.parametrize("command", sorted(READERS) + sorted(PICTURE))
 def test_every_stream_reader_reads_the_sane_stream_and_refuses_a_nan_point(tmp_path, capsys, command):
-    """The same small stream is read whole by each command (so the refusals above are the rate's); with one NaN in a
-    scan each refuses it with one line naming that scan (NaN points passed ``view`` and ``stream-eval`` before)."""
-    pytest.importorskip("rerun" if "rerun" in command else "mcap")
+    """The same small stream is read whole by each command (so the refusals above are the rate's), and its frame 1
+    drawn by ``view --out``; with one NaN in that frame's scan each refuses it with one line naming that scan (NaN
+    points passed ``view`` and ``stream-eval`` before), and writes no output."""
+    if command in READERS:
+        pytest.importorskip("rerun" if "rerun" in command else "mcap")
     data = small_stream(tmp_path / "st")
     code, err, out = _read_with(command, data, tmp_path, capsys)
     assert code == 0 and out.stat().st_size > 0, err
@@ -173,28 +178,3 @@ def test_every_stream_reader_refuses_a_stream_file_nested_deep_with_one_line(tmp
     assert lines[0] == f"error: {data / 'stream.json'}: nested deeper than 64 levels", err
     assert list(out_dir.iterdir()) == []
 
-
-def test_the_picture_of_a_frame_refuses_a_nan_point_with_one_line(tmp_path, capsys):
-    """The third audit's NaN scan points passed ``mpchair view`` itself too (the bird's-eye PNG of one frame): now one
-    line naming the scan, exit 2, no picture; the same frame without the NaN is drawn."""
-    from mpchair.cli import main as mpchair_main
-
-    data = small_stream(tmp_path / "st")
-    png = tmp_path / "frame.png"
-
-    def view() -> tuple[int, str]:
-        with pytest.raises(SystemExit) as e:
-            mpchair_main(["view", str(data), "--sequence", "00", "--frame", "1", "--out", str(png)])
-        return e.value.code, capsys.readouterr().err
-
-    code, err = view()
-    assert code == 0 and png.stat().st_size > 0, err
-    png.unlink()
-    scan = data / "sequences" / "00" / "velodyne" / "000001.bin"
-    points = read_velodyne(scan)
-    points[3, 2] = np.nan
-    write_velodyne(scan, points)
-    code, err = view()
-    assert code == 2 and err.strip().splitlines() == [
-        f"error: {scan}: point 3 has a non-finite z (nan); a scan holds finite x, y, z, reflectance"], err
-    assert not png.exists() and not list(tmp_path.glob(".frame.png.*"))
