@@ -4,7 +4,8 @@ Every file the project writes is renamed into place by ``mpchair.core.atomic`` w
 before rename N" (or before the rename onto a path ending in a given suffix) reaches every state a killed run can leave
 on disk: the renamed files before it, the temp file of this one. The hook replaces ``os.replace`` in the process that
 runs the command (a forked child, or ``python tests/helpers_faults.py SUFFIX -- detector ...``); production code is
-not changed.
+not changed. A folder swapped in whole (:func:`mpchair.core.owned.replace_folder`) is exchanged by ``renameat2``,
+not ``os.replace``: :func:`kill_at_swap` kills at that swap instead.
 
     python tests/helpers_faults.py eval/epoch_001/metrics.json -- detector train --config ...
     python tests/helpers_faults.py --stop .frames/000002.json -- mpchair generate ...   (stopped there instead)
