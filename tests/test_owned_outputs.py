@@ -19,8 +19,15 @@ from helpers_faults import kill_at_swap, run_forked
 from detector.infer import write_results
 from detector.train.run_folder import remove_stale_temps
 from mpchair.core.errors import InputError
-from mpchair.core.owned import (MARKER, check_replaceable, clear_leftovers, read_marker, remove_leftovers,
-                                replace_folder, work_dir)
+from mpchair.core.owned import (
+    MARKER,
+    check_replaceable,
+    clear_leftovers,
+    read_marker,
+    remove_leftovers,
+    replace_folder,
+    work_dir,
+)
 from mpchair.kitti import Labels
 from reproduction.cli import main as reproduce_main
 from reproduction.record import RECORD_JSON, RecordError, save_record
