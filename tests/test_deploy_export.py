@@ -13,6 +13,7 @@ import pytest
 import torch
 from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_tools import load_tool
 
 from detector.checkpoint import load_model
 from detector.config import load_experiment
@@ -172,6 +173,15 @@ def test_the_sparse_graph_computes_no_shapes_at_run_time(head, slim, tmp_path):
         while last.op_type in ("Reshape", "Add"):
             last = producer[last.input[0]]
         assert last.op_type == "MatMul"
+
+
+def test_profile_export_graph_prints_node_counts_and_shares(capsys):
+    main = load_tool("profile_export_graph").main
+    assert main(["--config", SPARSE, "--density", "0.02", "--frames", "1", "--repeats", "1", "--top", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "exported nodes 168: " in out and "ScatterND" not in out and "Shape" not in out
+    shares = [float(line.split()[-2]) for line in out.splitlines() if line.startswith("  ") and line.endswith("%")]
+    assert len(shares) >= 4 and all(0 <= x <= 100 for x in shares)
 
 
 def test_the_canvas_rows_put_every_site_at_its_cell(slim):

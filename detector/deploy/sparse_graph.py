@@ -10,7 +10,7 @@ built outside the graph by :mod:`detector.sparse.indices`, as voxelization is, a
 | ``down{i}`` | (N_i, k*k) int64 | block i's stride-2 down-conv: for output site j and tap t the input row, or N_{i-1} |
 | ``subm{i}_k{k}`` | (N_i, k*k) int64 | block i's SubM k x k neighbour table (``SubMTable.padded``), missing = N_i |
 | ``up{i}`` (i >= 2) | (N_1,) int64 | neck level i: row ``parent * s*s + slot`` of its per-slot products, or N_i*s*s |
-| ``canvas_rows`` (dense head only) | (H*W,) int64 | for every cell ``iy * W + ix`` of the head map its block-1 row, or N_1 |
+| ``canvas_rows`` (dense head) | (H*W,) int64 | for each cell ``iy * W + ix`` of the head map its block-1 row, or N_1 |
 
 A missing neighbour points at a zero row appended to the gathered matrix (the sentinel row index), so every conv is
 ``Gather → Reshape (N, K*C) → MatMul`` with its BatchNorm folded into the weight and a bias, then ReLU, and the number
@@ -22,10 +22,9 @@ sparse head's rows ``head_rows`` (N_1, O) (bias + scatter onto the map happen ou
 (1, O, H, W) like :class:`detector.deploy.dense_graph.DenseGraph`'s.
 
 Made for the runtimes (``docs/measurements/export-graph-analysis-2026-12-07.md``): the dense head's canvas is one
-Gather, one write of the map, where a zero fill (ConstantOfShape) and a ScatterND, which copies its input, took two
-passes over the 151 MB Matterport map, more time than the head's Gemm; every shape the graph
-needs but the site counts is a constant (the zero rows are initializers, the reshapes take ``-1``), so no
-Shape / Gather / Unsqueeze / Concat / ConstantOfShape chain computes them at run time.
+Gather, one write of the 151 MB Matterport map, where a zero fill (ConstantOfShape) and a ScatterND, which copied its
+input, passed over it more than once; every shape the graph needs but the site counts is a constant (the zero rows,
+the reshapes' widths), so no Shape / Gather / Unsqueeze / Concat / ConstantOfShape chain computes it at run time.
 
 Batch 1 (a robot's frame); equal to the eager ``SparseBackboneNeck`` + head on every output (tests: float32, 1e-4).
 """
