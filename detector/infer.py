@@ -29,7 +29,7 @@ from detector.device import use_device
 from detector.models import Detections
 from detector.pretrained import is_pretrained
 from mpchair.core.atomic import write_text
-from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.geometry import boxes_to_kitti_camera, project_boxes_to_image
 from mpchair.kitti import Calib, Labels, frame_paths, read_image_size, write_labels
 
@@ -200,8 +200,7 @@ def write_results(out_dir: str | Path, ids: list[str], labels: list[Labels]) -> 
     out = Path(out_dir)
     final = out / RESULTS_SUBDIR
     check_results_dir(out)
-    remove_leftovers(out, tuple(f".{RESULTS_SUBDIR}.{k}" for k in ("work", "old", "tmp")), RESULTS_COMMAND,
-                     legacy=_legacy_results)
+    clear_leftovers(final, RESULTS_COMMAND, legacy=_legacy_results, extra=(f".{RESULTS_SUBDIR}.tmp",))
     stage = work_dir(out, f".{RESULTS_SUBDIR}.work", RESULTS_COMMAND)
     try:
         for fid, lab in zip(ids, labels):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
-from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import MARKER, check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.core.text import load_json
 from reproduction.checkout import ROOT
 from reproduction.scales import SCALES, Scale
@@ -145,7 +145,7 @@ def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) 
                 too_big.append(rel)
             else:
                 kept[rel] = data
-    remove_leftovers(dest.parent, (f".{dest.name}.work",), COMMAND)
+    clear_leftovers(dest, COMMAND, legacy=_legacy_record)
     stage = work_dir(dest.parent, f".{dest.name}.work", COMMAND)
     try:
         for rel, data in kept.items():

@@ -202,6 +202,22 @@ def write_manifest(dataset: str | Path, houses: dict[str, tuple[int, int, dict[s
     return path
 
 
+def stream_summary(sap: float, offline: float | None = None, latency: float = 100.0, processed: float = 0.5, *,
+                   p95_over_median: float = 1.25, staleness_ms: tuple[float, float] = (150.0, 200.0),
+                   staleness_frames: tuple[float, float] = (1.5, 2.0), logical_cpus: int = 4) -> dict:
+    """A ``detector stream-eval --json`` summary as the streaming study's measuring run writes it: sAP (and the
+    offline AP, if any) ``sap`` percent in 3D (BEV one point higher), the median ``latency`` ms (its p95
+    ``p95_over_median`` times that), staleness (mean, p95) in ms and frames, the share of frames ``processed``, 3
+    repeats, a test machine of ``logical_cpus`` CPUs."""
+    ap = lambda x: {"Chair": {"3d": {"R40": x, "R11": x}, "bev": {"R40": x + 1, "R11": x + 1}}}  # noqa: E731
+    return {"sAP": ap(sap), "offline_AP": None if offline is None else ap(offline),
+            "latency_ms": {"median": latency, "p95": latency * p95_over_median},
+            "staleness_ms": dict(zip(("mean", "p95"), staleness_ms)),
+            "staleness_frames": dict(zip(("mean", "p95"), staleness_frames)), "frames_processed": processed,
+            "repeats": 3, "machine": {"cpu": "Test CPU", "torch_threads": 2, "torch": "2.x", "allocator": "reuse",
+                                      "logical_cpus": logical_cpus}}
+
+
 def onecycle_curve(total: int, peak: float, *, pct: float = 0.4, div: float = 10.0, final: float = 1e4,
                     beta1: tuple[float, float] = (0.95, 0.85)) -> list[tuple[float, float]]:
     """(lr, beta1) of steps 0..total-1 of OpenPCDet's adam_onecycle in closed form, with OneCycleLR's phase ends

@@ -4,7 +4,8 @@ Every file the project writes is renamed into place by ``mpchair.core.atomic`` w
 before rename N" (or before the rename onto a path ending in a given suffix) reaches every state a killed run can leave
 on disk: the renamed files before it, the temp file of this one. The hook replaces ``os.replace`` in the process that
 runs the command (a forked child, or ``python tests/helpers_faults.py SUFFIX -- detector ...``); production code is
-not changed.
+not changed. A folder swapped in whole (:func:`mpchair.core.owned.replace_folder`) is exchanged by ``renameat2``,
+not ``os.replace``: :func:`kill_at_swap` kills at that swap instead.
 
     python tests/helpers_faults.py eval/epoch_001/metrics.json -- detector train --config ...
     python tests/helpers_faults.py --stop .frames/000002.json -- mpchair generate ...   (stopped there instead)
@@ -43,6 +44,40 @@ def kill_at_replace(when: int | str, folder: Path | None = None, sig: int = sign
         return real(src, dst, *args, **kwargs)
 
     os.replace = replace
+
+
+def kill_at_swap(moment: str, sig: int = signal.SIGKILL) -> None:
+    """From now on, send this process ``sig`` at ``moment`` of :func:`mpchair.core.owned.replace_folder`'s swap of a
+    complete staged folder with the old output: ``"before"`` / ``"after"`` the ``renameat2(RENAME_EXCHANGE)``, or
+    ``"between"`` the two renames of the fallback used where the file system lacks the exchange (made to lack it here:
+    the old folder is renamed aside, then the process dies before the new one is renamed in)."""
+    from mpchair.core import owned
+
+    real = owned._exchange
+    if moment == "between":
+        owned._exchange = lambda a, b: False  # the answer of a file system without RENAME_EXCHANGE
+        rename = os.rename
+        count = 0
+
+        def second_rename(src, dst, *args, **kwargs):
+            nonlocal count
+            count += 1
+            if count == 2:  # out -> .out.old<pid> was the first
+                os.kill(os.getpid(), sig)
+            return rename(src, dst, *args, **kwargs)
+
+        os.rename = second_rename
+        return
+
+    def exchange(a, b):
+        if moment == "before":
+            os.kill(os.getpid(), sig)
+        done = real(a, b)
+        if moment == "after":
+            os.kill(os.getpid(), sig)
+        return done
+
+    owned._exchange = exchange
 
 
 def count_replaces(fn: Callable[[], object], folder: Path | None = None) -> int:

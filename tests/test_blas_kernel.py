@@ -24,9 +24,9 @@ def _run_python(code: str, env: dict[str, str]) -> str:
 
 
 def _x86_avx2() -> bool:
-    from mpchair.core.blas import _cpu_flags
+    from mpchair.core.cpu import cpu_flags
 
-    return sys.platform == "linux" and {"avx2", "fma"} <= _cpu_flags()
+    return sys.platform == "linux" and {"avx2", "fma"} <= cpu_flags()
 
 
 @pytest.mark.skipif(not _x86_avx2(), reason="the pin applies to Linux x86-64 CPUs with AVX2 + FMA only")

@@ -13,6 +13,7 @@ import pytest
 import torch
 from helpers_detector import detector_cli as _cli
 from helpers_detector import make_tiny_dataset, write_test_config
+from helpers_tools import load_tool
 
 from detector.checkpoint import load_model
 from detector.config import load_experiment
@@ -146,6 +147,56 @@ def test_the_sparse_graph_holds_gather_and_matmul_only_with_dynamic_sites(slim, 
     assert all(i.type.tensor_type.elem_type == onnx.TensorProto.INT64 for i in graph.input if i.name != "features")
 
 
+@pytest.mark.parametrize("head", ["dense", "sparse_exact"])
+def test_the_sparse_graph_computes_no_shapes_at_run_time(head, slim, tmp_path):
+    """Every shape but the site counts is a constant: no Shape / ConstantOfShape chain per conv (the zero rows are
+    initializers), and the dense head's canvas is one Gather at ``canvas_rows`` (no zero fill + ScatterND, which
+    copies the 151 MB Matterport canvas), its 1x1 conv one MatMul giving the planar map without a Transpose after it."""
+    model = _model(slim["sparse"], head=head)
+    path = tmp_path / "sparse.onnx"
+    names, output = write_onnx(model, path)
+    graph = onnx.load(str(path)).graph
+    ops = [n.op_type for n in graph.node]
+    assert not set(ops) & {"Shape", "ConstantOfShape", "ScatterND", "ScatterElements", "Cast", "Div", "Unsqueeze"}, ops
+    convs = sum(len(b.subm_kernels) + 1 for b in SparseGraph(model).spec.blocks)
+    levels = len(SparseGraph(model).spec.up_strides)
+    # one MatMul per conv, per neck level and for the head; one Gather per conv, per upsampled level (and the canvas)
+    assert ops.count("MatMul") == convs + levels + 1
+    assert ops.count("Gather") == convs + levels - 1 + (head == "dense")
+    if head == "dense":
+        assert names[-1] == "canvas_rows" and output == "head"
+        dims = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim] for i in graph.input}
+        h, w = SparseGraph(model).spec.head_shape
+        assert dims["canvas_rows"] == [h * w]  # one entry per cell of the head map: static
+        producer = {o: n for n in graph.node for o in n.output}
+        last = producer[graph.output[0].name]
+        while last.op_type in ("Reshape", "Add"):
+            last = producer[last.input[0]]
+        assert last.op_type == "MatMul"
+
+
+def test_profile_export_graph_prints_node_counts_and_shares(capsys):
+    main = load_tool("profile_export_graph").main
+    assert main(["--config", SPARSE, "--density", "0.02", "--frames", "1", "--repeats", "1", "--top", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "exported nodes 168: " in out and "ScatterND" not in out and "Shape" not in out
+    shares = [float(line.split()[-2]) for line in out.splitlines() if line.startswith("  ") and line.endswith("%")]
+    assert len(shares) >= 4 and all(0 <= x <= 100 for x in shares)
+
+
+def test_the_canvas_rows_put_every_site_at_its_cell(slim):
+    model = _model(slim["sparse"])
+    spec = SparseGraph(model).spec
+    coords = clustered_sites(model.output_shape, 0.05, seed=5)
+    tables = build_tables(spec, torch.zeros(coords.shape[0], 32), coords)
+    rows, sites = tables.inputs["canvas_rows"], tables.sites
+    h, w = spec.head_shape
+    n1 = sites.shape[0]
+    assert rows.dtype == torch.int64 and rows.shape == (h * w,)
+    assert torch.equal(rows[sites[:, 1] * w + sites[:, 2]], torch.arange(n1))
+    assert int((rows == n1).sum()) == h * w - n1  # every other cell: the appended zero row
+
+
 def test_tables_point_missing_neighbours_at_the_sentinel_row(slim):
     model = _model(slim["sparse"], head="sparse_exact")
     spec = SparseGraph(model).spec
@@ -245,9 +296,9 @@ def test_int8_keeps_the_head_in_fp32(kind, slim, tmp_path, capsys):
     assert head and all(nodes[h].op_type in QUANTIZED_OPS for h in head)
     initializers = {i.name for i in model.graph.initializer}
     producer = {o: n for n in model.graph.node for o in n.output}
-    for h in head:
-        weight = nodes[h].input[1]
-        assert weight in initializers and weight not in producer, (h, weight)
+    for h in head:  # its weight: an fp32 initializer (the dense head of the sparse graph takes it as MatMul's A)
+        weights = [i for i in nodes[h].input if i in initializers and i not in producer]
+        assert weights, h
     todo, seen = [o.name for o in model.graph.output], set()
     while todo:  # from each output back to the head: no quantizer on the way
         node = producer.get(todo.pop())

@@ -60,14 +60,17 @@ READERS = {
     "stream-eval": ("detector", ["stream-eval", "--data", "{data}", "--oracle", "--latency-ms", "0", "--quiet",
                                  "--mcap"], "out.mcap"),
 }
+#: The picture of one frame of a stream (``mpchair view --out``), which reads that frame's scan alone.
+PICTURE = {"view --out": ("mpchair", ["view", "{data}", "--sequence", "00", "--frame", "1", "--out"], "frame.png")}
 
 
 def _read_with(command: str, data: Path, out_dir: Path, capsys) -> tuple[int, str, Path]:
-    """Run ``command`` of :data:`READERS` on the stream ``data`` in this process: ``(exit status, stderr, output)``."""
+    """Run ``command`` of :data:`READERS` or :data:`PICTURE` on the stream ``data`` in this process: ``(exit status,
+    stderr, output)``."""
     from detector.cli import main as detector_main
     from mpchair.cli import main as mpchair_main
 
-    prog, args, name = READERS[command]
+    prog, args, name = {**READERS, **PICTURE}[command]
     out = out_dir / name
     with pytest.raises(SystemExit) as e:
         (mpchair_main if prog == "mpchair" else detector_main)([a.format(data=data) for a in args] + [str(out)])
@@ -90,11 +93,13 @@ def test_every_stream_reader_refuses_the_same_rate(tmp_path, capsys, command, ra
     assert list(out_dir.iterdir()) == []  # no recording, no temporary
 
 
-@pytest.mark.parametrize("command", sorted(READERS))
+@pytest.mark.parametrize("command", sorted(READERS) + sorted(PICTURE))
 def test_every_stream_reader_reads_the_sane_stream_and_refuses_a_nan_point(tmp_path, capsys, command):
-    """The same small stream is read whole by each command (so the refusals above are the rate's); with one NaN in a
-    scan each refuses it with one line naming that scan (NaN points passed ``view`` and ``stream-eval`` before)."""
-    pytest.importorskip("rerun" if "rerun" in command else "mcap")
+    """The same small stream is read whole by each command (so the refusals above are the rate's), and its frame 1
+    drawn by ``view --out``; with one NaN in that frame's scan each refuses it with one line naming that scan (NaN
+    points passed ``view`` and ``stream-eval`` before), and writes no output."""
+    if command in READERS:
+        pytest.importorskip("rerun" if "rerun" in command else "mcap")
     data = small_stream(tmp_path / "st")
     code, err, out = _read_with(command, data, tmp_path, capsys)
     assert code == 0 and out.stat().st_size > 0, err
@@ -156,3 +161,20 @@ def test_a_killed_recordings_temporaries_are_removed_by_the_next_recording(tmp_p
     code, err, out = _read_with(command, data, out_dir, capsys)
     assert code == 0 and out.stat().st_size > 0, err
     assert sorted(p.name for p in out_dir.iterdir()) == sorted([name, mine.name]) and mine.read_text() == "mine"
+
+
+@pytest.mark.parametrize("command", sorted(READERS))
+def test_every_stream_reader_refuses_a_stream_file_nested_deep_with_one_line(tmp_path, capsys, command):
+    """The third audit: ``stream.json`` nested 100,000 levels deep ended each reader in a RecursionError traceback.
+    Through the command line now: one line naming the file, exit 2, no recording and no temporary."""
+    pytest.importorskip("rerun" if "rerun" in command else "mcap")
+    data = small_stream(tmp_path / "st")
+    (data / "stream.json").write_text('{"rate_hz": 10, "sequences": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    code, err, _ = _read_with(command, data, out_dir, capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0] == f"error: {data / 'stream.json'}: nested deeper than 64 levels", err
+    assert list(out_dir.iterdir()) == []
+

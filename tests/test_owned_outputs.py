@@ -8,15 +8,26 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
+import signal
 from pathlib import Path
 
 import pytest
 from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
+from helpers_faults import kill_at_swap, run_forked
 
 from detector.infer import write_results
 from detector.train.run_folder import remove_stale_temps
 from mpchair.core.errors import InputError
-from mpchair.core.owned import MARKER, check_replaceable, read_marker, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import (
+    MARKER,
+    check_replaceable,
+    clear_leftovers,
+    read_marker,
+    remove_leftovers,
+    replace_folder,
+    work_dir,
+)
 from mpchair.kitti import Labels
 from reproduction.cli import main as reproduce_main
 from reproduction.record import RECORD_JSON, RecordError, save_record
@@ -94,6 +105,37 @@ def test_leftovers_of_a_killed_run_are_removed_only_when_marked_as_the_commands(
     assert other.is_dir() and _snapshot(users) == before
 
 
+
+@pytest.mark.parametrize("moment", ["before", "after", "between"])
+def test_a_replace_killed_at_its_swap_leaves_a_complete_folder_and_the_next_run_clears_up(tmp_path, moment):
+    """SIGKILL at the final swap (issue 47: an export killed in its final rename left ``.OUT.old<pid>`` and
+    ``.OUT.work*`` for good, and OUT briefly did not exist). Before or after the exchange, OUT holds the old or the
+    new folder, complete; where the file system lacks the exchange and the kill lands between its two renames, OUT is
+    missing until the next run puts the old folder back. Either way the next run leaves OUT complete and removes the
+    command's leftovers, and only those (a user's ``.out.old7`` stays)."""
+    out = tmp_path / "out"
+    replace_folder(_stage(tmp_path, "out", {"a.txt": "old"}), out, "cmd")
+    old = _snapshot(out)
+    users = tmp_path / ".out.old7"
+    mine = _user_folder(users)
+    stage = _stage(tmp_path, "out", {"a.txt": "new", "b.txt": "new"})
+    status = run_forked(lambda: (kill_at_swap(moment), replace_folder(stage, out, "cmd")))
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, status
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".out.") and p != users)
+    if moment == "between":
+        assert not out.exists() and len(left) == 2 and re.fullmatch(r"\.out\.old\d+", left[0]), left
+    else:
+        assert left == [stage.name] and read_marker(out)["files"] == (["a.txt"] if moment == "before" else
+                                                                     ["a.txt", "b.txt"])
+    new = _snapshot(out) if moment == "after" else None
+
+    clear_leftovers(out, "cmd")  # what the next run does first, under the output's lock
+    assert _snapshot(out) == (new if moment == "after" else old)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out.")] == [users.name]
+    assert _snapshot(users) == mine
+    replace_folder(_stage(tmp_path, "out", {"c.txt": "next"}), out, "cmd")
+    assert read_marker(out)["files"] == ["c.txt"] and (out / "c.txt").read_text() == "next"
+
 # --- tools/reproduce.py --steps record -----------------------------------------------------------------------------
 
 
@@ -170,11 +212,16 @@ def test_export_replaces_only_its_own_folder_follows_a_symlink_and_clears_a_kill
 
     killed = work_dir(tmp_path, ".exported.work", "detector export")  # what an export killed mid-way leaves
     (killed / "fp32.onnx").write_bytes(b"x" * 1000)
+    swap = work_dir(tmp_path, ".exported.work", "detector export")  # and one killed inside its final swap, on a
+    (swap / "model.onnx").write_bytes(b"y" * 1000)                  # file system without RENAME_EXCHANGE
+    status = run_forked(lambda: (kill_at_swap("between"), replace_folder(swap, out, "detector export")))
+    assert os.WIFSIGNALED(status) and not out.exists()  # the older export waits at .exported.old<pid>
     not_ours = tmp_path / ".exported.old123"
     not_ours.mkdir()
     (not_ours / "keep.txt").write_text("mine")
     code, stdout, _ = export(out)
     assert code == 0 and "wrote" in stdout and not killed.exists() and (not_ours / "keep.txt").is_file()
+    assert sorted(os.listdir(out)) == [MARKER, "deploy.json", "model.onnx"]
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".exported")) == [".exported.old123"]
 
     link = tmp_path / "link"
@@ -183,6 +230,31 @@ def test_export_replaces_only_its_own_folder_follows_a_symlink_and_clears_a_kill
     assert code == 0, err
     assert link.is_symlink() and sorted(p.name for p in link.iterdir()) == [MARKER, "deploy.json", "model.onnx"]
 
+
+
+def test_a_second_export_on_a_busy_folder_names_that_folder(tmp_path, capsys, monkeypatch):
+    """The third audit: the export lock's error named ``.`` (the lock's folder) instead of OUT. A live second process
+    holds ``detector export``'s lock of ``exp`` (a relative ``--out``, as a user types it): the export is refused
+    with one line naming ``exp`` and the holder, exit 2, and writes nothing."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("onnx")
+    monkeypatch.chdir(tmp_path)
+    config = write_test_config(tmp_path / "slim.yaml")
+    hold = ("import sys; from mpchair.core.lock import folder_lock\n"
+            "with folder_lock('.exp.export.lock', 'detector export', folder='exp'):\n"
+            "    print('held', flush=True); sys.stdin.read()")
+    holder = subprocess.Popen([sys.executable, "-c", hold], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    try:
+        assert holder.stdout.readline() == "held\n"
+        code, _, err = detector_cli(["export", "--config", config, "--format", "onnx", "--out", "exp"], capsys)
+    finally:
+        holder.communicate("")
+    assert code == 2 and _one_line(err).startswith(f"error: exp: another detector export is writing this folder "
+                                                   f"(pid {holder.pid})"), err
+    assert not (tmp_path / "exp").exists()
 
 # --- detector eval's OUT/data --------------------------------------------------------------------------------------
 
@@ -296,3 +368,35 @@ def test_an_export_whose_weights_lie_outside_its_folder_is_refused_and_nan_weigh
     _onnx_with_external_weights(nan, [float("nan"), 1.0])
     with pytest.warns(UserWarning, match="NaN or infinite values"):
         verify_export(nan, "onnx", ["model.onnx", "weights.bin"])
+
+
+def test_an_export_of_all_nan_weights_warns_in_one_line_naming_the_export(tmp_path, capsys):
+    """The third audit: ``detector export`` of a checkpoint whose weights are all NaN wrote the graph without a word.
+    Through the command line: the export is written (exit 0, a ``wrote`` line: the graph is a valid graph), followed
+    by one ``warning:`` line naming the folder asked for (not the hidden work folder) and the NaN weights."""
+    pytest.importorskip("onnx")
+    import torch
+
+    from detector.checkpoint import Checkpoint, save_checkpoint
+    from detector.config import load_experiment
+    from detector.models import build_model
+
+    config = write_test_config(tmp_path / "slim.yaml")
+    weights = build_model(load_experiment(config).model).state_dict()
+    nan = {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in weights.items()}
+    ckpt = tmp_path / "nan.pt"
+    save_checkpoint(ckpt, Checkpoint(model=nan))
+    out = tmp_path / "exported"
+    code, stdout, err = detector_cli(["export", "--config", config, "--checkpoint", ckpt, "--format", "onnx",
+                                      "--out", out], capsys)
+    lines = err.strip().splitlines()
+    assert code == 0 and stdout.startswith(f"wrote {out}/") and len(lines) == 1, (stdout, err)
+    assert lines[0].startswith(f"warning: {out}: the exported weights hold NaN or infinite values ("), err
+    assert sorted(os.listdir(out)) == [MARKER, "deploy.json", "model.onnx"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".exported.work")]
+
+    finite = tmp_path / "finite"  # the same export of finite weights: no warning (the line above is the NaNs')
+    save_checkpoint(ckpt, Checkpoint(model=weights))
+    code, _, err = detector_cli(["export", "--config", config, "--checkpoint", ckpt, "--format", "onnx",
+                                 "--out", finite], capsys)
+    assert code == 0 and err == "", err

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from helpers_detector import stream_summary as _summary
 from helpers_detector import write_manifest
 
 from mpchair.core.errors import InputError
@@ -26,16 +27,6 @@ from reproduction.stream.results import StreamSummary, check_houses, read_runs, 
 from reproduction.stream.sweep import HEADLINE, Setting, eval_dir, settings, stream_dir, sweep_points
 
 T2, T1 = Setting("768x512", 2), Setting("768x512", 1)
-
-
-def _summary(sap: float, offline: float | None = None, latency: float = 100.0, processed: float = 0.5) -> dict:
-    """A stream-eval ``--json`` summary as the measuring run writes it (AP percent, times ms)."""
-    ap = lambda x: {"Chair": {"3d": {"R40": x, "R11": x}, "bev": {"R40": x + 1, "R11": x + 1}}}  # noqa: E731
-    return {"sAP": ap(sap), "offline_AP": None if offline is None else ap(offline),
-            "latency_ms": {"median": latency, "p95": latency * 1.25}, "staleness_ms": {"mean": 150.0, "p95": 200.0},
-            "staleness_frames": {"mean": 1.5, "p95": 2.0}, "frames_processed": processed, "repeats": 3,
-            "machine": {"cpu": "Test CPU", "torch_threads": 2, "torch": "2.x", "allocator": "reuse",
-                        "logical_cpus": 4}}
 
 
 def test_crossover():

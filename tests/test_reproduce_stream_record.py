@@ -6,11 +6,13 @@ says there is no record yet."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 
 import numpy as np
 import pytest
+from helpers_detector import stream_summary
 
 from detector.eval.bootstrap import GapEstimate, bootstrap_gap
 from reproduction.stream.cli import main
@@ -128,13 +130,9 @@ def test_the_gap_on_the_whole_stream_is_the_score_steps_sap_difference(work):
     assert read_gap(out / "nothing.json") is None
 
 
-def _summary(sap: float, latency: float, processed: float = 1.0, offline: float | None = None) -> dict:
-    ap = lambda x: {"Chair": {"3d": {"R40": x, "R11": x}, "bev": {"R40": x + 1, "R11": x + 1}}}  # noqa: E731
-    return {"sAP": ap(sap), "offline_AP": None if offline is None else ap(offline),
-            "latency_ms": {"median": latency, "p95": latency * 1.1}, "staleness_ms": {"mean": 100.0, "p95": 100.0},
-            "staleness_frames": {"mean": 1.0, "p95": 1.0}, "frames_processed": processed, "repeats": 3,
-            "machine": {"cpu": "Test CPU", "torch_threads": 2, "torch": "2.x", "allocator": "reuse",
-                        "logical_cpus": 2}}
+#: The fixture's stream-eval summaries: a tighter latency spread, one frame stale, a two-CPU machine.
+_summary = functools.partial(stream_summary, p95_over_median=1.1, staleness_ms=(100.0, 100.0),
+                             staleness_frames=(1.0, 1.0), logical_cpus=2)
 
 
 #: sAP 3D of the fixture work folder (model, setting name, mode): at 768 x 512 dense cannot keep up (300 ms) and
@@ -157,9 +155,9 @@ def _fixture_work(out):
         grid, t = sname.split("-t")
         ev = eval_dir(out, *HEADLINE, Setting(grid, int(t)), m)
         ev.mkdir(parents=True, exist_ok=True)
-        (ev / "measure.json").write_text(json.dumps(_summary(ego, lat, processed, offline)))
+        (ev / "measure.json").write_text(json.dumps(_summary(ego, offline, lat, processed)))
         for mode, ap in (("raw", raw), ("ego", ego)):
-            (ev / f"{mode}.json").write_text(json.dumps(_summary(ap, lat, processed, offline)))
+            (ev / f"{mode}.json").write_text(json.dumps(_summary(ap, offline, lat, processed)))
         (ev / "latency.json").write_text(json.dumps({"format": "mpchair-stream-latency/1", "sequences": {}}))
         (ev / "outputs" / "00").mkdir(parents=True, exist_ok=True)
         (ev / "outputs" / "00" / "000000.txt").write_text("")  # per-frame detections: not kept
@@ -267,7 +265,7 @@ def test_without_a_record_the_block_says_so_and_quotes_no_result(tmp_path):
 
 def test_outcome_needs_both_models_scored():
     assert outcome_lines({}, [Setting("288x144", 2)]) == []
-    runs = {(m, *HEADLINE, "288x144-t2", mode): StreamSummary.from_json(_summary(10.0, 50.0))
+    runs = {(m, *HEADLINE, "288x144-t2", mode): StreamSummary.from_json(_summary(10.0, None, 50.0, 1.0))
             for m in ("dense", "sparse") for mode in ("raw", "ego")}
     text = "\n".join(outcome_lines(runs, [Setting("288x144", 2)]))
     assert "Raw sAP 3D dense 10.00 against sparse 10.00 (neither (level) ahead)" in text

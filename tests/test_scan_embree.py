@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpchair.core.blas import _cpu_flags
+from mpchair.core.cpu import cpu_flags
 from mpchair.scan.embree import PinnedEmbreeScene, _api, requested_isa
 from mpchair.synth import synthesize_house
 from mpchair.synth.realism import CLEAN
@@ -75,7 +75,7 @@ def test_the_avx2_machines_scan_comes_out_bit_for_bit(tmp_path):
     """The scan in which the AVX2 and AVX-512 kernels differ comes out as the AVX2 machine wrote it; on an AVX-512 CPU,
     Embree's own choice (``MPCHAIR_EMBREE_ISA=native``) gives the other bytes, so the pin is what makes them equal."""
     assert _scan_72(tmp_path, None) == SCAN_472["avx2"]
-    if "avx512f" in _cpu_flags():
+    if "avx512f" in cpu_flags():
         assert _scan_72(tmp_path, "native") == SCAN_472["avx512"]
 
 

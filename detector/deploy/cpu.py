@@ -1,4 +1,5 @@
-"""Which precisions this CPU computes natively, from the instruction-set flags in ``/proc/cpuinfo``.
+"""Which precisions this CPU computes natively, from the instruction-set flags in ``/proc/cpuinfo``
+(:func:`mpchair.core.cpu.cpu_flags`, re-exported here).
 
 bf16 is native with AVX512-BF16 (``avx512_bf16``) or AMX-BF16 (``amx_bf16``); int8 with VNNI (``avx512_vnni``,
 ``avx_vnni``) or AMX-INT8 (``amx_int8``). Without them a runtime emulates the precision (OpenVINO converts bf16 to
@@ -8,7 +9,9 @@ nothing about a deployment: :func:`skip_reason` skips it with the reason.
 
 from __future__ import annotations
 
-from pathlib import Path
+from mpchair.core.cpu import cpu_flags
+
+__all__ = ["NATIVE_FLAGS", "PRECISIONS", "RUNTIMES", "cpu_flags", "precision_flags", "skip_reason"]
 
 RUNTIMES: tuple[str, ...] = ("torch", "onnxruntime", "openvino")
 PRECISIONS: tuple[str, ...] = ("fp32", "bf16", "int8")
@@ -17,19 +20,6 @@ NATIVE_FLAGS: dict[str, tuple[str, ...]] = {
     "bf16": ("amx_bf16", "avx512_bf16"),
     "int8": ("amx_int8", "avx512_vnni", "avx_vnni"),
 }
-
-
-def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
-    """The instruction-set flags of the first CPU in ``cpuinfo`` (empty where the file is missing: not Linux)."""
-    try:
-        text = Path(cpuinfo).read_text(encoding="utf-8", errors="replace")
-    except OSError:
-        return frozenset()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "flags":
-            return frozenset(value.split())
-    return frozenset()
 
 
 def precision_flags(flags: frozenset[str]) -> dict[str, list[str]]:

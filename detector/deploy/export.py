@@ -67,7 +67,8 @@ def example_inputs(model: PointPillars, graph: DenseGraph | SparseGraph, seed: i
 
 
 def _dynamic_axes(names: list[str], output: str, sparse: bool) -> dict[str, dict[int, str]]:
-    """Every sparse input's first axis is its block's site count (``n0`` pillars, ``n1``... after block i)."""
+    """Every sparse input's first axis is its block's site count (``n0`` pillars, ``n1``... after block i), but
+    ``canvas_rows``'s, one entry per cell of the head map (static)."""
     if not sparse:
         return {}
     axes: dict[str, dict[int, str]] = {}
@@ -76,7 +77,7 @@ def _dynamic_axes(names: list[str], output: str, sparse: bool) -> dict[str, dict
             axes[name] = {0: "n0"}
         elif name.startswith(("down", "subm")):  # down{i}, subm{i}_k{k}: block i's sites
             axes[name] = {0: f"n{name[4]}"}
-        else:  # up{i}, sites: one row per block-1 site
+        elif name.startswith("up"):  # up{i}: one row per block-1 site
             axes[name] = {0: "n1"}
     if output == "head_rows":
         axes[output] = {0: "n1"}

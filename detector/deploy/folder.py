@@ -30,7 +30,7 @@ from detector.deploy.extra import require
 from mpchair.core.atomic import check_writable, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
-from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import check_replaceable, clear_leftovers, replace_folder, work_dir
 
 MANIFEST = "deploy.json"
 #: The command named in the export folder's ownership marker.
@@ -109,7 +109,7 @@ def export_folder(config: str | Path, checkpoint: str | Path | None, fmt: str, o
     check_output(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with folder_lock(out.parent / f".{out.name}.export.lock", "detector export", folder=out):
-        remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), COMMAND, legacy=_legacy_export)
+        clear_leftovers(out, COMMAND, legacy=_legacy_export)
         try:
             work = work_dir(out.parent, f".{out.name}.work", COMMAND)
             try:
@@ -147,7 +147,7 @@ def _export_into(work: Path, out: Path, eager, cfg, fmt: str, precision: str, fr
         calibration=({"data": str(data), "split": calibration_split, "frames": len(frames)} if frames else None),
         opset=OPSET, versions=_versions(fmt, precision))
     write_text(stage / MANIFEST, json.dumps(asdict(record), indent=2) + "\n")
-    verify_export(stage, fmt, files)
+    verify_export(stage, fmt, files, shown=out)
     replace_folder(stage, out, COMMAND, legacy=_legacy_export)
     return record
 
@@ -194,37 +194,39 @@ def _external_files(graph: Path, fmt: str) -> list[str]:
     return names
 
 
-def verify_export(folder: Path, fmt: str, files: list[str]) -> None:
+def verify_export(folder: Path, fmt: str, files: list[str], *, shown: Path | None = None) -> None:
     """Check a written export before it is reported: every file it lists is a regular file inside ``folder``, every
     file the graph refers to is one of them, and the graph loads (ONNX: the checker over the file, external data
     included; OpenVINO: the weights file is not empty). A failure is an error naming the folder, never a ``wrote``
-    line; weights that are not all finite give a warning."""
+    line; weights that are not all finite give a warning. Both name ``shown`` (default ``folder``): the export asked
+    for, when ``folder`` is the hidden stage it is checked in (a user never sees that name)."""
+    shown = folder if shown is None else shown
     for name in files:
         path = folder / name
         if path.is_symlink() or not path.is_file() or path.resolve().parent != folder.resolve():
-            raise InputError(f"the export did not produce {name} inside the folder; nothing was replaced", folder)
+            raise InputError(f"the export did not produce {name} inside the folder; nothing was replaced", shown)
     if fmt == "onnx":
         onnx = require("onnx", "ONNX export")
         graph = folder / files[0]
         outside = [f for f in _external_files(graph, fmt) if f not in files]
         if outside:
             raise InputError(f"the graph refers to {outside[0]}, which is not in the export; nothing was replaced",
-                             folder)
+                             shown)
         try:
             onnx.checker.check_model(str(graph))
             model = onnx.load(str(graph), load_external_data=True)
         except Exception as e:  # the checker's own error types differ by version
             raise InputError(f"the written graph does not load ({type(e).__name__}: {str(e).splitlines()[0]}); "
-                             "nothing was replaced", folder) from None
+                             "nothing was replaced", shown) from None
         from onnx.numpy_helper import to_array
 
         bad = [t.name for t in model.graph.initializer if not _finite(to_array(t))]
     else:
         if (folder / "model.bin").stat().st_size == 0:
-            raise InputError("the written OpenVINO weights file model.bin is empty; nothing was replaced", folder)
+            raise InputError("the written OpenVINO weights file model.bin is empty; nothing was replaced", shown)
         bad = []
     if bad:
-        warnings.warn(f"{folder}: the exported weights hold NaN or infinite values ({bad[0]}"
+        warnings.warn(f"{shown}: the exported weights hold NaN or infinite values ({bad[0]}"
                       + (f" and {len(bad) - 1} more tensors" if len(bad) > 1 else "") + "): the model will not "
                       "detect anything; was the checkpoint trained with a diverging loss?", stacklevel=2)
 

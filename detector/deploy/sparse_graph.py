@@ -10,16 +10,21 @@ built outside the graph by :mod:`detector.sparse.indices`, as voxelization is, a
 | ``down{i}`` | (N_i, k*k) int64 | block i's stride-2 down-conv: for output site j and tap t the input row, or N_{i-1} |
 | ``subm{i}_k{k}`` | (N_i, k*k) int64 | block i's SubM k x k neighbour table (``SubMTable.padded``), missing = N_i |
 | ``up{i}`` (i >= 2) | (N_1,) int64 | neck level i: row ``parent * s*s + slot`` of its per-slot products, or N_i*s*s |
-| ``sites`` (dense head only) | (N_1,) int64 | flat ``iy * W + ix`` of every block-1 site on the head map |
+| ``canvas_rows`` (dense head) | (H*W,) int64 | for each cell ``iy * W + ix`` of the head map its block-1 row, or N_1 |
 
 A missing neighbour points at a zero row appended to the gathered matrix (the sentinel row index), so every conv is
 ``Gather → Reshape (N, K*C) → MatMul`` with its BatchNorm folded into the weight and a bias, then ReLU, and the number
 of sites is a dynamic dimension. A transposed neck conv (kernel = stride = s) multiplies every coarse site by all s*s
 taps at once, ``(N_i, C) @ (C, s*s*O)``, and each block-1 target gathers its one row. The output is either the exact
 sparse head's rows ``head_rows`` (N_1, O) (bias + scatter onto the map happen outside, as in
-:class:`detector.models.head.SparseExactHead`), or, for the dense head, the levels scattered into a zero (H*W, 384)
-canvas at ``sites`` (unique indices: ScatterND without reduction) and the fused 1x1 head over the whole map, ``head``
+:class:`detector.models.head.SparseExactHead`), or, for the dense head, the (H*W, 384) canvas gathered row by row at
+``canvas_rows`` from the levels with a zero row appended, and the fused 1x1 head over the whole map (one Gemm), ``head``
 (1, O, H, W) like :class:`detector.deploy.dense_graph.DenseGraph`'s.
+
+Made for the runtimes (``docs/measurements/export-graph-analysis-2026-12-07.md``): the dense head's canvas is one
+Gather, one write of the 151 MB Matterport map, where a zero fill (ConstantOfShape) and a ScatterND, which copied its
+input, passed over it more than once; every shape the graph needs but the site counts is a constant (the zero rows,
+the reshapes' widths), so no Shape / Gather / Unsqueeze / Concat / ConstantOfShape chain computes it at run time.
 
 Batch 1 (a robot's frame); equal to the eager ``SparseBackboneNeck`` + head on every output (tests: float32, 1e-4).
 """
@@ -66,7 +71,7 @@ class SparseSpec:
             names += [f"subm{i}_k{k}" for k in sorted(set(b.subm_kernels))]
         names += [f"up{i}" for i in range(2, len(self.up_strides) + 1)]
         if not self.exact_head:
-            names.append("sites")
+            names.append("canvas_rows")
         return names
 
     @property
@@ -113,8 +118,9 @@ class SparseGraph(nn.Module):
         super().__init__()
         self.spec = sparse_spec(model)
         bb = model.backbone
-        # per block: [(table input name, (K*C, O) weight, (O,) bias)] for the down-conv, then each SubM conv
-        self.layers: list[list[tuple[str, int]]] = []
+        # per block: [(table input name, index of its (K*C, O) weight, then (O,) bias, C)] for the down-conv, then
+        # each SubM conv
+        self.layers: list[list[tuple[str, int, int]]] = []
         params = nn.ParameterList()
         for i, block in enumerate(bb.blocks, start=1):
             mods = list(block)
@@ -125,7 +131,7 @@ class SparseGraph(nn.Module):
                 w = _taps_matrix(conv.weight) * scale[None, :]
                 b = shift if conv.bias is None else conv.bias * scale + shift
                 name = f"down{i}" if j == 0 else f"subm{i}_k{conv.kernel_size}"
-                layers.append((name, len(params)))
+                layers.append((name, len(params), conv.in_channels))
                 params.append(nn.Parameter(w.detach().clone(), requires_grad=False))
                 params.append(nn.Parameter(b.detach().clone(), requires_grad=False))
             self.layers.append(layers)
@@ -145,14 +151,21 @@ class SparseGraph(nn.Module):
         params.append(nn.Parameter(weight.t().detach().clone(), requires_grad=False))  # (384, O)
         params.append(nn.Parameter(bias.detach().clone(), requires_grad=False))
         self.params = params
+        # (rows, columns) of each weight as Python ints, so the tracer writes them as constants, not Shape ops
+        self.widths = {i: (int(w.shape[0]), int(w.shape[1])) for i, w in enumerate(params) if w.dim() == 2}
         self.eval()
 
     @staticmethod
-    def _gather_matmul(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
-        """relu(Gather(x + zero row, table) reshaped (N, K*C) @ weight + bias): one sparse conv + BN + ReLU."""
-        padded = torch.cat([x, x.new_zeros(1, x.shape[1])], dim=0)
-        cols = padded.index_select(0, table.reshape(-1)).reshape(table.shape[0], weight.shape[0])
-        return torch.relu(cols @ weight + bias)
+    def _pad(x: Tensor, channels: int) -> Tensor:
+        """``x`` (N, channels) with a zero row appended at N (the sentinel row); the zero row is a constant."""
+        return torch.cat([x, torch.zeros(1, channels, dtype=x.dtype, device=x.device)], dim=0)
+
+    def _gather_matmul(self, x: Tensor, table: Tensor, p: int, channels: int) -> Tensor:
+        """relu(Gather(x + zero row, table) reshaped (N, K*C) @ weight + bias): one sparse conv + BN + ReLU over ``x``
+        (N, C = ``channels``)."""
+        kc = self.widths[p][0]
+        cols = self._pad(x, channels).index_select(0, table.reshape(-1)).reshape(-1, kc)
+        return torch.relu(cols @ self.params[p] + self.params[p + 1])
 
     def forward(self, *inputs: Tensor) -> Tensor:
         """The tensors named by :meth:`SparseSpec.input_names`, in that order → ``head_rows`` (N_1, O) or ``head``
@@ -161,8 +174,8 @@ class SparseGraph(nn.Module):
         x = feed["features"]
         outs = []
         for layers in self.layers:
-            for name, p in layers:
-                x = self._gather_matmul(x, feed[name], self.params[p], self.params[p + 1])
+            for name, p, channels in layers:
+                x = self._gather_matmul(x, feed[name], p, channels)
             outs.append(x)
         levels = []
         for i, ((p, s), coarse) in enumerate(zip(self.ups, outs)):
@@ -170,16 +183,20 @@ class SparseGraph(nn.Module):
             if s == 1:  # the block-1 level: a 1x1 conv on the target set itself
                 levels.append(torch.relu(coarse @ w + b))
                 continue
-            per_slot = (coarse @ w).reshape(-1, b.shape[0])  # row parent * s*s + slot
-            padded = torch.cat([per_slot, per_slot.new_zeros(1, b.shape[0])], dim=0)  # a missing parent: zero
-            levels.append(torch.relu(padded.index_select(0, feed[f"up{i + 1}"]) + b))
+            o = self.widths[p][1] // (s * s)
+            per_slot = self._pad((coarse @ w).reshape(-1, o), o)  # row parent * s*s + slot; a missing parent: zero
+            levels.append(torch.relu(per_slot.index_select(0, feed[f"up{i + 1}"]) + b))
         cat = torch.cat(levels, dim=1)  # (N_1, 384)
         wh, bh = self.params[self.head_index], self.params[self.head_index + 1]
         if self.spec.exact_head:
             return cat @ wh + bh
+        # the dense head over the whole map: the canvas gathered in one pass (a zero row at every inactive cell), then
+        # the 1x1 conv as (O, 384) @ (H*W, 384)^T, planar (O, H*W) straight away (one Gemm with transB, no Transpose
+        # of its output), the orientation the eager head gives oneDNN
+        c, o = self.widths[self.head_index]
         h, w = self.spec.head_shape
-        canvas = cat.new_zeros(h * w, cat.shape[1]).index_put((feed["sites"],), cat)
-        return (canvas @ wh + bh).t().reshape(1, bh.shape[0], h, w)
+        canvas = self._pad(cat, c).index_select(0, feed["canvas_rows"])  # (H*W, 384)
+        return (wh.t() @ canvas.t() + bh[:, None]).reshape(1, o, h, w)
 
 
 def _flat(coords: Tensor, shape: tuple[int, int]) -> Tensor:
@@ -225,5 +242,8 @@ def build_tables(spec: SparseSpec, features: Tensor, coords: Tensor) -> SparseTa
         inputs[f"up{i}"] = torch.where(u.parent_rows >= 0, u.parent_rows * (s * s) + u.slots,
                                        torch.full_like(u.parent_rows, sentinel))
     if not spec.exact_head:
-        inputs["sites"] = target[:, 1] * spec.head_shape[1] + target[:, 2]
+        h, w = spec.head_shape
+        rows = torch.full((h * w,), target.shape[0], dtype=torch.int64, device=target.device)
+        rows[target[:, 1] * w + target[:, 2]] = torch.arange(target.shape[0], device=target.device)
+        inputs["canvas_rows"] = rows
     return SparseTables({k: inputs[k] for k in spec.input_names()}, target)

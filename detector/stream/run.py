@@ -25,7 +25,7 @@ from detector.stream.schedule import Schedule, latest_outputs, single_worker, un
 from detector.stream.score import MODES, ap_ceiling, evaluate_overall, query_results
 from mpchair.core.atomic import check_writable
 from mpchair.core.errors import InputError
-from mpchair.core.owned import check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.geometry import labels_to_boxes
 from mpchair.kitti import Calib, Labels
 
@@ -368,7 +368,7 @@ def save_results(prep: Prepared, out: str | Path) -> Path:
     check_save_results(out)
     created = [p for p in (out.parent, *out.parent.parents) if not p.exists()]  # deepest first
     try:
-        remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old"), SAVE_COMMAND)
+        clear_leftovers(out, SAVE_COMMAND, legacy=_legacy_saved)
         stage = work_dir(out.parent, f".{out.name}.work", SAVE_COMMAND)
         try:
             for s, seq in enumerate(prep.stream.sequences):

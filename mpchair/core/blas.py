@@ -20,20 +20,10 @@ import os
 import platform
 import sys
 
+from mpchair.core.cpu import cpu_flags  # stdlib only: safe before numpy loads
+
 #: The kernel family pinned on x86-64: OpenBLAS's AVX2 + FMA kernels.
 KERNEL = "Haswell"
-
-
-def _cpu_flags() -> set[str]:
-    """The CPU's feature flags from /proc/cpuinfo (Linux); empty where it cannot be read."""
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return set()
 
 
 def pin_openblas_kernel() -> str | None:
@@ -45,7 +35,7 @@ def pin_openblas_kernel() -> str | None:
         return None
     if sys.platform != "linux" or platform.machine() not in ("x86_64", "AMD64"):
         return None
-    if not {"avx2", "fma"} <= _cpu_flags():
+    if not {"avx2", "fma"} <= cpu_flags():
         return None
     os.environ["OPENBLAS_CORETYPE"] = KERNEL
     return KERNEL

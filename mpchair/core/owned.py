@@ -10,7 +10,9 @@ Replacing is a swap: the new folder is filled completely under a hidden name bes
 exchanged with it in one ``renameat2(RENAME_EXCHANGE)`` (Linux; a rename aside and back elsewhere), so the output
 path always holds a complete folder; the old one, now under the hidden name, is removed. The hidden work folders
 carry the marker from their creation, so the next run of the same command removes what a killed run left there
-(``.OUT.work*``, ``.OUT.old*``) and nothing else.
+(``.OUT.work*``, ``.OUT.old*``) and nothing else (:func:`clear_leftovers`). Where the file system lacks the exchange,
+the old folder is renamed aside to ``.OUT.old<pid>`` and the new one renamed in: a kill between the two leaves no
+OUT, and the next run puts the old folder back before anything else.
 """
 
 from __future__ import annotations
@@ -143,6 +145,17 @@ def work_dir(parent: Path, prefix: str, command: str) -> Path:
     return path
 
 
+def _ours(folder: Path, command: str, legacy: Legacy | None) -> bool:
+    """Whether the real folder ``folder`` (no link) is ``command``'s: its marker names it, or, unmarked, ``legacy``
+    recognises every file in it."""
+    if folder.is_symlink() or not folder.is_dir():
+        return False
+    meta = read_marker(folder)
+    if meta is not None:
+        return meta["made_by"] == command
+    return legacy is not None and foreign_entry(folder, command, legacy=legacy) is None
+
+
 def remove_leftovers(parent: Path, prefixes: tuple[str, ...], command: str, *,
                      legacy: Legacy | None = None) -> list[Path]:
     """Remove the folders ``parent/<prefix>*`` that ``command``'s marker (or ``legacy``) proves are its own, left by a
@@ -151,14 +164,25 @@ def remove_leftovers(parent: Path, prefixes: tuple[str, ...], command: str, *,
     if not parent.is_dir():
         return removed
     for p in sorted(parent.iterdir()):
-        if not p.name.startswith(prefixes) or p.is_symlink() or not p.is_dir():
-            continue
-        meta = read_marker(p)
-        if (meta is not None and meta["made_by"] == command) or (
-                meta is None and legacy is not None and foreign_entry(p, command, legacy=legacy) is None):
+        if p.name.startswith(prefixes) and _ours(p, command, legacy):
             shutil.rmtree(p)
             removed.append(p)
     return removed
+
+
+def clear_leftovers(out: Path, command: str, *, legacy: Legacy | None = None,
+                    extra: tuple[str, ...] = ()) -> list[Path]:
+    """Before a run of ``command`` replaces ``out`` (under its lock): undo what a killed :func:`replace_folder` left.
+    A swap killed between its two renames (file systems without ``RENAME_EXCHANGE``) left no ``out`` and the old
+    folder at ``.OUT.old<pid>``: it is put back first, so the previous output is never lost to a kill. Then the
+    command's own ``.OUT.work*`` / ``.OUT.old*`` folders (and ``extra`` prefixes) are removed. The paths removed."""
+    if not out.exists() and not out.is_symlink() and out.parent.is_dir():
+        swapped = [p for p in out.parent.iterdir()
+                   if p.name.startswith(f".{out.name}.old") and p.name[len(out.name) + 5:].isdigit()
+                   and _ours(p, command, legacy)]
+        if swapped:  # one at most: the lock lets a single run swap at a time
+            max(swapped, key=lambda p: p.stat().st_mtime).rename(out)
+    return remove_leftovers(out.parent, (f".{out.name}.work", f".{out.name}.old", *extra), command, legacy=legacy)
 
 
 _RENAME_EXCHANGE = 2  # <linux/fs.h>

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpchair.core.blas import _cpu_flags
+from mpchair.core.cpu import cpu_flags
 from mpchair.core.limits import embree_isa_env
 
 #: The ISA pinned on x86-64 CPUs with AVX2 (Embree's name).
@@ -45,7 +45,7 @@ _TFAR0 = np.float32(1e37)  # embreex's initial tfar (also what a miss keeps)
 
 def _cpu_has_avx2() -> bool:
     """Whether the CPU runs Embree's AVX2 kernels (AVX2, FMA, BMI1/2 and LZCNT, which /proc/cpuinfo calls abm)."""
-    flags = _cpu_flags()
+    flags = cpu_flags()
     return {"avx2", "fma", "bmi1", "bmi2"} <= flags and bool({"abm", "lzcnt"} & flags)
 
 

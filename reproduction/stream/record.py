@@ -31,7 +31,7 @@ from pathlib import Path
 
 from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
-from mpchair.core.owned import MARKER, check_replaceable, remove_leftovers, replace_folder, work_dir
+from mpchair.core.owned import MARKER, check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.core.text import load_json
 from reproduction.checkout import ROOT
 from reproduction.stream.sweep import SCALES, Scale
@@ -147,7 +147,7 @@ def save_stream_record(out: Path, dest: Path, plan: RecordPlan, machine: dict | 
             too_big.append(rel)
         else:
             kept[rel] = data
-    remove_leftovers(dest.parent, (f".{dest.name}.work", f".{dest.name}.old"), COMMAND)
+    clear_leftovers(dest, COMMAND)
     stage = work_dir(dest.parent, f".{dest.name}.work", COMMAND)
     try:
         for rel, data in kept.items():
