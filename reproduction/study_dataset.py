@@ -21,10 +21,11 @@ import hashlib
 import json
 from pathlib import Path
 
+from mpchair.core.cpu import cpu_flags
+
 
 def cpu_description() -> str:
     """The CPU in a few words (model name and its widest vector ISA), for the record's notes."""
-    from detector.deploy.cpu import cpu_flags
     from detector.device import cpu_model
 
     flags = cpu_flags()

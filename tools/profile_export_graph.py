@@ -1,12 +1,13 @@
 """Where ONNX Runtime spends its time in an exported sparse graph: node counts and per-node profile shares.
 
-Exports the all-sparse model of ``--config`` (random weights, BatchNorm statistics away from (0, 1)) with
-``detector.deploy.export.write_onnx``, prints its node count by op type as exported and after ONNX Runtime's optimiser
-(``ORT_ENABLE_ALL``), then runs ``--frames`` synthetic frames (``detector.sparse.synthetic.clustered_sites`` at
-``--density``, random features) ``--repeats`` times with ONNX Runtime's profiling on and prints each op type's and
-the top nodes' share of the kernel time, each node's time the minimum over the repeats of the same frame (a node
-preempted in one repeat is not counted). Shares, not speed: ``detector bench --runtime`` times the deployed models.
-Asserts nothing. docs/measurements/export-graph-analysis-2026-12-07.md quotes it.
+Exports the all-sparse model of ``--config`` (random weights, BatchNorm randomised by
+``detector.bench.spconv_peer.randomise_batchnorm_``) with ``detector.deploy.export.write_onnx``, prints its node count
+by op type as exported and after ONNX Runtime's optimiser (``ORT_ENABLE_ALL``), then runs ``--frames`` synthetic frames
+(``detector.sparse.synthetic.clustered_sites`` at ``--density``, random features) ``--repeats`` times with ONNX
+Runtime's profiling on and prints each op type's and the top nodes' share of the kernel time, each node's time the
+minimum over the repeats of the same frame (a node preempted in one repeat is not counted). Shares, not speed:
+``detector bench --runtime`` times the deployed models. Asserts nothing.
+docs/measurements/export-graph-analysis-2026-12-07.md quotes it.
 
 Usage: ``python tools/profile_export_graph.py [--config mpchair_sparse] [--head dense] [--density 0.008]
 [--frames 4] [--repeats 4] [--threads 1] [--top 8] [--out DIR]``
@@ -46,8 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     import onnxruntime as ort
     import torch
 
+    from detector.bench.spconv_peer import randomise_batchnorm_
     from detector.config import config_file, load_experiment
     from detector.deploy.export import graph_module, write_onnx
+    from detector.deploy.runtimes import onnxruntime_options
     from detector.deploy.sparse_graph import build_tables
     from detector.models import build_model
     from detector.sparse.synthetic import clustered_sites
@@ -55,10 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_experiment(config_file(args.config))
     torch.manual_seed(0)
     model = build_model(dataclasses.replace(cfg.model, head=args.head)).eval()
-    for m in model.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.running_mean.uniform_(-0.5, 0.5)
-            m.running_var.uniform_(0.5, 2.0)
+    randomise_batchnorm_(model, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp)
         out.mkdir(parents=True, exist_ok=True)
@@ -72,12 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             feats = torch.rand(coords.shape[0], model.pillar_encoder.out_channels,
                                generator=torch.Generator().manual_seed(s))
             feeds.append({k: v.numpy() for k, v in build_tables(graph.spec, feats, coords).inputs.items()})
-        o = ort.SessionOptions()
-        o.intra_op_num_threads, o.inter_op_num_threads = args.threads, 1
-        o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        o.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        o.log_severity_level = 3
+        o = onnxruntime_options(args.threads)  # the bench's session, plus the profile and the optimised graph
         o.optimized_model_filepath = str(out / f"{args.head}.optimized.onnx")
         o.enable_profiling, o.profile_file_prefix = True, str(out / f"{args.head}-profile")
         session = ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])

@@ -30,18 +30,26 @@ class GraphSession(Protocol):
     def run(self, feed: dict[str, np.ndarray]) -> np.ndarray: ...
 
 
+def onnxruntime_options(threads: int):
+    """ONNX Runtime's ``SessionOptions`` as the module docstring says: ``threads`` intra-op threads, sequential, every
+    graph optimisation, no spin-wait, errors only."""
+    ort = require("onnxruntime", "--runtime onnxruntime")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.log_severity_level = 3  # errors only: its shape-inference notes are not ours to print
+    return options
+
+
 class OnnxRuntimeSession:
     """An ONNX file in ONNX Runtime's CPU execution provider on ``threads`` threads."""
 
     def __init__(self, path: str | Path, threads: int) -> None:
         ort = require("onnxruntime", "--runtime onnxruntime")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        options.log_severity_level = 3  # errors only: its shape-inference notes are not ours to print
+        options = onnxruntime_options(threads)
         self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         self.output = self.session.get_outputs()[0].name
 
