@@ -31,6 +31,7 @@ from mpchair.core.errors import InputError
 from mpchair.core.owned import MARKER, check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.core.text import load_json
 from reproduction.checkout import ROOT
+from reproduction.committed import committed_runs
 from reproduction.scales import SCALES, Scale
 
 #: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
@@ -153,6 +154,9 @@ def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) 
         meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
                 "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept),
                 "left_out_for_size": too_big}
+        committed = committed_runs(out)
+        if committed:  # which weights every runtime and AP figure of the record is of (runs/<model>/done has it too)
+            meta["weights"] = {m: w.to_json() for m, w in committed.items()}
         write_text(stage / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
         try:
             replace_folder(stage, dest, COMMAND, legacy=_legacy_record, nested=NESTED)
