@@ -31,6 +31,15 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
 Opt in (``--steps ablations,report``, ``make reproduce-ablations``): ``ablations`` trains and evaluates the paper's
 ablations on this run's data (``--ablations``, ``--ablation-epochs``), then times them again with their weights.
 
+``--weights committed`` (``make reproduce-runtime``): the train step trains nothing; it puts the accuracy study's
+committed weights (``pretrained:dense`` / ``pretrained:sparse``, detector/pretrained) where every later step reads
+a training, ``runs/<model>/`` (:mod:`reproduction.committed`: last.pt is the packed file, config.yaml its experiment,
+``done`` its name, SHA-256 and study training), and the report and record say so. Only on the study's dataset (the
+full / recipe scales at seed 0); a name not committed yet is one ``error:`` line before any step runs.
+``--bench-runs N`` (full / recipe: 3): the bench step and the deploy step's runtime table run ``detector bench --runs
+N``, N processes one after another, and the report quotes each headline ratio as the median with its min-max (the
+refhead, curve, budget and ablation benches run once).
+
 ``--from-record DIR`` first copies a run record (``docs/results-data``: what the ``record`` step wrote) into the work
 folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
 be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
