@@ -251,7 +251,9 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
     outputs = step_outputs(plan.out)
     done = set() if plan.force else {s for s in plan.steps if s in outputs and all(
         p.exists() for p in outputs[s].values())}
-    est = estimate(rec, plan.scale, list(plan.steps), here, None if probe is None else probe["probe_s"])
+    # committed weights: the train step copies files, none of the record's training time
+    steps = [s for s in plan.steps if s != "train" or plan.weights == "train"]
+    est = estimate(rec, plan.scale, steps, here, None if probe is None else probe["probe_s"])
     return estimate_lines(est, done)
 
 
