@@ -590,7 +590,7 @@ def _opening(out: Path, scale: str, sc: Scale, trained: Schedules, log: str, not
     committed = committed_runs(out)
     if committed:
         weights = (f"no training: the accuracy study's committed weights {weights_text(committed)}, trained "
-                   f"{schedules_text(trained, sc)} in {precision_text(out)}")
+                   + (f"{schedules_text(trained)} " if all(trained.values()) else "") + f"in {precision_text(out)}")
         trainings = ("; the trainings are the accuracy study's, docs/results-data/accuracy and the section "
                      f"\"{STUDY_SECTION}\")")
         flag = " --weights committed"

@@ -13,7 +13,7 @@ import torch
 from helpers_detector import write_test_config
 
 import detector.pretrained as pretrained
-from detector.bench.repeat import repeated
+from detector.bench.repeat import format_repeated, repeated
 from detector.bench.result import BenchResult
 from detector.checkpoint import Checkpoint, load_checkpoint, load_model, pack_pretrained, save_checkpoint
 from detector.config import load_experiment
@@ -175,13 +175,18 @@ def _bench(backbone_ms: dict[str, float]) -> dict:
 
 def test_the_report_quotes_a_multi_run_bench_as_median_and_min_max(tmp_path: Path) -> None:
     """A ``detector bench --runs 3`` JSON (the first run's result with ``repeated``, as bench.repeat writes it): the
-    target rows quote the median ratio and its min-max over the runs; a one-run JSON reads as before."""
+    target rows quote the median ratio and its min-max over the runs, the Markdown table lists the spread; a one-run
+    JSON reads as before."""
     runs = [_bench({"dense": 100.0, "sparse": s}) for s in (25.0, 20.0, 100.0 / 3)]  # backbone 4x, 5x, 3x
     rep = repeated([BenchResult.from_json(r) for r in runs])
     (tmp_path / "bench_default.json").write_text(json.dumps({**runs[0], "repeated": rep.to_json()}))
     rows = targets_section(tmp_path)
     assert ("| dense / sparse, backbone time, allocator default | >= 15 (paper 13.3 on a robot CPU) | 4.0x (median "
             "of 3 runs, 3.0-5.0x) |") in rows
+    # the bench step's table (detector bench --runs 3 --markdown) lists the spread one ratio row per line
+    listed = format_repeated(rep, markdown=True).splitlines()
+    assert listed[:2] == ["Over 3 runs, each in a process of its own: median [min-max]:", ""]
+    assert listed[2].startswith("- dense / sparse: ") and "backbone 4.00x [3.00-5.00]" in listed[2]
     (tmp_path / "bench_default.json").write_text(json.dumps(runs[1]))
     assert "| dense / sparse, backbone time, allocator default | >= 15 (paper 13.3 on a robot CPU) | 5.0x |" in (
         targets_section(tmp_path))
