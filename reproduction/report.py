@@ -695,14 +695,19 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
 ACCURACY_RECORD = STUDY_RECORD
 
 
-def accuracy_section(record: Path, figure) -> list[str]:
-    """The accuracy study's state and results (its record's accuracy.md and learning curves); nothing without it."""
+def accuracy_section(record: Path, figure, committed: bool = False) -> list[str]:
+    """The accuracy study's state and results (its record's accuracy.md and learning curves); nothing without it.
+    ``committed``: the run's models are the study's committed weights."""
     md = record / "accuracy.md"
     if not md.is_file():
         return []
-    lines = ["## Accuracy: house-disjoint splits, plateau-trained seeds, an interval", "",
-             "The AP tables above come from one short training per model, validated on frames of its own training "
-             "houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) replaces them: the "
+    before = ("The AP tables above are of the study's committed weights (one seed per model, `--weights committed`) "
+              "on the val houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) trained them: "
+              if committed else
+              "The AP tables above come from one short training per model, validated on frames of its own training "
+              "houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) replaces them: ")
+    lines = [f"## {STUDY_SECTION}", "",
+             before + "the "
              "dataset's 12 houses split 8 / 2 / 2 by house (val and test houses never trained on), three seeds per "
              "model trained in fp32 until the validation 3D AP plateaus (docs/training.md, \"Trained to a "
              "plateau\"), the paper's four ablations one seed each, and the sparse - dense gap on the test houses "
@@ -748,7 +753,8 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         *ablations_section(res),
         *_sparsity_section(res, figure),
         *deploy_section(res),
-        *(accuracy_section(ACCURACY_RECORD, figure) if scale in ("full", "recipe") else []),
+        *(accuracy_section(ACCURACY_RECORD, figure, bool(committed_runs(out))) if scale in ("full", "recipe")
+          else []),
         *_not_in_this_run(),
         "## Commands", "", "```",
         *log.rstrip().splitlines(), "```", "",
