@@ -181,20 +181,24 @@ def finish(proc: subprocess.Popen, scratch: Path, t0: float, timeout: float,
     hung = False
     usage = None
     status = 0
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            proc.returncode = os.waitstatus_to_exitcode(status)
-            break
-        if on_tick is not None and on_tick():
-            on_tick = None
-        if time.monotonic() - t0 > timeout:
-            hung = True
-            _kill_all(group_members(proc.pid) or [proc.pid])
-            _, status, usage = os.wait4(proc.pid, 0)
-            proc.returncode = os.waitstatus_to_exitcode(status)
-            break
-        time.sleep(0.05)
+    try:
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                proc.returncode = os.waitstatus_to_exitcode(status)
+                break
+            if on_tick is not None and on_tick():
+                on_tick = None
+            if time.monotonic() - t0 > timeout:
+                hung = True
+                _kill_all(group_members(proc.pid) or [proc.pid])
+                _, status, usage = os.wait4(proc.pid, 0)
+                proc.returncode = os.waitstatus_to_exitcode(status)
+                break
+            time.sleep(0.05)
+    except BaseException:  # the audit stopped (Ctrl-C, SIGTERM): leave no process of its own behind
+        _kill_all(group_members(proc.pid) or [proc.pid])
+        raise
     seconds = time.monotonic() - t0
     out = (scratch / "out").read_text(errors="replace")
     err = (scratch / "err").read_text(errors="replace")
@@ -913,7 +917,7 @@ def family_one_line(audit: Audit, rng: random.Random) -> None:
 
     check(audit, fam, "train with lr 1e30 (no checkpoint yet)",
           det(audit, "train", "--config", "{dir}/lr.yaml", "--data", data, "--out", "{dir}/run", "--threads", 1,
-              "--no-progress"), needle="no checkpoint was written yet", setup=diverging)
+              "--no-progress"), needle="no checkpoint was written yet", setup=diverging, timeout=10 * audit.timeout)
     check(audit, fam, "WORLD_SIZE=1 RANK=5", det(audit, "train", "--config", cfg, "--data", data, "--out",
                                                   "{dir}/run"), needle="RANK=5", env=dict(WORLD_SIZE="1", RANK="5"))
 
@@ -1021,6 +1025,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="folder holding mpchair, detector and python (default: the clone's .venv/bin)")
     p.add_argument("--keep", action="store_true", help="keep the temporary work folder (its path is printed)")
     args = p.parse_args(argv)
+    # SIGTERM ends the audit like Ctrl-C: the run under way is killed and --json still gets the runs so far
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if not math.isfinite(args.timeout) or args.timeout <= 0:
         p.error("--timeout must be a positive number of seconds")
     for tool in ("mpchair", "detector", "python"):
@@ -1042,6 +1048,12 @@ def main(argv: list[str] | None = None) -> int:
                               "skipped": SKIPPED.get(name)}
     finally:
         total = time.monotonic() - t0
+        for name in names:  # a family cut short (SIGTERM) counts its runs so far
+            runs = [r for r in audit.runs if r.family == name]
+            if name not in families and runs:
+                families[name] = {"item": FAMILIES[name][0], "runs": len(runs),
+                                  "failed": sum(bool(r.failures) for r in runs), "seconds": None,
+                                  "skipped": "cut short"}
         if args.json is not None:
             from mpchair.core.atomic import write_text
 
