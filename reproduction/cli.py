@@ -92,6 +92,7 @@ from reproduction.record import (
     check_record_dest,
     read_record,
     record_scale,
+    restorable_files,
     restore_record,
     save_record,
 )
@@ -303,6 +304,8 @@ def _main(argv: list[str] | None) -> int:
         sc, notes = _scale(args), list(args.note)
     if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
         check_record_dest(_record_dest(args, out))
+    if args.from_record is not None and not args.dry_run:  # a record refused leaves no work folder behind
+        restorable_files(args.from_record, with_dataset="generate" not in steps)
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
         restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)

@@ -238,25 +238,35 @@ def record_scale(meta: dict) -> Scale:
     return Scale(**sizes)
 
 
-def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
-    """Copy the record's files into work folder ``out`` where ``out`` lacks them (the recorded steps then count as
-    done); the dataset's manifest and ImageSets only ``with_dataset`` (a run that regenerates the dataset must not find
-    a manifest that marks it generated). The paths restored."""
+def restorable_files(record: Path, *, with_dataset: bool) -> list[str]:
+    """The files :func:`restore_record` copies, every one checked (regular, inside the record) before any is: a
+    :class:`RecordError` for the first that is not."""
     meta = read_record(record)
-    restored = []
+    chosen = []
     for rel in meta["files"]:
         parts = Path(rel).parts
         if ".." in parts or Path(rel).is_absolute():
             raise RecordError(f"{record / RECORD_JSON}: file {rel!r} lies outside the record")
         if parts[0] == "dataset" and not with_dataset:
             continue
-        src, dst = record / rel, out / rel
+        src = record / rel
         if not src.is_file():
             raise RecordError(f"{record / RECORD_JSON}: lists {rel}, which the record does not have")
         if any(p.is_symlink() for p in (src, *src.parents) if record in p.parents or p == src):
             raise RecordError(f"{src}: a symbolic link; a record is restored only from regular files inside it")
         if not src.resolve().is_relative_to(record.resolve()):
             raise RecordError(f"{src}: lies outside the record")
+        chosen.append(rel)
+    return chosen
+
+
+def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
+    """Copy the record's files into work folder ``out`` where ``out`` lacks them (the recorded steps then count as
+    done); the dataset's manifest and ImageSets only ``with_dataset`` (a run that regenerates the dataset must not find
+    a manifest that marks it generated). The paths restored; a refused record restores nothing."""
+    restored = []
+    for rel in restorable_files(record, with_dataset=with_dataset):
+        src, dst = record / rel, out / rel
         if not dst.exists():
             write_bytes(dst, src.read_bytes())
             restored.append(rel)
