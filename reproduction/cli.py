@@ -31,6 +31,15 @@ Steps (each one a list of exact ``mpchair`` / ``detector`` command lines, run as
 Opt in (``--steps ablations,report``, ``make reproduce-ablations``): ``ablations`` trains and evaluates the paper's
 ablations on this run's data (``--ablations``, ``--ablation-epochs``), then times them again with their weights.
 
+``--weights committed`` (``make reproduce-runtime``): the train step trains nothing; it puts the accuracy study's
+committed weights (``pretrained:dense`` / ``pretrained:sparse``, detector/pretrained) where every later step reads
+a training, ``runs/<model>/`` (:mod:`reproduction.committed`: last.pt is the packed file, config.yaml its experiment,
+``done`` its name, SHA-256 and study training), and the report and record say so. Only on the study's dataset (the
+full / recipe scales at seed 0); a name not committed yet is one ``error:`` line before any step runs.
+``--bench-runs N`` (full / recipe: 3): the bench step and the deploy step's runtime table run ``detector bench --runs
+N``, N processes one after another, and the report quotes each headline ratio as the median with its min-max (the
+refhead, curve, budget and ablation benches run once).
+
 ``--from-record DIR`` first copies a run record (``docs/results-data``: what the ``record`` step wrote) into the work
 folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
 be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
@@ -74,6 +83,7 @@ from mpchair.core.errors import InputError
 from mpchair.core.limits import MAX_SEED, max_parallel
 from reproduction.ablations import run_ablation_bench, run_ablations
 from reproduction.checkout import ROOT, require_checkout
+from reproduction.committed import WEIGHTS, check_committed, committed_runs, folder_conflict, study_dataset_problem
 from reproduction.deploy import LIKE_FOR_LIKE_DOCS, LIKE_FOR_LIKE_MARKER, like_for_like
 from reproduction.estimate import estimate, estimate_lines, recorded_times, this_machine, write_probe
 from reproduction.record import (
@@ -82,6 +92,7 @@ from reproduction.record import (
     check_record_dest,
     read_record,
     record_scale,
+    restorable_files,
     restore_record,
     save_record,
 )
@@ -137,6 +148,18 @@ def _parser() -> argparse.ArgumentParser:
                         "<work folder>/record otherwise)")
     p.add_argument("--bench-frames", type=int, default=None,
                    help="frames per `detector bench` trial instead of the scale's (full: 30, medium: 20)")
+    p.add_argument("--bench-runs", type=int, default=None,
+                   help="runs of the bench step's and the deploy step's runtime tables (`detector bench --runs N`, "
+                        "each run a process of its own; the report quotes the ratios' median and min-max) instead "
+                        "of the scale's (full / recipe: 3, small / medium: 1)")
+    p.add_argument("--weights", choices=WEIGHTS, default=None,
+                   help="train (default; a work folder that holds the committed weights keeps them): the train step "
+                        "trains dense and sparse here; committed: it trains nothing and takes the accuracy study's "
+                        "committed weights (pretrained:dense / pretrained:sparse, detector/pretrained) for every later "
+                        "step (full / recipe scales: the study's dataset); make reproduce-runtime")
+    p.add_argument("--pretrained", type=Path, default=None, metavar="DIR",
+                   help="with --weights committed: the folder of the packed weights and their index.json instead of "
+                        "the package's detector/pretrained (tools/pack_pretrained.py --out DIR)")
     return p
 
 
@@ -160,7 +183,35 @@ def _scale(args: argparse.Namespace) -> Scale:
         if args.bench_frames < 1:
             raise InputError("--bench-frames must be >= 1")
         sc = dataclasses.replace(sc, bench_frames=args.bench_frames)
-    return sc
+    return _bench_runs(args, sc)
+
+
+def _bench_runs(args: argparse.Namespace, sc: Scale) -> Scale:
+    """The scale with ``--bench-runs`` applied (detector bench takes 1 to 100)."""
+    if args.bench_runs is None:
+        return sc
+    if not 1 <= args.bench_runs <= 100:
+        raise InputError(f"--bench-runs takes 1 to 100, got {args.bench_runs}")
+    return dataclasses.replace(sc, bench_runs=args.bench_runs)
+
+
+def _weights(args: argparse.Namespace, out: Path, sc: Scale, steps: list[str]) -> str:
+    """The weights this invocation's steps use: ``--weights``, else the work folder's (committed weights restored from
+    a record stay committed), else ``train``; an :class:`InputError` (one line, before any step runs) for committed
+    weights that are not in detector/pretrained, a scale whose dataset is not the one they were trained on, or a
+    work folder holding other weights than asked for."""
+    weights = args.weights or ("committed" if committed_runs(out) else "train")
+    shas = None
+    if weights == "committed":
+        problem = study_dataset_problem(sc, args.seed)
+        if problem:
+            raise InputError(problem)
+        shas = check_committed(args.pretrained) if "train" in steps else None
+    if not args.force:
+        conflict = folder_conflict(out, weights, shas)
+        if conflict:
+            raise InputError(conflict)
+    return weights
 
 
 def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool) -> tuple[Scale, list[str]]:
@@ -172,6 +223,7 @@ def _recorded_run(args: argparse.Namespace, steps: list[str], scale_given: bool)
         raise InputError(f"--scale {args.scale}, but the record {args.from_record} is of a {meta.get('scale')}-scale "
                          "run")
     args.scale, sc = meta["scale"], record_scale(meta)
+    sc = _bench_runs(args, sc)
     if args.precision is not None:
         sc = dataclasses.replace(sc, precision=args.precision)
     elif sc.precision == "bf16" and not cpu_has_native_bf16():
@@ -200,7 +252,9 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
     outputs = step_outputs(plan.out)
     done = set() if plan.force else {s for s in plan.steps if s in outputs and all(
         p.exists() for p in outputs[s].values())}
-    est = estimate(rec, plan.scale, list(plan.steps), here, None if probe is None else probe["probe_s"])
+    # committed weights: the train step copies files, none of the record's training time
+    steps = [s for s in plan.steps if s != "train" or plan.weights == "train"]
+    est = estimate(rec, plan.scale, steps, here, None if probe is None else probe["probe_s"])
     return estimate_lines(est, done)
 
 
@@ -250,12 +304,16 @@ def _main(argv: list[str] | None) -> int:
         sc, notes = _scale(args), list(args.note)
     if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
         check_record_dest(_record_dest(args, out))
+    if args.from_record is not None and not args.dry_run:  # a record refused leaves no work folder behind
+        restorable_files(args.from_record, with_dataset="generate" not in steps)
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
         restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
         print(f"restored {len(restored)} file(s) of the record {args.from_record} into {out}")
+    weights = _weights(args, out, sc, steps)
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
-                force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs)
+                force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs,
+                weights=weights, pretrained=args.pretrained.resolve() if args.pretrained else None)
     for line in _estimate(plan, args.from_record or ROOT / "docs" / "results-data"):
         print(line, flush=True)
     r = Runner(args.dry_run, out / "commands.log")

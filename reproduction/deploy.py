@@ -27,6 +27,7 @@ from detector.bench.pick import AP_TOLERANCE, ap_exclusion, fastest_within_ap
 from detector.deploy.cpu import cpu_flags, skip_reason
 from reproduction.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
 from reproduction.runner import BIN, REUSE_ENV, Runner
+from reproduction.scales import bench_run_args
 
 #: (runtime, precision) of the deployed evaluations and bench rows, eager fp32 first.
 VARIANTS: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("torch", "bf16"), ("onnxruntime", "fp32"),
@@ -108,8 +109,11 @@ def run_deploy(plan, r: Runner, config) -> None:
     common = [*models, "--data", str(plan.data), "--split", "test", *weights, *threads, *_variant_args(variants),
               "--calibration-frames", str(CALIBRATION_FRAMES)]
     if plan.todo("deploy", outputs["bench"]):
+        # --runs as the bench step's: the like-for-like table's ratios are headline figures too (the budget rows,
+        # each alone in its own process already, run once: detector bench refuses --runs with --rate)
         r.run([str(BIN / "detector"), "bench", *common, "--frames", str(plan.scale.bench_frames), "--trials",
-               str(plan.scale.bench_trials), "--json-out", str(outputs["bench"]), "--markdown", "--no-progress"],
+               str(plan.scale.bench_trials), *bench_run_args(plan.scale), "--json-out", str(outputs["bench"]),
+               "--markdown", "--no-progress"],
               env=REUSE_ENV, stdout=plan.res / "deploy_bench.md")
     if plan.todo("deploy", outputs["budget"]):
         # each row also pays a fresh process and its export (10-30 s) beside the scale's budget_seconds

@@ -263,6 +263,8 @@ def estimate(rec: RecordedTimes, planned: Scale, steps: list[str], here: dict, p
             continue
         if kind == "train" and slower_training:
             ratio *= FP32_OVER_BF16_STEP
+        if kind == "bench" and step in ("bench", "deploy"):  # the benches that run --bench-runs processes
+            ratio *= planned.bench_runs / rec.scale.bench_runs
         seconds[step] = (seconds.get(step) or 0.0) + recorded * ratio * speed
     precision = (f"; trainings x{FP32_OVER_BF16_STEP:.0f} for fp32 here against the record's bf16 (dense step 1.75 s "
                  "vs 0.25 s, docs/benchmarks.md)" if slower_training else "")

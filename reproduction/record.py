@@ -31,6 +31,7 @@ from mpchair.core.errors import InputError
 from mpchair.core.owned import MARKER, check_replaceable, clear_leftovers, replace_folder, work_dir
 from mpchair.core.text import load_json
 from reproduction.checkout import ROOT
+from reproduction.committed import committed_runs
 from reproduction.scales import SCALES, Scale
 
 #: The command named in a record folder's ownership marker (:mod:`mpchair.core.owned`).
@@ -153,6 +154,9 @@ def save_record(out: Path, dest: Path, scale: str, sc: Scale, notes: list[str]) 
         meta = {"scale": scale, "scale_sizes": dataclasses.asdict(sc), "notes": list(notes),
                 "dataset_sha256": dataset_fingerprint(out / "dataset"), "files": list(kept),
                 "left_out_for_size": too_big}
+        committed = committed_runs(out)
+        if committed:  # which weights every runtime and AP figure of the record is of (runs/<model>/done has it too)
+            meta["weights"] = {m: w.to_json() for m, w in committed.items()}
         write_text(stage / RECORD_JSON, json.dumps(meta, indent=1) + "\n")
         try:
             replace_folder(stage, dest, COMMAND, legacy=_legacy_record, nested=NESTED)
@@ -234,25 +238,35 @@ def record_scale(meta: dict) -> Scale:
     return Scale(**sizes)
 
 
-def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
-    """Copy the record's files into work folder ``out`` where ``out`` lacks them (the recorded steps then count as
-    done); the dataset's manifest and ImageSets only ``with_dataset`` (a run that regenerates the dataset must not find
-    a manifest that marks it generated). The paths restored."""
+def restorable_files(record: Path, *, with_dataset: bool) -> list[str]:
+    """The files :func:`restore_record` copies, every one checked (regular, inside the record) before any is: a
+    :class:`RecordError` for the first that is not."""
     meta = read_record(record)
-    restored = []
+    chosen = []
     for rel in meta["files"]:
         parts = Path(rel).parts
         if ".." in parts or Path(rel).is_absolute():
             raise RecordError(f"{record / RECORD_JSON}: file {rel!r} lies outside the record")
         if parts[0] == "dataset" and not with_dataset:
             continue
-        src, dst = record / rel, out / rel
+        src = record / rel
         if not src.is_file():
             raise RecordError(f"{record / RECORD_JSON}: lists {rel}, which the record does not have")
         if any(p.is_symlink() for p in (src, *src.parents) if record in p.parents or p == src):
             raise RecordError(f"{src}: a symbolic link; a record is restored only from regular files inside it")
         if not src.resolve().is_relative_to(record.resolve()):
             raise RecordError(f"{src}: lies outside the record")
+        chosen.append(rel)
+    return chosen
+
+
+def restore_record(record: Path, out: Path, *, with_dataset: bool) -> list[str]:
+    """Copy the record's files into work folder ``out`` where ``out`` lacks them (the recorded steps then count as
+    done); the dataset's manifest and ImageSets only ``with_dataset`` (a run that regenerates the dataset must not find
+    a manifest that marks it generated). The paths restored; a refused record restores nothing."""
+    restored = []
+    for rel in restorable_files(record, with_dataset=with_dataset):
+        src, dst = record / rel, out / rel
         if not dst.exists():
             write_bytes(dst, src.read_bytes())
             restored.append(rel)

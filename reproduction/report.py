@@ -11,12 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.bench.repeat import Repeated, Spread
 from detector.bench.result import BenchResult
 from detector.eval.kitti import N_SAMPLE_PTS, ap_r40, get_thresholds
 from mpchair.core.atomic import write_bytes, write_text
 from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, TABLE_II
 from mpchair.paper import MATTERPORT_CHAIR_AP as PAPER_AP
 from reproduction.checkout import ROOT
+from reproduction.committed import STUDY_RECORD, STUDY_SECTION, committed_runs, weights_text
 from reproduction.deploy import deploy_section
 from reproduction.report_ablations import ablations_section
 from reproduction.report_runtime import density_curve_section, reference_head_section, training_time_section
@@ -26,6 +28,7 @@ from reproduction.results import (
     KittiMetrics,
     eval_records,
     read_bench,
+    read_bench_repeated,
     read_density,
     read_eval_outputs,
     read_manifest,
@@ -118,8 +121,26 @@ def _shared_component_rows(bench: BenchResult, name: str, alloc: str) -> list[st
     return rows
 
 
-def _bench_targets(bench: BenchResult, alloc: str) -> list[str]:
-    """Target-table rows of one allocator's bench: dense / sparse speed-ups, the shared components, the peer."""
+def runs_spread(spread: Repeated | None, row: str, comp: str) -> Spread | None:
+    """Ratio ``row`` / ``comp`` over a bench's runs (``spread``: its JSON's ``repeated``), None unless it has two or
+    more."""
+    s = spread.ratios.get(row, {}).get(comp) if spread is not None else None
+    return s if s is not None and len(s.values) > 1 else None
+
+
+def spread_text(value: float, spread: Repeated | None, row: str, comp: str, fmt: str = ".1f") -> str:
+    """A ratio as the report quotes it: ``14.6x`` from a one-run bench, ``14.6x (median of 3 runs, 13.9-15.2x)``
+    where the bench JSON holds ``spread``, the ratio rows of ``detector bench --runs N`` (``row`` ``dense /
+    sparse``, component ``comp``), whose median replaces the first run's ``value``."""
+    s = runs_spread(spread, row, comp)
+    if s is None:
+        return f"{value:{fmt}}x"
+    return f"{s.median:{fmt}}x (median of {len(s.values)} runs, {min(s.values):{fmt}}-{max(s.values):{fmt}}x)"
+
+
+def _bench_targets(bench: BenchResult, alloc: str, spread: Repeated | None = None) -> list[str]:
+    """Target-table rows of one allocator's bench: dense / sparse speed-ups, the shared components, the peer
+    (``spread``: the bench's runs, where it holds several)."""
     rows = []
     ours = bench.ours()
     dense = ours.get("dense")
@@ -131,7 +152,8 @@ def _bench_targets(bench: BenchResult, alloc: str) -> list[str]:
             ("backbone", ">= 15 (paper 13.3 on a robot CPU)"), ("total", "paper 4.6 (dense head)")]
         for comp, target in targets:
             ratio = _ratio(dense.mean_ms[comp], model.mean_ms[comp])
-            rows.append(f"| dense / {name}, {comp} time, allocator {alloc} | {target} | {ratio:.1f}x |")
+            rows.append(f"| dense / {name}, {comp} time, allocator {alloc} | {target} | "
+                        f"{spread_text(ratio, spread, f'dense / {name}', comp)} |")
         if not exact_head:
             rows += _shared_component_rows(bench, name, alloc)
     for peer, pm in bench.peers().items():
@@ -139,7 +161,7 @@ def _bench_targets(bench: BenchResult, alloc: str) -> list[str]:
             target = ">= 1 (ours no slower)" if name == "dense" else "-"
             ratio = _ratio(pm.mean_ms["total"], model.mean_ms["total"])
             rows.append(f"| {peer} (Open3D-ML's dense) / {name}, total time, allocator {alloc} | {target} | "
-                        f"{ratio:.2f}x |")
+                        f"{spread_text(ratio, spread, f'{peer} / {name}', 'total', '.2f')} |")
     return rows
 
 
@@ -212,7 +234,7 @@ def targets_section(res: Path) -> list[str]:
     for alloc in ALLOCATORS:
         bench = read_bench(res / f"bench_{alloc}.json")
         if bench is not None:
-            rows += _bench_targets(bench, alloc)
+            rows += _bench_targets(bench, alloc, read_bench_repeated(res / f"bench_{alloc}.json"))
     rows += reference_head_targets(res)
     if not rows:
         return []
@@ -295,7 +317,16 @@ def detection_section(res: Path) -> list[str]:
 def status_section(scale: str, out: Path, trained: Schedules, sc: Scale) -> list[str]:
     """What this scale leaves out, and the validation AP logged during training (the learning curve)."""
     lines = []
-    if scale not in ("full", "recipe"):
+    committed = committed_runs(out)
+    if committed:
+        lines += [f"**The models are the accuracy study's, not trained by this run:** `--weights committed` took "
+                  f"{weights_text(committed)} (detector/pretrained, `--checkpoint pretrained:NAME`; sha256 of the "
+                  f"packed file as index.json lists it), trained by `tools/accuracy_study.py` in "
+                  f"{precision_text(out)} on this run's dataset (its train houses; the val and test houses never "
+                  "trained on). Every AP and runtime figure below is of these weights; their trainings (logs, "
+                  "validation curves, test AP with the seed-to-seed interval) are docs/results-data/accuracy and the "
+                  f"section \"{STUDY_SECTION}\".", ""]
+    elif scale not in ("full", "recipe"):
         lines += [f"This is the `--scale {scale}` run: fewer frames and epochs than the issue's full scale (3,000 "
                   f"train / 1,000 val frames, {epochs_text(SCALES['full'])} epochs), so the AP target is not "
                   "expected to be met; the runtime and op-count results do not depend on the training length.", ""]
@@ -349,6 +380,10 @@ def _difference_rows(out: Path, trained: Schedules) -> list[tuple[str, str, str,
     sched_text = (f"{sched}, peak lr {lr}" if sched == "onecycle" else f"{sched}, lr {lr}") if sched else "n/a"
     batch = dense.train.batch_size if dense else "n/a"
     precision = {m: cfg.train.precision if cfg else "fp32" for m, cfg in zip(MODELS, (dense, sparse))}
+    committed = committed_runs(out)
+    why = (f"the accuracy study's trainings (`--weights committed`: {weights_text(committed)}), each ended by its "
+           "plateau rule or its epoch cap (docs/training.md, \"Trained to a plateau\")" if committed
+           else schedule_why(trained, splits.get("train")))
     return [
         ("data", "4 real Matterport3D houses (VLzqgDo317F, e9zR4mvMWw7, uNb9QFRL6hY, i5noydFURQK), habitat navmesh "
          "viewpoints; train 5,000 / val 2,500 (training index split, mostly house-disjoint val) / test 7,500",
@@ -374,7 +409,7 @@ def _difference_rows(out: Path, trained: Schedules) -> list[tuple[str, str, str,
         ("schedule", "dense 200 / sparse 250 epochs of 5,000 samples, batch 6, AdamW lr 1e-3 constant",
          (schedules_text(trained) if all(trained.values()) else f"dense {ep['dense']} / sparse {ep['sparse']} epochs")
          + f", batch {batch}, AdamW {sched_text}",
-         schedule_why(trained, splits.get("train"))),
+         why),
         ("precision", "fp32 (GPU)", f"{precision['dense']} (dense) / {precision['sparse']} (sparse)",
          "bf16 only where the CPU computes it natively"),
         ("evaluation", "Open3D-ML's mAP (41 thresholds, every box difficulty 0), BEV and 3D at IoU 0.5",
@@ -382,10 +417,16 @@ def _difference_rows(out: Path, trained: Schedules) -> list[tuple[str, str, str,
          "KITTI protocol's Overall level (every chair counts) and Easy / Moderate / Hard",
          "the KITTI levels show how much of the gap sits in hard (small, occluded, truncated) chairs"),
         ("runtime", "desktop GPU, Jetson Xavier (low / high power), robot CPU (i5-4590S, 4 cores); epoch-200 weights",
-         "this machine's CPU only (see the machine line of each runtime table), trained weights of this run, "
+         "this machine's CPU only (see the machine line of each runtime table), "
+         + ("the accuracy study's committed weights" if committed_runs(out) else "trained weights of this run") + ", "
          "interleaved per frame in one process; Open3D-ML's own PointPillars as the peer row",
          "no GPU was lent to this run"),
     ]
+
+
+def _weights_owner(out: Path) -> str:
+    """Whose weights the runtime figures time: "this run's", or the accuracy study's committed ones."""
+    return "the accuracy study's committed weights" if committed_runs(out) else "this run's"
 
 
 def _metres(value: float | None) -> str:
@@ -455,9 +496,9 @@ def _measurement_difference_rows(out: Path, res: Path) -> list[tuple[str, str, s
          "sparse total-time ratio is higher than with the reference's head and not the paper's 4.6x"
          + _reference_total_text(res)),
         ("bench weights", "epoch-200 weights trained at the bench's 768 x 512 grid",
-         f"this run's, trained on the {grid[0]} x {grid[1]} crop and loaded into the 768 x 512 model (conv weights "
-         "do not depend on the grid; cell-centred anchors on both, so the boxes land where they do on the crop)"
-         if grid else "n/a",
+         f"{_weights_owner(out)}, trained on the {grid[0]} x {grid[1]} crop and loaded into the 768 x 512 model "
+         "(conv weights do not depend on the grid; cell-centred anchors on both, so the boxes land where they do on "
+         "the crop)" if grid else "n/a",
          "CPU budget; the times depend on the weights only through the boxes BBox Extract suppresses"),
         ("density D (test split)", f"Matterport-Chair median {MATTERPORT_CHAIR_DENSITY.median} (KITTI "
          f"{KITTI_DENSITY.median})", f"median {median:.5f} (`mpchair stats`)" if median else "n/a",
@@ -542,16 +583,28 @@ def _not_in_this_run() -> list[str]:
 
 
 def _opening(out: Path, scale: str, sc: Scale, trained: Schedules, log: str, notes: list[str]) -> str:
-    """The opening paragraph: the scale, the training, the time the commands took, the operator's notes."""
+    """The opening paragraph: the scale, the training (or the committed weights), the time the commands took, the
+    operator's notes."""
     steps_s, train_s = elapsed_seconds(log, out / "runs")
+    runs = f" x {sc.bench_runs} runs" if sc.bench_runs > 1 else ""
+    committed = committed_runs(out)
+    if committed:
+        weights = (f"no training: the accuracy study's committed weights {weights_text(committed)}, trained "
+                   + (f"{schedules_text(trained)} " if all(trained.values()) else "") + f"in {precision_text(out)}")
+        trainings = ("; the trainings are the accuracy study's, docs/results-data/accuracy and the section "
+                     f"\"{STUDY_SECTION}\")")
+        flag = " --weights committed"
+    else:
+        weights = f"training {schedules_text(trained, sc)}, precision {precision_text(out)}"
+        trainings = ("; training took " + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
+                     + "; a training cut and resumed counts by its run's epoch clocks, which include the part before "
+                     "the resume")
+        flag = ""
     return (
-        f"Written by `tools/reproduce.py --scale {scale}` ({sc.houses} synthetic houses x {sc.frames_per_house} "
-        f"frames, training {schedules_text(trained, sc)}, precision {precision_text(out)}, bench "
-        f"{sc.bench_frames} frames x {sc.bench_trials} trials); the commands below took {steps_s / 60:.1f} min in "
-        "all on this machine (each command's wall time is listed; training took "
-        + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
-        + "; a training cut and resumed counts by its run's epoch clocks, which include the part before the "
-        "resume). "
+        f"Written by `tools/reproduce.py --scale {scale}{flag}` ({sc.houses} synthetic houses x "
+        f"{sc.frames_per_house} frames, {weights}, bench {sc.bench_frames} frames x {sc.bench_trials} trials{runs}); "
+        f"the commands below took {steps_s / 60:.1f} min in all on this machine (each command's wall time is "
+        f"listed{trainings}). "
         "Synthetic houses are not Matterport3D: absolute "
         "AP and density are not the paper's; the comparison is the dense-vs-sparse *difference* and *ratio*."
         + "".join(" " + n.strip() for n in notes))
@@ -572,6 +625,13 @@ def _machine_text(res: Path) -> str:
     return f"a {mach.machine.logical_cpus}-CPU {mach.machine.cpu} ({feats}{'' if amx else '; no AMX'})"
 
 
+def _median_ratio(value: float, spread: Repeated | None, row: str, comp: str) -> float:
+    """The median over the bench's runs of ratio ``row`` / ``comp`` where it holds several (:func:`spread_text`),
+    else ``value``."""
+    s = runs_spread(spread, row, comp)
+    return value if s is None else s.median
+
+
 def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
     """The opening's account of this run against the paper, from its own tables: the density, the machine, the dense
     AP against the paper's and why (the schedule), the backbone ratio against the paper's robot-CPU 13.3x and why, the
@@ -586,10 +646,15 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
         return ""
     log = read_text(out / "commands.log") or ""
     realism = "clean" if "--realism clean" in log else "default"
-    ratios = {a: _ratio(b.ours()["dense"].mean_ms["backbone"], b.ours()["sparse"].mean_ms["backbone"])
+    spreads = {a: read_bench_repeated(res / f"bench_{a}.json") for a in ALLOCATORS}
+    firsts = {a: _ratio(b.ours()["dense"].mean_ms["backbone"], b.ours()["sparse"].mean_ms["backbone"])
               for a, b in benches.items()}
-    total = _ratio(benches["default"].ours()["dense"].mean_ms["total"],
-                   benches["default"].ours()["sparse"].mean_ms["total"])
+    # the median over the runs where the bench ran several, else the one run's ratio
+    ratios = {a: _median_ratio(r, spreads[a], "dense / sparse", "backbone") for a, r in firsts.items()}
+    backbone = {a: spread_text(r, spreads[a], "dense / sparse", "backbone") for a, r in firsts.items()}
+    first_total = _ratio(benches["default"].ours()["dense"].mean_ms["total"],
+                         benches["default"].ours()["sparse"].mean_ms["total"])
+    total = _median_ratio(first_total, spreads["default"], "dense / sparse", "total")
     head = ref.ratio("dense", "sparse", "total_reference_head")
     ap3d = ev.kitti["dense"].overall("3d", "R40")
     o3d = ev.open3d_ml["dense"].get("3d") if "dense" in ev.open3d_ml else None
@@ -605,14 +670,21 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
     if ap3d is not None:
         side = "below" if ap3d < PAPER_AP.dense_3d else "above"
         o3d_text = f", {o3d:.2f} on the paper's recall-blind Open3D-ML mAP" if o3d is not None else ""
-        text += (f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER_AP.dense_3d}"
-                 + (f" because the models trained {schedules_text(trained)}, not 200 / 250 epochs of 5,000 (they "
-                    "are far from converged);" if side == "below" and all(trained.values()) else ";"))
-    text += (f" the backbone ratio ({ratios['default']:.1f}x default / {ratios['reuse']:.1f}x reuse allocator) is "
+        if committed_runs(out):
+            why = (" with the accuracy study's weights, trained to a validation plateau on the synthetic houses "
+                   "(section \"Accuracy\" below);")
+        elif side == "below" and all(trained.values()):
+            why = (f" because the models trained {schedules_text(trained)}, not 200 / 250 epochs of 5,000 (they are "
+                   "far from converged);")
+        else:
+            why = ";"
+        text += f" the dense 3D AP ({ap3d:.2f} Overall R40{o3d_text}) is {side} the paper's {PAPER_AP.dense_3d}{why}"
+    text += (f" the backbone ratio ({backbone['default']} default / {backbone['reuse']} reuse allocator) is "
              f"{'above' if min(ratios.values()) > paper_ratio else 'not above'} the paper's {paper_ratio:.1f}x, "
              "measured on a 4-core AVX2 i5 robot CPU with MinkowskiEngine, where our sparse backbone is one-GEMM "
              "rulebook convolution on this machine's CPU (docs/sparse.md); the total-time ratio "
-             f"({total:.1f}x) is {'above' if total > paper_total else 'not above'} the paper's {paper_total:.1f}x"
+             f"({spread_text(first_total, spreads['default'], 'dense / sparse', 'total')}) is "
+             f"{'above' if total > paper_total else 'not above'} the paper's {paper_total:.1f}x"
              + (" because our dense head is fused" if total > paper_total else "")
              + (f": with the reference's three-conv head it is {head:.1f}x (\"Total time with the reference's head "
                 "layout\")." if head is not None else "."))
@@ -620,17 +692,22 @@ def why_it_differs(out: Path, res: Path, trained: Schedules) -> str:
 
 
 #: The accuracy study's record (tools/accuracy_study.py), whose analysis the report's Accuracy section shows.
-ACCURACY_RECORD = ROOT / "docs" / "results-data" / "accuracy"
+ACCURACY_RECORD = STUDY_RECORD
 
 
-def accuracy_section(record: Path, figure) -> list[str]:
-    """The accuracy study's state and results (its record's accuracy.md and learning curves); nothing without it."""
+def accuracy_section(record: Path, figure, committed: bool = False) -> list[str]:
+    """The accuracy study's state and results (its record's accuracy.md and learning curves); nothing without it.
+    ``committed``: the run's models are the study's committed weights."""
     md = record / "accuracy.md"
     if not md.is_file():
         return []
-    lines = ["## Accuracy: house-disjoint splits, plateau-trained seeds, an interval", "",
-             "The AP tables above come from one short training per model, validated on frames of its own training "
-             "houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) replaces them: the "
+    before = ("The AP tables above are of the study's committed weights (one seed per model, `--weights committed`) "
+              "on the val houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) trained them: "
+              if committed else
+              "The AP tables above come from one short training per model, validated on frames of its own training "
+              "houses. The accuracy study (`make accuracy-study`, `tools/accuracy_study.py`) replaces them: ")
+    lines = [f"## {STUDY_SECTION}", "",
+             before + "the "
              "dataset's 12 houses split 8 / 2 / 2 by house (val and test houses never trained on), three seeds per "
              "model trained in fp32 until the validation 3D AP plateaus (docs/training.md, \"Trained to a "
              "plateau\"), the paper's four ablations one seed each, and the sparse - dense gap on the test houses "
@@ -676,7 +753,8 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         *ablations_section(res),
         *_sparsity_section(res, figure),
         *deploy_section(res),
-        *(accuracy_section(ACCURACY_RECORD, figure) if scale in ("full", "recipe") else []),
+        *(accuracy_section(ACCURACY_RECORD, figure, bool(committed_runs(out))) if scale in ("full", "recipe")
+          else []),
         *_not_in_this_run(),
         "## Commands", "", "```",
         *log.rstrip().splitlines(), "```", "",

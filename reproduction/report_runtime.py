@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from mpchair.paper import KITTI_DENSITY, MATTERPORT_CHAIR_DENSITY, SPARSE_EPOCH_RATIO, SPARSE_TRAIN_SPEEDUP, TABLE_II
+from reproduction.committed import STUDY_SECTION, committed_runs, weights_text
 from reproduction.results import (
     ABLATIONS,
     MODELS,
@@ -32,8 +33,16 @@ def training_time_section(out: Path) -> list[str]:
     the sparse model's speed-up beside the paper's."""
     lines = ["## Training time (this run's trainings, from each run's metrics.jsonl)", ""]
     times = {m: t for m in (*MODELS, *ABLATIONS) if (t := training_time(out / "runs" / m)) is not None}
+    committed = committed_runs(out)
+    if committed:
+        # no training here: the committed weights' trainings ran in the accuracy study, sessions and machines apart
+        lines += ["Dense and sparse were not trained by this run (`--weights committed`): their weights are the "
+                  f"accuracy study's {weights_text(committed)}, whose trainings ran "
+                  "across several sessions and machines; their epoch times and validation curves are in "
+                  "docs/results-data/accuracy/runs/<training>/metrics.jsonl and their results in the section "
+                  f"\"{STUDY_SECTION}\".", ""]
     if not times:
-        return lines + ["not run", ""]
+        return lines + ([] if committed else ["not run", ""])
     lines += ["| model | epochs | s per epoch (median) | s per step (median) | whole run (min, sum of epochs) |",
               "|---|---|---|---|---|"]
     for m, t in times.items():

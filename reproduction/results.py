@@ -18,6 +18,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from detector.bench.repeat import Repeated
 from detector.bench.result import BenchResult
 from detector.config import ExperimentConfig, load_run_config
 from detector.device import Machine
@@ -127,6 +128,13 @@ def read_bench(path: Path) -> BenchResult | None:
     step did not write it."""
     d = _read_json(path)
     return None if d is None else BenchResult.from_json(d)
+
+
+def read_bench_repeated(path: Path) -> Repeated | None:
+    """The spread over runs of a ``detector bench --runs N`` JSON (:class:`detector.bench.repeat.Repeated`); None for
+    a one-run JSON or no file."""
+    d = _read_json(path)
+    return Repeated.from_json(d["repeated"]) if d and isinstance(d.get("repeated"), dict) else None
 
 
 def bench_weights(path: Path) -> tuple[str, ...]:

@@ -11,7 +11,8 @@ from pathlib import Path
 @dataclass(frozen=True)
 class Scale:
     """Sizes of one scale: houses x frames per house, the dense model's training epochs (the sparse model trains
-    :data:`SPARSE_EPOCH_RATIO` times as many, as the paper's 250 vs 200) and precision (None: the config's), bench."""
+    :data:`SPARSE_EPOCH_RATIO` times as many, as the paper's 250 vs 200) and precision (None: the config's), bench
+    (frames, trials, runs)."""
 
     houses: int
     frames_per_house: int
@@ -30,6 +31,10 @@ class Scale:
     #: ``mpchair generate --split-mode``: ``house`` keeps whole houses per split (val and test houses never seen in
     #: training); ``frame`` (the records made before 2026-12-06 and the small scale) a seeded per-frame split
     split_mode: str = "frame"
+    #: ``detector bench --runs``: the bench step's (and the deploy step's runtime table's) runs, each a process of its
+    #: own, whose median and min-max the report quotes (one run: the records made before 2026-12-07, and the quick
+    #: scales)
+    bench_runs: int = 1
 
 
 SCALES = {
@@ -51,12 +56,12 @@ SCALES = {
     # frames; val and test houses are never trained on), the dataset of the accuracy study (tools/accuracy_study.py),
     # whose plateau-trained seeds replace this scale's short trainings in the accuracy claims.
     "full": Scale(houses=12, frames_per_house=400, epochs=4, bench_frames=30, bench_trials=3, ops_frames=200,
-                  precision="auto", split_mode="house"),
+                  precision="auto", split_mode="house", bench_runs=3),
     # the recipe's longer schedule: dense 16 / sparse 20 bf16 epochs (24,000 / 30,000 steps; 15 epochs each reached
     # dense 80.77 / sparse 79.32 3D AP Moderate, pre-issue-15 labels, in 184 min on 2 AVX512-BF16 cores); a GPU's job
     # or a machine that outlives a session (every step resumes)
     "recipe": Scale(houses=12, frames_per_house=400, epochs=16, bench_frames=30, bench_trials=3, ops_frames=200,
-                    precision="auto", split_mode="house"),
+                    precision="auto", split_mode="house", bench_runs=3),
 }
 
 
@@ -69,6 +74,12 @@ def model_epochs(dense_epochs: int | None) -> dict[str, int | None]:
     if dense_epochs is None:
         return {"dense": None, "sparse": None}
     return {"dense": dense_epochs, "sparse": math.ceil(dense_epochs * SPARSE_EPOCH_RATIO - 1e-9)}
+
+
+def bench_run_args(sc: Scale) -> list[str]:
+    """``--runs N`` of a ``detector bench`` whose ratios the report quotes (none for one run: the commands of the
+    records made before it existed stay as logged)."""
+    return ["--runs", str(sc.bench_runs)] if sc.bench_runs > 1 else []
 
 
 def epochs_text(sc: Scale) -> str:

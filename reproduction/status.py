@@ -7,6 +7,7 @@ import statistics
 from pathlib import Path
 
 from mpchair.core.errors import InputError
+from reproduction.committed import read_committed
 from reproduction.results import ABLATIONS, MODELS, read_run_config, step_records
 from reproduction.steps import step_outputs
 from reproduction.training import trained_schedules
@@ -19,6 +20,9 @@ def train_status(out: Path, model: str) -> str:
     from mpchair.core.lock import held
 
     run = out / "runs" / model
+    committed = read_committed(run)
+    if committed is not None:
+        return f"{model}: the committed weights {committed.text()} (--weights committed: not trained here)"
     if (run / "done").exists():
         return f"{model}: trained"
     schedule = trained_schedules(out, (model,))[model]  # (epochs, samples per epoch) of the run's config

@@ -17,7 +17,7 @@ from reproduction import deploy
 from reproduction.checkout import ROOT
 from reproduction.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from reproduction.runner import BIN, REUSE_ENV, Runner
-from reproduction.scales import Scale, model_epochs
+from reproduction.scales import Scale, bench_run_args, model_epochs
 
 STEPS = ("synth", "generate", "stats", "train", "eval", "bench", "refhead", "ops", "viz", "curve", "deploy",
          "ablation-bench", "report", "record")
@@ -82,6 +82,11 @@ class Plan:
     #: the opt-in ablations step: which ablations to train, and their epochs (None: the sparse model's)
     ablations: tuple[str, ...] = ABLATIONS
     ablation_epochs: int | None = None
+    #: ``--weights``: ``train`` the models here, or take the accuracy study's ``committed`` ones
+    #: (reproduction.committed)
+    weights: str = "train"
+    #: the folder of the committed weights and their index.json (None: the package's detector/pretrained)
+    pretrained: Path | None = None
 
     @property
     def houses(self) -> Path:
@@ -187,10 +192,22 @@ def train_command(plan: Plan, model: str, config: Path | None = None, epochs: in
     return cmd
 
 
+def committed_command(plan: Plan, model: str) -> list[str]:
+    """``python -m reproduction.committed``: ``--weights committed``'s train step for one model, which trains nothing
+    but puts the accuracy study's committed weights into ``runs/<model>`` (last.pt, config.yaml, done)."""
+    cmd = [sys.executable, "-m", "reproduction.committed", "--model", model, "--out", str(plan.runs / model)]
+    return cmd + (["--pretrained", str(plan.pretrained)] if plan.pretrained is not None else [])
+
+
 def run_train(plan: Plan, r: Runner) -> None:
-    """``detector train``: the dense, then the sparse model; ``RUN/done`` marks a training that returned."""
+    """``detector train``: the dense, then the sparse model; ``RUN/done`` marks a training that returned. With
+    committed weights, :func:`committed_command` instead (a record restored without its weights gets them again)."""
     for m in MODELS:
         done = step_outputs(plan.out)["train"][m]
+        if plan.weights == "committed":
+            if plan.todo("train", done, plan.runs / m / "last.pt"):
+                r.run(committed_command(plan, m))
+            continue
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly
         if plan.todo("train", done):
             # glibc otherwise returns every large freed tensor to the OS and page-faults it back in on the next step
@@ -250,8 +267,8 @@ def bench_command(plan: Plan, json_out: Path, peer: bool) -> list[str]:
     # mpchair_sparse_exact.yaml = the sparse model with the exact sparse head (same weights, same output)
     cmd = [_tool("detector"), "bench", "--config", _config("mpchair_dense"), "--config", _config("mpchair_sparse"),
            "--config", _config("mpchair_sparse_exact"), "--data", str(plan.data), "--split", "test", "--frames",
-           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *_threads(plan), "--json-out",
-           str(json_out), "--markdown"]
+           str(plan.scale.bench_frames), "--trials", str(plan.scale.bench_trials), *bench_run_args(plan.scale),
+           *_threads(plan), "--json-out", str(json_out), "--markdown"]
     # the peer row: Open3D-ML's own PointPillars with the dense model's architecture, grid and weights
     if peer:
         cmd += ["--peer", "open3d-ml"]

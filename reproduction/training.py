@@ -7,6 +7,7 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
+from reproduction.committed import read_committed
 from reproduction.results import MODELS, epoch_records, read_run_config, step_records
 from reproduction.runner import logged_commands
 from reproduction.scales import SCALES, SPARSE_EPOCH_RATIO, Scale, epochs_text, model_epochs
@@ -24,14 +25,18 @@ def train_split_size(out: Path) -> int | None:
 
 
 def trained_schedules(out: Path, models: tuple[str, ...] = MODELS) -> Schedules:
-    """{model: (epochs, samples per epoch)} as each run of work folder ``out`` was trained (its config.yaml; an epoch
-    without ``train.samples_per_epoch`` is one pass over the train split), None for a model not trained."""
+    """{model: (epochs, samples per epoch)} as each run of work folder ``out`` was trained (its config.yaml, and for
+    committed weights the epochs their ``done`` marker names; an epoch without ``train.samples_per_epoch`` is one
+    pass over the train split), None for a model not trained."""
     n_train = train_split_size(out)
     found: Schedules = {}
     for m in models:
         cfg = read_run_config(out / "runs" / m)
         spe = (cfg and cfg.train.samples_per_epoch) or n_train
-        found[m] = (cfg.train.epochs, spe) if cfg and spe else None
+        # committed weights: the epochs their study training ran (a plateau-ended run stops before its config's cap)
+        held = read_committed(out / "runs" / m)
+        epochs = held.epochs if held is not None and held.epochs else cfg.train.epochs if cfg else None
+        found[m] = (epochs, spe) if cfg and spe else None
     return found
 
 

@@ -253,6 +253,27 @@ def test_a_record_is_restored_only_from_regular_files_inside_it(tmp_path):
     assert sorted(p.name for p in (tmp_path / "rec2/results").iterdir()) == ["ok.json"]
 
 
+def test_a_record_with_a_link_after_a_regular_file_restores_nothing(tmp_path, capsys):
+    """tools/hostile_audit.py's re-run (issue 47): ``results/a.json`` was copied into the work folder before
+    ``results/evil.json -> /etc/passwd`` was met and refused, so the refused run left a work folder with part of the
+    record. Every file is checked before the first is copied: one line, exit 2, no work folder."""
+    import json
+
+    from reproduction.scales import SCALES
+
+    rec = tmp_path / "rec"
+    (rec / "results").mkdir(parents=True)
+    (rec / "results/a.json").write_text("{}")
+    (rec / "results/evil.json").symlink_to("/etc/passwd")
+    (rec / "record.json").write_text(json.dumps({
+        "scale": "small", "scale_sizes": dataclasses.asdict(SCALES["small"]), "notes": [], "dataset_sha256": None,
+        "files": ["results/a.json", "results/evil.json"]}))
+    code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 2 and "results/evil.json: a symbolic link" in line, line
+    assert sorted(os.listdir(tmp_path)) == ["rec"]
+
+
 @pytest.mark.parametrize("edit, needle", [
     (("beams: 16", "beams: 100000000"), "one scan needs at least"),  # 1.8e11 rays; 100,000 beams used to hit the OOM
     (("columns: 1800", "columns: 1e9"), "columns"),

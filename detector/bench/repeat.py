@@ -141,14 +141,15 @@ def run_repeated(args: Sequence[str], runs: int, echo=print) -> tuple[BenchResul
     return results[0], rep, {**first, "repeated": rep.to_json()}
 
 
-def format_repeated(rep: Repeated) -> str:
+def format_repeated(rep: Repeated, markdown: bool = False) -> str:
     """The spread as lines: each ratio row's components and the headline's speed-ups as median [min-max] over the
-    runs, then each row's total ms."""
-    lines = [f"Over {rep.runs} runs, each in a process of its own: median [min-max]"]
+    runs, then each row's total ms (``markdown``: as a list, so that a page keeps one line each)."""
+    item = "- " if markdown else "  "
+    lines = [f"Over {rep.runs} runs, each in a process of its own: median [min-max]" + (":\n" if markdown else "")]
     for row, comps in rep.ratios.items():
-        lines.append(f"  {row}: " + ", ".join(f"{k} {s.text()}" for k, s in comps.items()))
+        lines.append(f"{item}{row}: " + ", ".join(f"{k} {s.text()}" for k, s in comps.items()))
     for k, s in rep.headline.items():
-        lines.append(f"  headline {k}: {s.text()}")
+        lines.append(f"{item}headline {k}: {s.text()}")
     for row, s in rep.totals.items():
-        lines.append(f"  {row} total: {s.text(' ms')}")
+        lines.append(f"{item}{row} total: {s.text(' ms')}")
     return "\n".join(lines)

@@ -116,7 +116,7 @@ def bench(configs: tuple[str, ...], data_dir: str, checkpoints: tuple[str, ...],
         if json_out:
             write_text(json_out, json.dumps(data, indent=2) + "\n")
         click.echo(json.dumps(data, indent=2) if as_json else
-                   format_table(result, markdown=markdown) + "\n\n" + format_repeated(rep))
+                   format_table(result, markdown=markdown) + "\n\n" + format_repeated(rep, markdown))
         return
     if rate is not None:
         from detector.bench.budget import run_budget
