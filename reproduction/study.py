@@ -345,6 +345,13 @@ def restore(study: Study) -> list[str]:
     return restored
 
 
+def record_has_test_of(study: Study, t: Training) -> bool:
+    """Whether the record holds ``t``'s test results from an earlier session (its work folder is restored without
+    them, and a finished training's ``last.pt`` is no longer in the record to test again)."""
+    state = read_study_record(study.record).get("trainings", {}).get(t.name, {})
+    return bool(state.get("tested")) and (study.record / "test" / t.name / "metrics.json").is_file()
+
+
 def done_trainings(study: Study) -> set[str]:
     """Names of the trainings that are done in the work folder or in the record."""
     meta = read_study_record(study.record)

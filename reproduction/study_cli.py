@@ -36,6 +36,7 @@ from reproduction.study import (
     next_training,
     read_study_record,
     read_zip_texts,
+    record_has_test_of,
     restore,
     save,
     summary_path,
@@ -159,7 +160,7 @@ def _run(study: Study, steps: list[str], chosen, args: argparse.Namespace) -> in
             print(f"[train] {t.name}: {'finished' if finished else 'not finished: resumes next session'}")
     if "test" in steps:
         for t in trainings():
-            if study.done(t) and not study.tested(t):
+            if study.done(t) and not study.tested(t) and not record_has_test_of(study, t):
                 test(study, t, r)
     if "record" in steps and not args.dry_run:
         written = save(study, fingerprint, tuple(args.note), equivalent)

@@ -15,7 +15,17 @@ from helpers_detector import detector_cli, make_tiny_dataset, write_test_config
 from detector.eval.bootstrap import bootstrap_gap, kitti_ap
 from detector.train import train
 from mpchair.kitti import Labels, read_labels
-from reproduction.study import Study, Training, read_zip_texts, restore, save, study_config, summary_path, trainings
+from reproduction.study import (
+    Study,
+    Training,
+    read_zip_texts,
+    record_has_test_of,
+    restore,
+    save,
+    study_config,
+    summary_path,
+    trainings,
+)
 from reproduction.study_report import markdown, plot_curves, write_analysis
 
 
@@ -113,6 +123,9 @@ def test_the_record_accumulates_across_sessions_and_feeds_the_analysis(data, tmp
     two = Study(out=tmp_path / "two", record=record)
     shutil.copytree(data, two.data)
     assert sorted(restore(two)) == ["dense_s0", "dense_s1", "sparse_s0"]
+    # dense_s0 comes back done but without last.pt or test files: the test step must not evaluate it again
+    assert two.done(dense0) and not two.tested(dense0) and not (two.run(dense0) / "last.pt").exists()
+    assert record_has_test_of(two, dense0) and record_has_test_of(two, sparse0) and not record_has_test_of(two, dense1)
     assert (two.run(dense1) / "last.pt").read_bytes() == (record / "runs" / "dense_s1" / "last.pt").read_bytes()
     step = torch.load(two.run(dense1) / "last.pt", weights_only=True)["step"]
     assert step == 3
