@@ -1,4 +1,4 @@
-"""tools/hostile_audit.py (issue 47's families re-run as real command lines) stays runnable: the first four runs of
+"""tests/hostile_audit.py (issue 47's families re-run as real command lines) stays runnable: the first four runs of
 its ``threads`` family (``detector eval``, ``stream-eval``, ``bench`` and ``train`` with ``--threads 100000``, on
 the tests' tiny dataset, slim config and a random checkpoint), through its command line, write the documented JSON
 and find nothing."""
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_the_audit_tool_runs_a_family_and_finds_nothing(tmp_path):
     out = tmp_path / "runs.json"
-    res = subprocess.run([sys.executable, str(ROOT / "tools" / "hostile_audit.py"), "--family", "threads", "--limit",
+    res = subprocess.run([sys.executable, str(ROOT / "tests" / "hostile_audit.py"), "--family", "threads", "--limit",
                           "4", "--json", str(out), "--bin", str(Path(sys.executable).parent)],
                          env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr

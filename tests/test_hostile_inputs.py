@@ -254,7 +254,7 @@ def test_a_record_is_restored_only_from_regular_files_inside_it(tmp_path):
 
 
 def test_a_record_with_a_link_after_a_regular_file_restores_nothing(tmp_path, capsys):
-    """tools/hostile_audit.py's re-run (issue 47): ``results/a.json`` was copied into the work folder before
+    """tests/hostile_audit.py's re-run (issue 47): ``results/a.json`` was copied into the work folder before
     ``results/evil.json -> /etc/passwd`` was met and refused, so the refused run left a work folder with part of the
     record. Every file is checked before the first is copied: one line, exit 2, no work folder."""
     import json

@@ -4,8 +4,8 @@ accepted, partial output left behind, an error longer than one line.
 
 Usage::
 
-    PYTHONPATH=. .venv/bin/python tools/hostile_audit.py                 # every family, one line each
-    PYTHONPATH=. .venv/bin/python tools/hostile_audit.py --family threads --json runs.json
+    PYTHONPATH=. .venv/bin/python tests/hostile_audit.py                 # every family, one line each
+    PYTHONPATH=. .venv/bin/python tests/hostile_audit.py --family threads --json runs.json
 
 Every run is a subprocess of the installed commands (``BIN/mpchair``, ``BIN/detector``, ``BIN/python
 tools/reproduce.py``; BIN defaults to the clone's ``.venv/bin``) in its own folder under a temporary work folder,
@@ -56,7 +56,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+# run as ``python tests/hostile_audit.py``: Python puts tests/ (the helpers it builds inputs with) first on sys.path
 
 #: Environment variables the commands read that a hostile case sets; removed from every run's base environment.
 PROJECT_ENV = ("DETECTOR_GEMM", "WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT",
@@ -587,7 +587,7 @@ def sensor_yaml(folder: Path, profile: str, old: str, new: str) -> Path:
     """A copy of a shipped sensor profile with one line edited."""
     text = (ROOT / "mpchair/scan/profiles" / f"{profile}.yaml").read_text()
     if old not in text:
-        raise SystemExit(f"error: {profile}.yaml no longer holds {old!r}: update tools/hostile_audit.py")
+        raise SystemExit(f"error: {profile}.yaml no longer holds {old!r}: update tests/hostile_audit.py")
     path = folder / "s.yaml"
     path.write_text(text.replace(old, new))
     return path
@@ -794,7 +794,7 @@ def good_replace(audit: Audit, old: str, new: str) -> str:
     """The whole run config with one line edited."""
     text = run_config_text(audit)
     if old not in text:
-        raise SystemExit(f"error: the run config no longer holds {old!r}: update tools/hostile_audit.py")
+        raise SystemExit(f"error: the run config no longer holds {old!r}: update tests/hostile_audit.py")
     return text.replace(old, new, 1)
 
 
