@@ -256,6 +256,10 @@ def restorable_files(record: Path, *, with_dataset: bool) -> list[str]:
             raise RecordError(f"{src}: a symbolic link; a record is restored only from regular files inside it")
         if not src.resolve().is_relative_to(record.resolve()):
             raise RecordError(f"{src}: lies outside the record")
+        if src.suffix == ".json":
+            # parsed here (size and depth capped, UTF-8) so that a malformed one refuses the record before any file is
+            # copied, not in the step that reads it after the work folder was filled
+            load_json(src, "run record file", max_bytes=max(MAX_FILE_BYTES, 16 << 20))
         chosen.append(rel)
     return chosen
 

@@ -851,8 +851,9 @@ def family_bad_input(audit: Audit, rng: random.Random) -> None:
                            ("view --rerun", mp(audit, "view", data, "--rerun", "{dir}/o.rrd")),
                            ("view --out", mp(audit, "view", data, "--sequence", "00", "--frame", 1, "--out",
                                              "{dir}/f.png")),
-                           ("stream-eval", det(audit, "stream-eval", "--data", data, "--oracle", "--latency-ms", 0,
-                                               "--quiet"))):
+                           # with a model (the committed weights): --oracle reads labels only, never a scan
+                           ("stream-eval", det(audit, "stream-eval", "--data", data, "--config", "mpchair_dense_cpu",
+                                               "--checkpoint", "pretrained:dense", "--latency-ms", 0, "--quiet"))):
             check(audit, fam, f"{name} on a {value} scan point", argv, needle="000001.bin")
 
 

@@ -406,3 +406,26 @@ def test_a_checkpoint_of_another_format_says_so(tmp_path):
     torch.save({"weights": {}}, path)
     with pytest.raises(InputError, match="missing format/model keys"):
         load_checkpoint(path)
+
+
+@pytest.mark.parametrize("content, needle", [(b'{"a": ', "results/b.json"), (b"\xff\xfe{}", "results/b.json"),
+                                             (b"[" * 100_000, "nested deeper than")])
+def test_a_record_with_a_malformed_json_restores_nothing(tmp_path, capsys, content, needle):
+    """tests/hostile_audit.py's full re-run (2026-12-07): a malformed, non-UTF-8 or deeply nested results JSON was
+    refused by the report step, after the restore had filled the work folder. Every JSON file of the record is parsed
+    before the first is copied: one line naming it, exit 2, no work folder."""
+    import json
+
+    from reproduction.scales import SCALES
+
+    rec = tmp_path / "rec"
+    (rec / "results").mkdir(parents=True)
+    (rec / "results/a.json").write_text("{}")
+    (rec / "results/b.json").write_bytes(content)
+    (rec / "record.json").write_text(json.dumps({
+        "scale": "small", "scale_sizes": dataclasses.asdict(SCALES["small"]), "notes": [], "dataset_sha256": None,
+        "files": ["results/a.json", "results/b.json"]}))
+    code = reproduce_main(["--from-record", str(rec), "--steps", "report", "--out", str(tmp_path / "w")])
+    line = _one_line(capsys.readouterr().err)
+    assert code == 2 and needle in line, line
+    assert sorted(os.listdir(tmp_path)) == ["rec"]

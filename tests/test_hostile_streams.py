@@ -20,10 +20,11 @@ GOOD = {"rate_hz": 10.0, "region": {"max_abs_dz": 1.5, "max_distance": 10.0, "ha
 
 
 @pytest.mark.parametrize("edit, message", [
-    ({"rate_hz": 0}, "rate_hz: expected a sensor rate in (0, 1000] Hz, got 0.0"),
+    ({"rate_hz": 0}, "rate_hz: expected a sensor rate in [0.001, 1000] Hz, got 0.0"),
     ({"rate_hz": float("nan")}, "rate_hz: expected a sensor rate"),
     ({"rate_hz": -10}, "rate_hz: expected a sensor rate"),
     ({"rate_hz": 1e300}, "rate_hz: expected a sensor rate"),
+    ({"rate_hz": 1e-300}, "rate_hz: expected a sensor rate"),
     ({"region": {"max_abs_dz": 1.5, "max_distance": float("inf"), "half_fov": None}}, "region: expected positive"),
     ({"region": {"max_abs_dz": -1, "max_distance": 10.0, "half_fov": None}}, "region: expected positive"),
     ({"image_size": [0, 480]}, "image_size: expected a positive width and height"),
@@ -78,7 +79,7 @@ def _read_with(command: str, data: Path, out_dir: Path, capsys) -> tuple[int, st
 
 
 @pytest.mark.parametrize("command", sorted(READERS))
-@pytest.mark.parametrize("rate", [1e300, 0, float("nan")])
+@pytest.mark.parametrize("rate", [1e300, 0, float("nan"), 1e-300])
 def test_every_stream_reader_refuses_the_same_rate(tmp_path, capsys, command, rate):
     """The third audit: ``view --mcap`` accepted rate_hz 1e300, ``view --rerun`` 0, NaN and 1e300 (stream-eval
     refused them); one check now refuses them in all three, naming the file, before any output is opened."""
@@ -89,7 +90,8 @@ def test_every_stream_reader_refuses_the_same_rate(tmp_path, capsys, command, ra
     code, err, _ = _read_with(command, data, out_dir, capsys)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
-    assert lines[0].startswith(f"error: {data / 'stream.json'}: rate_hz: expected a sensor rate in (0, 1000] Hz"), err
+    want = f"error: {data / 'stream.json'}: rate_hz: expected a sensor rate in [0.001, 1000] Hz"
+    assert lines[0].startswith(want), err
     assert list(out_dir.iterdir()) == []  # no recording, no temporary
 
 

@@ -286,6 +286,7 @@ def test_a_diverging_run_without_a_checkpoint_does_not_point_at_one(data, tmp_pa
     assert code == 1 and len(lines) == 1 and lines[0].startswith("error: non-finite "), err
     assert f"no checkpoint was written yet ({run / 'last.pt'} does not exist), so nothing is kept" in lines[0]
     assert "keeps the last good state" not in lines[0] and not (run / "last.pt").exists()
+    assert not run.exists()  # as it says: nothing kept (its config, GT database and metrics removed, then the folder)
 
 
 def test_ctrl_c_says_which_step_last_pt_holds_and_the_resume_command(data, tmp_path, capsys, monkeypatch):

@@ -69,7 +69,7 @@ from detector.train.run_folder import (
     write_run_files,
 )
 from detector.train.schedule import build_scheduler, check_warmup
-from detector.train.step import ModelAndOptimiser, StepSettings, train_step
+from detector.train.step import ModelAndOptimiser, StepSettings, TrainingError, train_step
 from mpchair.core.config import to_dict
 from mpchair.core.errors import InputError
 from mpchair.core.lock import folder_lock
@@ -227,9 +227,10 @@ def train(
         with folder_lock(out / ".train.lock", "detector train") if info.is_main else contextlib.nullcontext():
             try:
                 return _run(run, checkpoint, database, new_database)
-            except InputError:
-                # Bad input only the loader meets (a NaN in a scan): a new run with no checkpoint yet leaves nothing
-                # (its files now, under the lock; the folders it made once the lock file is gone).
+            except (InputError, TrainingError):
+                # Bad input only the loader meets (a NaN in a scan), or a loss that went non-finite (lr 1e30): a new
+                # run with no checkpoint yet leaves nothing, as its error line says (its files now, under the lock;
+                # the folders it made once the lock file is gone).
                 if info.is_main and new_run and not run.last_path.exists():
                     discard_start(out)
                     after_lock.callback(remove_empty_folders, made)

@@ -17,6 +17,9 @@ from mpchair.kitti import read_calib, read_labels, read_poses, read_times
 
 #: Fastest sensor rate a stream may declare (Hz); real depth cameras and LiDARs run at 1-100 Hz.
 MAX_RATE_HZ = 1000.0
+#: Slowest sensor rate a stream may declare (Hz): one frame per ~17 minutes; below it a frame period overflows the
+#: time stamps a recording writes (1e-300 Hz is a period of 1e300 s).
+MIN_RATE_HZ = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,9 +49,9 @@ class StreamMeta:
 def read_stream_meta(root: Path) -> StreamMeta:
     """The checked ``stream.json`` of a stream folder (``mpchair stream``). Every command that reads a stream
     (``mpchair view --rerun / --mcap``, ``detector stream-eval``) calls this, so all refuse the same files: a missing,
-    unreadable or malformed file, a ``rate_hz`` that is not a number in (0, :data:`MAX_RATE_HZ`] Hz (0, NaN, 1e300),
-    a region that is not positive and finite, an empty image size or no ``sequences`` object is an
-    :class:`InputError` naming the file."""
+    unreadable or malformed file, a ``rate_hz`` that is not a number in [:data:`MIN_RATE_HZ`, :data:`MAX_RATE_HZ`]
+    Hz (0, 1e-300, NaN, 1e300), a region that is not positive and finite, an empty image size or no ``sequences``
+    object is an :class:`InputError` naming the file."""
     root = Path(root)
     path = root / "stream.json"
     if not path.is_file():
@@ -65,8 +68,9 @@ def read_stream_meta(root: Path) -> StreamMeta:
     except (KeyError, IndexError, TypeError, ValueError, OverflowError) as e:
         raise InputError(f"malformed stream file ({type(e).__name__}: {' '.join(str(e).split())[:200]})",
                          path) from None
-    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
-        raise InputError(f"rate_hz: expected a sensor rate in (0, {MAX_RATE_HZ:g}] Hz, got {rate!r}", path)
+    if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+        raise InputError(f"rate_hz: expected a sensor rate in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}",
+                         path)
     fov = () if region.half_fov is None else (region.half_fov,)
     if not all(math.isfinite(v) and v > 0 for v in (region.max_abs_dz, region.max_distance, *fov)):
         raise InputError(f"region: expected positive finite limits, got {meta['region']!r}", path)
