@@ -408,6 +408,14 @@ def stream_folder(audit: Audit, rate: object = 10.0, bad_point: float | None = N
     return audit.shared(f"stream-{rate}-{bad_point}-{deep}", build)
 
 
+def stream_readers(audit: Audit, data: Path) -> list[tuple[str, list[str]]]:
+    """The three commands that read a stream's ``stream.json`` (``view --mcap``, ``view --rerun``, ``stream-eval
+    --oracle``), named, on stream folder ``data``."""
+    return [("view --mcap", mp(audit, "view", data, "--mcap", "{dir}/o.mcap")),
+            ("view --rerun", mp(audit, "view", data, "--rerun", "{dir}/o.rrd")),
+            ("stream-eval", det(audit, "stream-eval", "--data", data, "--oracle", "--latency-ms", 0, "--quiet"))]
+
+
 def houses(audit: Audit) -> tuple[Path, str]:
     """One clean synthetic house made by ``mpchair synth`` (a run of the audit itself): (root, house id)."""
 
@@ -776,10 +784,7 @@ def family_tracebacks(audit: Audit, rng: random.Random) -> None:
     check(audit, fam, "--status, odd metrics.jsonl lines", st, expect="ok", needle="step 1",
           setup=lambda d: status_work(d, run_config_text(audit), odd))
     deep = stream_folder(audit, deep=True)
-    for name, argv in (("view --mcap", mp(audit, "view", deep, "--mcap", "{dir}/o.mcap")),
-                       ("view --rerun", mp(audit, "view", deep, "--rerun", "{dir}/o.rrd")),
-                       ("stream-eval", det(audit, "stream-eval", "--data", deep, "--oracle", "--latency-ms", 0,
-                                           "--quiet"))):
+    for name, argv in stream_readers(audit, deep):
         check(audit, fam, f"{name} on a stream.json nested deep", argv, needle="nested deeper than")
     gen = ["generate", "--root", root, "--house", house, "--frames", 1, "--out", "{dir}/out", "--quiet"]
     for profile, old, new in (("mp3d-depth90", "row_step: 10", "row_step: 0"),
@@ -839,10 +844,7 @@ def family_bad_input(audit: Audit, rng: random.Random) -> None:
     rates = [1e300, 0, float("nan"), -1, 1e-300, 1001, float("inf"), rng.uniform(1000.5, 1e6)]
     for rate in rates:
         data = stream_folder(audit, rate=rate)
-        for name, argv in (("view --mcap", mp(audit, "view", data, "--mcap", "{dir}/o.mcap")),
-                           ("view --rerun", mp(audit, "view", data, "--rerun", "{dir}/o.rrd")),
-                           ("stream-eval", det(audit, "stream-eval", "--data", data, "--oracle", "--latency-ms", 0,
-                                               "--quiet"))):
+        for name, argv in stream_readers(audit, data):
             check(audit, fam, f"{name} on rate_hz {rate:g}", argv, needle="rate_hz")
     for value in (float("nan"), float("inf")):
         data = stream_folder(audit, bad_point=value)
