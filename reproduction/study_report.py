@@ -174,7 +174,8 @@ def _previous_gaps(record: Path, tested: dict[str, list[str]], resamples: int) -
     entries = {k: v for k, v in old.items() if k.startswith("gap_") and isinstance(v, dict)}
     if entries and all(v.get("tested") == tested and v.get("resamples_asked") == resamples
                        and v.get("mean") is not None for v in entries.values()):
-        return entries
+        # the verdict is worded from the stored interval each time, so a rewording reaches an old record's text
+        return {k: {**v, "verdict": GapEstimate.from_json(v).verdict(PAPER_GAP_3D)} for k, v in entries.items()}
     return {}
 
 

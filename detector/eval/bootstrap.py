@@ -61,7 +61,7 @@ class GapEstimate:
         if lo <= reference <= hi and lo <= 0.0 <= hi:
             return (f"inconclusive: the interval holds both no gap and the paper's {reference:+.2f}")
         if lo <= reference <= hi:
-            return f"consistent with the paper's {reference:+.2f} (the interval excludes no gap)"
+            return f"consistent with the paper's {reference:+.2f} (the interval excludes zero)"
         if lo <= 0.0 <= hi:
             return f"no gap can be told apart from zero, and the paper's {reference:+.2f} lies outside the interval"
         side = "smaller" if reference < lo else "larger"
