@@ -35,7 +35,8 @@ ablations on this run's data (``--ablations``, ``--ablation-epochs``), then time
 committed weights (``pretrained:dense`` / ``pretrained:sparse``, detector/pretrained) where every later step reads
 a training, ``runs/<model>/`` (:mod:`reproduction.committed`: last.pt is the packed file, config.yaml its experiment,
 ``done`` its name, SHA-256 and study training), and the report and record say so. Only on the study's dataset (the
-full / recipe scales at seed 0); a name not committed yet is one ``error:`` line before any step runs.
+full / recipe scales at seed 0); a name not committed yet, or a file that is not the model its name says (its
+state dict against ``mpchair_<model>_cpu.yaml``'s model), is one ``error:`` line before any step runs.
 ``--bench-runs N`` (full / recipe: 3): the bench step and the deploy step's runtime table run ``detector bench --runs
 N``, N processes one after another, and the report quotes each headline ratio as the median with its min-max (the
 refhead, curve, budget and ablation benches run once).
