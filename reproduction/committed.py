@@ -190,8 +190,7 @@ def study_training(config: dict, record: Path = STUDY_RECORD) -> tuple[str, int 
     """(name, finished epochs, what ended it) of the accuracy-study training in ``record`` whose ``config.yaml`` is
     the experiment ``config`` (a weights file's); None when none is (the study's seeds differ by ``train.seed``)."""
     from detector.config import experiment_from_dict
-    from reproduction.results import read_run_config
-    from reproduction.study import end_record
+    from reproduction.results import end_record, read_run_config
 
     want = experiment_from_dict(config)
     runs = record / "runs"
