@@ -198,10 +198,13 @@ def _bench_runs(args: argparse.Namespace, sc: Scale) -> Scale:
 
 def _weights(args: argparse.Namespace, out: Path, sc: Scale, steps: list[str]) -> str:
     """The weights this invocation's steps use: ``--weights``, else the work folder's (committed weights restored from
-    a record stay committed), else ``train``; an :class:`InputError` (one line, before any step runs) for committed
-    weights that are not in detector/pretrained, a scale whose dataset is not the one they were trained on, or a
-    work folder holding other weights than asked for."""
-    weights = args.weights or ("committed" if committed_runs(out) else "train")
+    a record stay committed; a dry run, which restores nothing, reads them from the ``--from-record`` record), else
+    ``train``; an :class:`InputError` (one line, before any step runs) for committed weights that are not in
+    detector/pretrained, a scale whose dataset is not the one they were trained on, or a work folder holding other
+    weights than asked for."""
+    held = committed_runs(out) or (committed_runs(args.from_record) if args.from_record is not None and args.dry_run
+                                   else {})
+    weights = args.weights or ("committed" if held else "train")
     shas = None
     if weights == "committed":
         problem = study_dataset_problem(sc, args.seed)

@@ -152,6 +152,17 @@ def check_committed(folder: Path | None = None) -> dict[str, str]:
     return {m: index[n].sha256 for m, n in COMMITTED.items()}
 
 
+def install_text(model: str, run: Path, folder: Path | None = None) -> str:
+    """The dry run's line for model ``model``'s train step under ``--weights committed``: which packed file it would
+    put into run folder ``run`` (``folder``: the packed weights', default the package's), in place of a training."""
+    from detector.pretrained import PREFIX, read_index
+
+    name = COMMITTED[model]
+    entry = read_index(folder).get(name)
+    what = f" ({entry.file}, sha256 {entry.sha256[:12]})" if entry else " (not in index.json: the run would stop here)"
+    return f"[train] {model}: no training; would install {PREFIX}{name}{what} into {run}/ (last.pt, config.yaml, done)"
+
+
 def study_dataset_problem(sc: Scale, seed: int) -> str | None:
     """Why a run of scale ``sc`` and ``seed`` does not make the dataset the committed weights were trained on (the
     accuracy study's: the full scale's houses, frames and house split at seed 0), or None when it does."""

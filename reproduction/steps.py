@@ -15,6 +15,7 @@ from detector.config import CONFIG_DIR
 from mpchair.core.atomic import write_text
 from reproduction import deploy
 from reproduction.checkout import ROOT
+from reproduction.committed import install_text
 from reproduction.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from reproduction.runner import BIN, REUSE_ENV, Runner
 from reproduction.scales import Scale, bench_run_args, model_epochs
@@ -206,6 +207,8 @@ def run_train(plan: Plan, r: Runner) -> None:
         done = step_outputs(plan.out)["train"][m]
         if plan.weights == "committed":
             if plan.todo("train", done, plan.runs / m / "last.pt"):
+                if plan.dry_run:  # the command line alone hides that it trains nothing and what it copies
+                    print(install_text(m, plan.runs / m, plan.pretrained), flush=True)
                 r.run(committed_command(plan, m))
             continue
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly

@@ -77,6 +77,34 @@ def test_dry_run_lists_the_committed_weights_and_the_bench_runs(packed, tmp_path
     assert all("--runs" not in c for c in _commands(capsys.readouterr().out))
 
 
+def test_the_dry_run_says_what_the_train_step_installs_also_for_a_restored_record(packed, tmp_path: Path,
+                                                                                   capsys) -> None:
+    """``--weights committed --dry-run`` and the dry run of a record made with committed weights (``--from-record``,
+    which a dry run does not restore) list the install of each ``pretrained:<name>`` into ``runs/<model>/``, as the
+    real run does it, and no ``detector train``."""
+    def train_step(argv: list[str], out: Path) -> list[str]:
+        assert main(["--dry-run", "--steps", "train", "--pretrained", str(packed["folder"]), *argv, "--out",
+                     str(out)]) == 0
+        text = capsys.readouterr().out
+        assert not [c for c in _commands(text) if " train " in c]
+        assert [c.split("-m reproduction.committed ")[1] for c in _commands(text)] == [
+            f"--model {m} --out {out / 'runs' / m} --pretrained {packed['folder']}" for m in ("dense", "sparse")]
+        return [ln for ln in text.splitlines() if "would install" in ln]
+
+    index = pretrained.read_index(packed["folder"])
+    want = [f"[train] {m}: no training; would install pretrained:{m} ({m}.pt, sha256 {index[m].sha256[:12]}) into "
+            f"{tmp_path / 'w' / 'runs' / m}/ (last.pt, config.yaml, done)" for m in ("dense", "sparse")]
+    assert train_step(["--weights", "committed"], tmp_path / "w") == want
+    # a record of a --weights committed run: its runs/<model>/done name the committed weights (no last.pt)
+    made = tmp_path / "made"
+    for m in ("dense", "sparse"):
+        install(made / "runs" / m, m, packed["folder"], tmp_path / "no-study")
+    save_record(made, tmp_path / "record", "full", SCALES["full"], [])
+    assert not list((tmp_path / "record").rglob("last.pt"))
+    assert train_step(["--from-record", str(tmp_path / "record")], tmp_path / "w") == want
+    assert not (tmp_path / "w" / "runs").exists()  # a dry run restores nothing
+
+
 def test_a_missing_name_or_another_dataset_is_one_line_before_any_step(packed, tmp_path: Path, capsys) -> None:
     only_dense = tmp_path / "only_dense"
     pack_pretrained(packed["tmp"] / "dense.pt", {"dense": "mpchair_dense_cpu"}, only_dense)
