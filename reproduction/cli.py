@@ -45,6 +45,8 @@ refhead, curve, budget and ablation benches run once).
 folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
 be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
 ablations to the committed run without training the dense and sparse models again (reproduction.record).
+A dry run copies nothing, but counts the record's files as there: it lists the steps the real run would run (and, for
+a record made with committed weights, their install instead of a training).
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
@@ -255,7 +257,7 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
         probe = None  # the work folder's probe is an earlier machine's: its steps are that machine's too
     outputs = step_outputs(plan.out)
     done = set() if plan.force else {s for s in plan.steps if s in outputs and all(
-        p.exists() for p in outputs[s].values())}
+        plan.has(p) for p in outputs[s].values())}
     # committed weights: the train step copies files, none of the record's training time
     steps = [s for s in plan.steps if s != "train" or plan.weights == "train"]
     est = estimate(rec, plan.scale, steps, here, None if probe is None else probe["probe_s"])
@@ -308,8 +310,14 @@ def _main(argv: list[str] | None) -> int:
         sc, notes = _scale(args), list(args.note)
     if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
         check_record_dest(_record_dest(args, out))
-    if args.from_record is not None and not args.dry_run:  # a record refused leaves no work folder behind
-        restorable_files(args.from_record, with_dataset="generate" not in steps)
+    would_restore: frozenset[Path] = frozenset()
+    if args.from_record is not None:  # a record refused leaves no work folder behind
+        files = restorable_files(args.from_record, with_dataset="generate" not in steps)
+        # a dry run restores nothing: what the real run restores first counts as there for its steps
+        would_restore = frozenset(out / rel for rel in files) if args.dry_run else frozenset()
+        if args.dry_run:
+            print(f"would restore {sum(not p.exists() for p in would_restore)} file(s) of the record "
+                  f"{args.from_record} into {out} first (a dry run copies nothing)")
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
         restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
@@ -317,7 +325,8 @@ def _main(argv: list[str] | None) -> int:
     weights = _weights(args, out, sc, steps)
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
                 force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs,
-                weights=weights, pretrained=args.pretrained.resolve() if args.pretrained else None)
+                weights=weights, pretrained=args.pretrained.resolve() if args.pretrained else None,
+                restored=would_restore)
     for line in _estimate(plan, args.from_record or ROOT / "docs" / "results-data"):
         print(line, flush=True)
     r = Runner(args.dry_run, out / "commands.log")

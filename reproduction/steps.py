@@ -88,6 +88,9 @@ class Plan:
     weights: str = "train"
     #: the folder of the committed weights and their index.json (None: the package's detector/pretrained)
     pretrained: Path | None = None
+    #: a dry run of ``--from-record``: the work folder's paths the real run restores from the record before any step
+    #: (a dry run copies nothing), which count as there, so that it lists the steps the real run would run
+    restored: frozenset[Path] = frozenset()
 
     @property
     def houses(self) -> Path:
@@ -105,11 +108,15 @@ class Plan:
     def res(self) -> Path:
         return self.out / "results"
 
+    def has(self, path: Path) -> bool:
+        """Whether ``path`` is there for the steps: in the work folder, or among (or a folder of) :attr:`restored`."""
+        return path.exists() or path in self.restored or any(path in r.parents for r in self.restored)
+
     def todo(self, step: str, *outputs: Path) -> bool:
         """Whether ``step`` runs now (asked for, and not all of its ``outputs`` there unless forced); says which."""
         if step not in self.steps:
             return False
-        if not self.force and outputs and all(o.exists() for o in outputs):
+        if not self.force and outputs and all(self.has(o) for o in outputs):
             print(f"[{step}] outputs exist, skipped ({', '.join(str(o) for o in outputs)})")
             return False
         print(f"[{step}]", flush=True)

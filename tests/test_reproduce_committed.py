@@ -99,10 +99,20 @@ def test_the_dry_run_says_what_the_train_step_installs_also_for_a_restored_recor
     made = tmp_path / "made"
     for m in ("dense", "sparse"):
         install(made / "runs" / m, m, packed["folder"], tmp_path / "no-study")
+    (made / "results").mkdir()
+    (made / "results" / "density.json").write_text("{}\n")  # the stats step's output
     save_record(made, tmp_path / "record", "full", SCALES["full"], [])
     assert not list((tmp_path / "record").rglob("last.pt"))
     assert train_step(["--from-record", str(tmp_path / "record")], tmp_path / "w") == want
     assert not (tmp_path / "w" / "runs").exists()  # a dry run restores nothing
+    # ... but lists the steps as the real run, which restores first, runs them (runs/<model>/done and config.yaml,
+    # results/density.json): the record's stats are done
+    assert main(["--dry-run", "--steps", "stats,train", "--pretrained", str(packed["folder"]), "--from-record",
+                 str(tmp_path / "record"), "--out", str(tmp_path / "w")]) == 0
+    text = capsys.readouterr().out
+    assert f"would restore 5 file(s) of the record {tmp_path / 'record'} into {tmp_path / 'w'} first" in text
+    assert "[stats] outputs exist, skipped" in text and not [c for c in _commands(text) if " stats " in c]
+    assert len([c for c in _commands(text) if "-m reproduction.committed" in c]) == 2
 
 
 def test_a_missing_name_or_another_dataset_is_one_line_before_any_step(packed, tmp_path: Path, capsys) -> None:
