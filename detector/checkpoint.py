@@ -209,7 +209,7 @@ def _difference_lines(differing: dict[str, tuple[object, object]]) -> list[str]:
             for key, (theirs, ours) in differing.items()]
 
 
-def _misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
+def weights_misfit(model: nn.Module, weights: dict[str, torch.Tensor]) -> str | None:
     """What keeps ``weights`` from loading into ``model`` (tensors of another shape, missing, unexpected), or None."""
     own = model.state_dict()
     shapes = [k for k in own if k in weights and tuple(weights[k].shape) != tuple(own[k].shape)]
@@ -259,7 +259,7 @@ def load_model(cfg: ExperimentConfig, checkpoint: str | Path | None, device: tor
         differences.append("anchors are placed at the head map's cell centres (model.anchor_centres: cells) "
                            "because the weights move to another grid")
     model = build_model(model_cfg).to(device)
-    misfit = _misfit(model, saved.model)
+    misfit = weights_misfit(model, saved.model)
     if misfit is not None:
         why = "; ".join(differences) if differences else misfit
         raise InputError(f"checkpoint does not fit the config's model: {why}", checkpoint)

@@ -35,7 +35,8 @@ ablations on this run's data (``--ablations``, ``--ablation-epochs``), then time
 committed weights (``pretrained:dense`` / ``pretrained:sparse``, detector/pretrained) where every later step reads
 a training, ``runs/<model>/`` (:mod:`reproduction.committed`: last.pt is the packed file, config.yaml its experiment,
 ``done`` its name, SHA-256 and study training), and the report and record say so. Only on the study's dataset (the
-full / recipe scales at seed 0); a name not committed yet is one ``error:`` line before any step runs.
+full / recipe scales at seed 0); a name not committed yet, or a file that is not the model its name says (its
+state dict against ``mpchair_<model>_cpu.yaml``'s model), is one ``error:`` line before any step runs.
 ``--bench-runs N`` (full / recipe: 3): the bench step and the deploy step's runtime table run ``detector bench --runs
 N``, N processes one after another, and the report quotes each headline ratio as the median with its min-max (the
 refhead, curve, budget and ablation benches run once).
@@ -44,6 +45,8 @@ refhead, curve, budget and ablation benches run once).
 folder, so every step it recorded counts as done; with ``generate`` among the steps the dataset is made again and must
 be byte for byte the recorded one (else exit 2). ``make reproduce-ablations`` does that: a later session adds the
 ablations to the committed run without training the dense and sparse models again (reproduction.record).
+A dry run copies nothing, but counts the record's files as there: it lists the steps the real run would run (and, for
+a record made with committed weights, their install instead of a training).
 
 A step whose outputs exist is skipped (``--force`` redoes it); ``detector train --resume`` continues a cut run (in
 the precision it started with); ``--status`` says where a work folder stands and how long its training has left.
@@ -197,10 +200,13 @@ def _bench_runs(args: argparse.Namespace, sc: Scale) -> Scale:
 
 def _weights(args: argparse.Namespace, out: Path, sc: Scale, steps: list[str]) -> str:
     """The weights this invocation's steps use: ``--weights``, else the work folder's (committed weights restored from
-    a record stay committed), else ``train``; an :class:`InputError` (one line, before any step runs) for committed
-    weights that are not in detector/pretrained, a scale whose dataset is not the one they were trained on, or a
-    work folder holding other weights than asked for."""
-    weights = args.weights or ("committed" if committed_runs(out) else "train")
+    a record stay committed; a dry run, which restores nothing, reads them from the ``--from-record`` record), else
+    ``train``; an :class:`InputError` (one line, before any step runs) for committed weights that are not in
+    detector/pretrained, a scale whose dataset is not the one they were trained on, or a work folder holding other
+    weights than asked for."""
+    held = committed_runs(out) or (committed_runs(args.from_record) if args.from_record is not None and args.dry_run
+                                   else {})
+    weights = args.weights or ("committed" if held else "train")
     shas = None
     if weights == "committed":
         problem = study_dataset_problem(sc, args.seed)
@@ -251,7 +257,7 @@ def _estimate(plan: Plan, record: Path) -> list[str]:
         probe = None  # the work folder's probe is an earlier machine's: its steps are that machine's too
     outputs = step_outputs(plan.out)
     done = set() if plan.force else {s for s in plan.steps if s in outputs and all(
-        p.exists() for p in outputs[s].values())}
+        plan.has(p) for p in outputs[s].values())}
     # committed weights: the train step copies files, none of the record's training time
     steps = [s for s in plan.steps if s != "train" or plan.weights == "train"]
     est = estimate(rec, plan.scale, steps, here, None if probe is None else probe["probe_s"])
@@ -304,8 +310,14 @@ def _main(argv: list[str] | None) -> int:
         sc, notes = _scale(args), list(args.note)
     if "record" in steps:  # before any step runs: a --record folder that is not a record is never replaced
         check_record_dest(_record_dest(args, out))
-    if args.from_record is not None and not args.dry_run:  # a record refused leaves no work folder behind
-        restorable_files(args.from_record, with_dataset="generate" not in steps)
+    would_restore: frozenset[Path] = frozenset()
+    if args.from_record is not None:  # a record refused leaves no work folder behind
+        files = restorable_files(args.from_record, with_dataset="generate" not in steps)
+        # a dry run restores nothing: what the real run restores first counts as there for its steps
+        would_restore = frozenset(out / rel for rel in files) if args.dry_run else frozenset()
+        if args.dry_run:
+            print(f"would restore {sum(not p.exists() for p in would_restore)} file(s) of the record "
+                  f"{args.from_record} into {out} first (a dry run copies nothing)")
     out.mkdir(parents=True, exist_ok=True)
     if args.from_record is not None and not args.dry_run:
         restored = restore_record(args.from_record, out, with_dataset="generate" not in steps)
@@ -313,7 +325,8 @@ def _main(argv: list[str] | None) -> int:
     weights = _weights(args, out, sc, steps)
     plan = Plan(out=out, scale=sc, steps=tuple(steps), threads=args.threads, workers=args.workers, seed=args.seed,
                 force=args.force, dry_run=args.dry_run, ablations=ablations, ablation_epochs=args.ablation_epochs,
-                weights=weights, pretrained=args.pretrained.resolve() if args.pretrained else None)
+                weights=weights, pretrained=args.pretrained.resolve() if args.pretrained else None,
+                restored=would_restore)
     for line in _estimate(plan, args.from_record or ROOT / "docs" / "results-data"):
         print(line, flush=True)
     r = Runner(args.dry_run, out / "commands.log")

@@ -12,6 +12,11 @@ into ``RUN``:
                  training whose config the file stores, e.g. dense_s0), "epochs", "ended_by", "record"}
 
 No metrics.jsonl: the trainings' logs are the accuracy study's (docs/results-data/accuracy/runs/<training>/).
+
+Before anything is installed (and before ``tools/reproduce.py`` runs any step) the file index.json names for each
+model is loaded (``torch.load(weights_only=True)``, detector.checkpoint) and its state dict's keys and shapes are
+compared with the model the reproduction loads it into (``mpchair_<model>_cpu.yaml``): the SHA-256 only says the file
+is the one the index lists, not that the index lists the right file (:func:`check_weights`).
 """
 
 from __future__ import annotations
@@ -95,9 +100,42 @@ def committed_runs(out: Path) -> dict[str, CommittedWeights]:
     return {m: w for m in MODELS if (w := read_committed(out / "runs" / m)) is not None}
 
 
+def model_config(model: str) -> Path:
+    """The experiment config the reproduction's eval step loads model ``model``'s weights with
+    (``detector/configs/mpchair_<model>_cpu.yaml``, as :func:`reproduction.steps.run_eval`)."""
+    from detector.config import CONFIG_DIR
+
+    return CONFIG_DIR / f"mpchair_{model}_cpu.yaml"
+
+
+def check_weights(model: str, path: Path, weights: dict | None = None) -> None:
+    """An :class:`InputError` (one line naming ``path`` and its ``pretrained:`` name) unless the committed weights
+    file ``path`` holds model ``model``'s state dict: the keys and tensor shapes of the model :func:`model_config`
+    builds (dense and sparse differ in both). ``weights``: the file's state dict when the caller has loaded it."""
+    import torch
+
+    from detector.checkpoint import load_checkpoint, weights_misfit
+    from detector.config import load_experiment
+    from detector.models import build_model
+    from detector.pretrained import PREFIX
+
+    if weights is None:
+        weights = load_checkpoint(path).model  # torch.load(weights_only=True): nothing in the file runs
+    config = model_config(model)
+    with torch.device("meta"):  # keys and shapes only: no memory, no draw from the RNG
+        reference = build_model(load_experiment(config).model)
+    misfit = weights_misfit(reference, weights)
+    if misfit is not None:
+        raise InputError(f"{PREFIX}{COMMITTED[model]} is not the {model} model index.json lists it as: its weights do "
+                         f"not fit the model {config.name} builds ({misfit}); nothing installed: pack the accuracy "
+                         f"study's {model}_s0 under that name again (tools/pack_pretrained.py), or run with --weights "
+                         "train", path)
+
+
 def check_committed(folder: Path | None = None) -> dict[str, str]:
     """{model: sha256} of each model's committed weights in ``folder`` (default the package's detector/pretrained),
-    checked against index.json; a name the index lacks is an :class:`InputError` saying how to make it."""
+    checked against index.json and against the model (:func:`check_weights`); a name the index lacks is an
+    :class:`InputError` saying how to make it."""
     from detector.pretrained import PREFIX, PRETRAINED_DIR, read_index, resolve_checkpoint
 
     index = read_index(folder)
@@ -109,8 +147,20 @@ def check_committed(folder: Path | None = None) -> dict[str, str]:
                              f"has trained (tools/pack_pretrained.py RUN/last.pt --name {name}=mpchair_{model}_cpu"
                              + (" --name sparse_exact=mpchair_sparse_exact_cpu" if model == "sparse" else "")
                              + "), or run with --weights train")
-        resolve_checkpoint(PREFIX + name, folder)  # the file is there and its sha256 is index.json's
+        # the file is there and its sha256 is index.json's; then that it is the model it is listed as
+        check_weights(model, resolve_checkpoint(PREFIX + name, folder))
     return {m: index[n].sha256 for m, n in COMMITTED.items()}
+
+
+def install_text(model: str, run: Path, folder: Path | None = None) -> str:
+    """The dry run's line for model ``model``'s train step under ``--weights committed``: which packed file it would
+    put into run folder ``run`` (``folder``: the packed weights', default the package's), in place of a training."""
+    from detector.pretrained import PREFIX, read_index
+
+    name = COMMITTED[model]
+    entry = read_index(folder).get(name)
+    what = f" ({entry.file}, sha256 {entry.sha256[:12]})" if entry else " (not in index.json: the run would stop here)"
+    return f"[train] {model}: no training; would install {PREFIX}{name}{what} into {run}/ (last.pt, config.yaml, done)"
 
 
 def study_dataset_problem(sc: Scale, seed: int) -> str | None:
@@ -151,8 +201,7 @@ def study_training(config: dict, record: Path = STUDY_RECORD) -> tuple[str, int 
     """(name, finished epochs, what ended it) of the accuracy-study training in ``record`` whose ``config.yaml`` is
     the experiment ``config`` (a weights file's); None when none is (the study's seeds differ by ``train.seed``)."""
     from detector.config import experiment_from_dict
-    from reproduction.results import read_run_config
-    from reproduction.study import end_record
+    from reproduction.results import end_record, read_run_config
 
     want = experiment_from_dict(config)
     runs = record / "runs"
@@ -165,7 +214,8 @@ def study_training(config: dict, record: Path = STUDY_RECORD) -> tuple[str, int 
 
 def install(run: Path, model: str, folder: Path | None = None, record: Path = STUDY_RECORD) -> CommittedWeights:
     """Put model ``model``'s committed weights (from ``folder``, default the package's) into run folder ``run``:
-    ``last.pt``, ``config.yaml`` and the ``done`` marker (module docstring)."""
+    ``last.pt``, ``config.yaml`` and the ``done`` marker (module docstring); nothing for a file that is not that
+    model's (:func:`check_weights`)."""
     from detector.checkpoint import load_checkpoint
     from detector.pretrained import PREFIX, read_index, resolve_checkpoint
 
@@ -174,6 +224,7 @@ def install(run: Path, model: str, folder: Path | None = None, record: Path = ST
     saved = load_checkpoint(path)
     if saved.config is None:
         raise InputError("the packed weights hold no experiment config; pack a detector train run's last.pt", path)
+    check_weights(model, path, saved.model)  # before the first file is written
     import yaml
 
     # the file's bytes unchanged: last.pt then loads (bf16 tensors upcast by load_state_dict) as pretrained:NAME does

@@ -20,12 +20,13 @@ within 25 % of the CPU). A combination the CPU cannot compute natively is left o
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
 from detector.bench.pick import AP_TOLERANCE, ap_exclusion, fastest_within_ap
 from detector.deploy.cpu import cpu_flags, skip_reason
-from reproduction.results import MODELS, KittiMetrics, _read_json, read_bench, read_text
+from reproduction.results import MODELS, KittiMetrics, _read_json, read_bench, read_bench_repeated, read_text
 from reproduction.runner import BIN, REUSE_ENV, Runner
 from reproduction.scales import bench_run_args
 
@@ -127,7 +128,10 @@ def run_deploy(plan, r: Runner, config) -> None:
 @dataclass(frozen=True)
 class DeployRow:
     """One row of the AP-drop-vs-speed table: a model (``dense``, ``sparse``, ``sparse+sparse_head``) in a runtime and
-    precision, its val AP (None: not evaluated), its bench total ms and its budget record (None where not run)."""
+    precision, its val AP (None: not evaluated), its bench total ms and its budget record (None where not run).
+
+    ``runs``: the row's total ms in every run of a ``detector bench --runs N`` (N >= 2), in run order, whose median
+    ``total_ms`` then is; empty for a one-run bench, where ``total_ms`` is that run's."""
 
     model: str
     runtime: str
@@ -136,14 +140,24 @@ class DeployRow:
     total_ms: float | None
     cpu_share: float | None
     max_rate_hz: float | None
+    runs: tuple[float, ...] = ()
 
 
 def read_deploy(res: Path) -> list[DeployRow]:
     """The deploy step's outputs under ``res`` as table rows (empty when the step has not run)."""
     bench = read_bench(res / "deploy_bench.json")
     budget = _read_json(res / "deploy_budget.json") or {}
-    totals = {(m.name.split(" (")[0], m.runtime, m.precision): m.components["total"].mean_ms
-              for m in (bench.models if bench else ()) if not m.peer}
+    spread = read_bench_repeated(res / "deploy_bench.json")
+    # a repeated bench's JSON is its first run's result: each row's median over the runs replaces that run's total, as
+    # the report's bench ratios do (reproduction.report.spread_text), so that no headline rests on one draw
+    per_run = {name: s.values for name, s in (spread.totals.items() if spread else ()) if len(s.values) > 1}
+    totals, runs = {}, {}
+    for m in (bench.models if bench else ()):
+        if m.peer:
+            continue
+        key = (m.name.split(" (")[0], m.runtime, m.precision)
+        runs[key] = per_run.get(m.name, ())
+        totals[key] = float(statistics.median(runs[key])) if runs[key] else m.components["total"].mean_ms
     shares = {(b["name"].split(" (")[0], b["runtime"], b["precision"]): b for b in budget.get("budget", [])}
     keys = list(dict.fromkeys([*totals, *shares]))
     rows = []
@@ -152,8 +166,24 @@ def read_deploy(res: Path) -> list[DeployRow]:
         b = shares.get((name, runtime, precision))
         rows.append(DeployRow(name, runtime, precision, KittiMetrics.from_json(d) if d else None,
                               totals.get((name, runtime, precision)), b["cpu_share"] if b else None,
-                              b["max_rate_hz_at_25pct"] if b else None))
+                              b["max_rate_hz_at_25pct"] if b else None, runs.get((name, runtime, precision), ())))
     return rows
+
+
+def bench_runs(rows: list[DeployRow]) -> int:
+    """How many bench runs the rows' totals are the median of (1 for a one-run bench)."""
+    return max((len(r.runs) for r in rows), default=0) or 1
+
+
+def ratio_text(dense: DeployRow, sparse: DeployRow) -> str:
+    """``dense`` / ``sparse`` total time as the table and headline quote it: ``12.69x`` from a one-run bench;
+    ``12.69x (per run 12.10-13.20x)`` from a repeated one, the ratio of the rows' medians with the min-max of the
+    ratio within each run (both rows of a run were timed interleaved, so their ratio is that run's draw)."""
+    text = f"{dense.total_ms / sparse.total_ms:.2f}x"
+    if len(dense.runs) > 1 and len(dense.runs) == len(sparse.runs):
+        per_run = [d / s for d, s in zip(dense.runs, sparse.runs)]
+        text += f" (per run {min(per_run):.2f}-{max(per_run):.2f}x)"
+    return text
 
 
 def _ap(metrics: KittiMetrics | None, kind: str) -> float | None:
@@ -217,20 +247,22 @@ def headline_sentence(pairs: list[tuple[str, DeployRow | None, DeployRow | None]
     (a ratio against the fastest fp32 dense row would set that precision against fp32)."""
     (_, fp32_d, fp32_s), (_, dense, sparse), _, (_, _, paper), (_, paper_d, paper_deployed) = pairs
     on = f" on {threads or '?'} threads of the {cpu or 'CPU'} above" if threads or cpu else ""
+    n = bench_runs([r for pair in pairs for r in pair[1:] if r is not None])
+    # a repeated bench: every ms is its row's median over the runs (read_deploy); a one-run record reads as before
+    medians = f", each ms the row's median over {n} bench runs" if n > 1 else ""
     text = (f"Headline: {SPARSE_NAMES[sparse.model]}, at its fastest ({_where(sparse)}), is "
-            f"{dense.total_ms / sparse.total_ms:.2f}x faster than the fastest dense deployment ({_where(dense)}){on}. ")
+            f"{ratio_text(dense, sparse)} faster than the fastest dense deployment ({_where(dense)}){on}{medians}. ")
     if sparse.model != "sparse" and paper is not None:
         text += (f"The paper's architecture (sparse backbone + dense head) against the same dense row: "
-                 f"{dense.total_ms / paper.total_ms:.2f}x at its fastest ({_where(paper)})")
+                 f"{ratio_text(dense, paper)} at its fastest ({_where(paper)})")
         if paper_d is not None and paper_deployed is not None:
             against = "" if paper_d == dense else f" against {_where(paper_d)}"
-            text += (f", {paper_d.total_ms / paper_deployed.total_ms:.2f}x deployed ({_where(paper_deployed)}"
-                     f"{against})")
+            text += f", {ratio_text(paper_d, paper_deployed)} deployed ({_where(paper_deployed)}{against})"
         text += ". "
     if sparse.precision != "fp32":
         text += (f"Against the fastest fp32 dense row ({_where(fp32_d)}) the same sparse row is "
-                 f"{fp32_d.total_ms / sparse.total_ms:.2f}x, but that sets sparse {sparse.precision} against dense "
-                 f"fp32; fp32 on both sides it is {fp32_d.total_ms / fp32_s.total_ms:.2f}x (the first row).")
+                 f"{ratio_text(fp32_d, sparse)}, but that sets sparse {sparse.precision} against dense "
+                 f"fp32; fp32 on both sides it is {ratio_text(fp32_d, fp32_s)} (the first row).")
     return text.rstrip()
 
 
@@ -274,12 +306,16 @@ def like_for_like(res: Path, rows: list[DeployRow] | None = None) -> list[str]:
         None, None, None)
     lines = ["| fastest of each side | dense | sparse | dense / sparse |", "|---|---|---|---|"]
     for label, d, sp in (p for p in pairs if p[1] and p[2]):
-        lines.append(f"| {label} | {_row_text(d)} | {_row_text(sp)} | {d.total_ms / sp.total_ms:.2f}x |")
+        lines.append(f"| {label} | {_row_text(d)} | {_row_text(sp)} | {ratio_text(d, sp)} |")
+    n = bench_runs(rows)
     lines += ["", f"Both sides: {cpu or 'this CPU'}, {threads or '?'} threads of {cpus or '?'} CPUs, allocator reuse, "
               "768 x 512 test frames"
               + (f" of density D median {median:.5f}" if median is not None else "")
               + ", trained weights, every row interleaved per frame in one process (`detector bench --runtime "
-              "--precision`); 3D AP Overall R40 on val. Native bf16 / int8 flags of this CPU: "
+              "--precision"
+              + (f" --runs {n}`: {n} such processes one after another; each row's ms is its median over the runs, "
+                 "each ratio that of the medians with its min-max over the runs" if n > 1 else "`")
+              + "); 3D AP Overall R40 on val. Native bf16 / int8 flags of this CPU: "
               + (", ".join(flags) if flags else "none")
               + ": AMX (and, less, AVX512-BF16 / VNNI) is what makes the dense bf16 / int8 rows fast; where a CPU "
               "has none of them the fp32 row is the fair one. " + guard_note(rows),
@@ -314,10 +350,12 @@ def deploy_section(res: Path) -> list[str]:
                   _cell(None if r.cpu_share is None else 100 * r.cpu_share, ".1f") + (" %" if r.cpu_share else ""),
                   _cell(r.max_rate_hz, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
+    n = bench_runs(rows)
+    runs = f", the median of {n} runs, each a process of its own (`--runs {n}`)" if n > 1 else ""
     lines += ["", "AP: `detector eval --runtime R --precision P` of the trained CPU-config models on the val split "
               "(sparse+sparse_head: the sparse weights in `mpchair_sparse_exact_cpu.yaml`); ms: `detector bench` "
-              "at 768 x 512, every row interleaved per frame in one process (reuse allocator); CPU: `detector bench "
-              f"--rate {BUDGET_RATE_HZ:g}`, each row alone in its own process.", ""]
+              f"at 768 x 512, every row interleaved per frame in one process (reuse allocator){runs}; CPU: `detector "
+              f"bench --rate {BUDGET_RATE_HZ:g}`, each row alone in its own process.", ""]
     table = like_for_like(res, rows)
     if table:
         lines += ["### Like for like: the fastest dense deployment against the fastest sparse one", "", *table, ""]

@@ -346,6 +346,23 @@ def epoch_records(run: Path) -> list[EpochRecord]:
     return [EpochRecord.from_json(r) for r in _records(run, "epoch")]
 
 
+def end_record(run: Path) -> dict | None:
+    """The ``end`` record of a run's metrics.jsonl (None: the run has not ended); here beside the other readers of
+    metrics.jsonl so that reproduction.committed reads it without importing the accuracy study (and its steps)."""
+    path = run / "metrics.jsonl"
+    if not path.is_file():
+        return None
+    end = None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and rec.get("kind") == "end":
+            end = rec
+    return end
+
+
 def eval_records(run: Path) -> list[EvalRecord]:
     """The validations of a run folder's metrics.jsonl, in order."""
     return [EvalRecord.from_json(r) for r in _records(run, "eval")]

@@ -15,6 +15,7 @@ from detector.config import CONFIG_DIR
 from mpchair.core.atomic import write_text
 from reproduction import deploy
 from reproduction.checkout import ROOT
+from reproduction.committed import install_text
 from reproduction.results import ABLATIONS, MODELS, OPEN3D_ML_JSON, read_density, read_run_config
 from reproduction.runner import BIN, REUSE_ENV, Runner
 from reproduction.scales import Scale, bench_run_args, model_epochs
@@ -87,6 +88,9 @@ class Plan:
     weights: str = "train"
     #: the folder of the committed weights and their index.json (None: the package's detector/pretrained)
     pretrained: Path | None = None
+    #: a dry run of ``--from-record``: the work folder's paths the real run restores from the record before any step
+    #: (a dry run copies nothing), which count as there, so that it lists the steps the real run would run
+    restored: frozenset[Path] = frozenset()
 
     @property
     def houses(self) -> Path:
@@ -104,11 +108,15 @@ class Plan:
     def res(self) -> Path:
         return self.out / "results"
 
+    def has(self, path: Path) -> bool:
+        """Whether ``path`` is there for the steps: in the work folder, or among (or a folder of) :attr:`restored`."""
+        return path.exists() or path in self.restored or any(path in r.parents for r in self.restored)
+
     def todo(self, step: str, *outputs: Path) -> bool:
         """Whether ``step`` runs now (asked for, and not all of its ``outputs`` there unless forced); says which."""
         if step not in self.steps:
             return False
-        if not self.force and outputs and all(o.exists() for o in outputs):
+        if not self.force and outputs and all(self.has(o) for o in outputs):
             print(f"[{step}] outputs exist, skipped ({', '.join(str(o) for o in outputs)})")
             return False
         print(f"[{step}]", flush=True)
@@ -206,6 +214,8 @@ def run_train(plan: Plan, r: Runner) -> None:
         done = step_outputs(plan.out)["train"][m]
         if plan.weights == "committed":
             if plan.todo("train", done, plan.runs / m / "last.pt"):
+                if plan.dry_run:  # the command line alone hides that it trains nothing and what it copies
+                    print(install_text(m, plan.runs / m, plan.pretrained), flush=True)
                 r.run(committed_command(plan, m))
             continue
         # ``done`` is written only after training returned; a cut run (last.pt, no done) resumes exactly

@@ -32,7 +32,7 @@ from mpchair.core.atomic import write_bytes, write_text
 from mpchair.core.errors import InputError
 from mpchair.core.text import load_json
 from reproduction.checkout import ROOT
-from reproduction.results import ABLATIONS, OPEN3D_ML_JSON
+from reproduction.results import ABLATIONS, OPEN3D_ML_JSON, end_record
 from reproduction.runner import BIN, REUSE_ENV, Runner
 from reproduction.scales import SCALES
 from reproduction.steps import CONFIGS, Plan, run_generate, run_synth
@@ -141,22 +141,6 @@ def make_dataset(study: Study, r: Runner) -> None:
     """The full scale's houses and dataset in the work folder (skipped where they exist)."""
     run_synth(study.plan, r)
     run_generate(study.plan, r)
-
-
-def end_record(run: Path) -> dict | None:
-    """The ``end`` record of a run's metrics.jsonl (None: the run has not ended)."""
-    path = run / "metrics.jsonl"
-    if not path.is_file():
-        return None
-    end = None
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and rec.get("kind") == "end":
-            end = rec
-    return end
 
 
 def train(study: Study, t: Training, r: Runner, minutes: float) -> bool:

@@ -4,11 +4,13 @@ from what those commands really write (a tiny run)."""
 from __future__ import annotations
 
 import json
+import statistics
 from pathlib import Path
 
 import pytest
 from helpers_detector import make_tiny_dataset, write_test_config
 
+from detector.bench.repeat import repeated
 from detector.bench.result import BenchDensity, BenchMachine, BenchResult, DensityGrid, ModelResult, Stat
 from detector.cli import main as detector_main
 from detector.deploy.cpu import cpu_flags, skip_reason
@@ -245,3 +247,56 @@ def test_like_for_like_picks_only_rows_within_one_ap_point_of_eager_fp32_and_nam
                                 f"architecture, at its fastest (onnxruntime fp32, 13.0 ms), is {140.0 / 13.0:.2f}x")
     assert f"(sparse backbone + dense head) against the same dense row: {140 / 17:.2f}x" in table[-1]
     assert "sets sparse" not in table[-1]  # fp32 against fp32: no mixed-precision ratio to warn about
+
+
+def test_a_repeated_deploy_bench_quotes_each_rows_median_and_the_ratios_min_max(tmp_path: Path) -> None:
+    """``detector bench --runs 3`` (the first run's result with ``repeated``): the table, its picks and the headline
+    take each row's median total over the runs, not the first run's, and show the ratio's min-max over the runs
+    beside it; the big table's ms are the medians too. (A one-run JSON reads as before: the tests above.)"""
+    res = tmp_path / "results"
+    res.mkdir()
+    runs = {("dense", "torch", "fp32"): (470.0, 480.0, 460.0),
+            ("dense (openvino fp32)", "openvino", "fp32"): (420.0, 409.0, 400.0),
+            ("dense (openvino int8)", "openvino", "int8"): (95.0, 86.0, 80.0),
+            ("sparse", "torch", "fp32"): (40.0, 41.0, 39.0),
+            # fastest fp32 sparse row in the first run (19.0), but not by its median (22.0 > 19.5)
+            ("sparse+sparse_head", "torch", "fp32"): (19.0, 22.0, 23.0),
+            ("sparse+sparse_head (onnxruntime fp32)", "onnxruntime", "fp32"): (21.0, 19.5, 18.0),
+            ("sparse+sparse_head (onnxruntime int8)", "onnxruntime", "int8"): (15.0, 13.9, 12.0)}
+    results = [BenchResult(models=tuple(ModelResult(name=n, runtime=r, precision=p,
+                                                    components={"total": Stat(ms[i], 0.0)})
+                                        for (n, r, p), ms in runs.items())) for i in range(3)]
+    (res / "deploy_bench.json").write_text(json.dumps({**results[0].to_json(),
+                                                       "repeated": repeated(results).to_json()}))
+    med = {n.split(" (")[0] + (f" {r} {p}"): statistics.median(ms) for (n, r, p), ms in runs.items()}
+    rows = {f"{r.model} {r.runtime} {r.precision}": r for r in read_deploy(res)}
+    assert rows["dense openvino int8"].total_ms == 86.0 and rows["dense openvino int8"].runs == (95.0, 86.0, 80.0)
+
+    def spread(d: str, sp: str) -> str:
+        per_run = [a / b for a, b in zip(rows[d].runs, rows[sp].runs)]
+        return f"{med[d] / med[sp]:.2f}x (per run {min(per_run):.2f}-{max(per_run):.2f}x)"
+
+    table = like_for_like(res)
+    fp32, anyp = table[2], table[3]
+    assert "sparse+sparse_head, onnxruntime fp32: 19.5 ms" in fp32 and "dense, openvino fp32: 409.0 ms" in fp32
+    assert fp32.endswith(f"| {spread('dense openvino fp32', 'sparse+sparse_head onnxruntime fp32')} |")
+    assert "dense, openvino int8: 86.0 ms" in anyp and "sparse+sparse_head, onnxruntime int8: 13.9 ms" in anyp
+    headline_ratio = spread("dense openvino int8", "sparse+sparse_head onnxruntime int8")
+    assert anyp.endswith(f"| {headline_ratio} |") and headline_ratio == "6.19x (per run 6.19-6.67x)"
+    note = next(ln for ln in table if ln.startswith("Both sides"))
+    assert "(`detector bench --runtime --precision --runs 3`: 3 such processes one after another; each row's ms is " \
+           "its median over the runs" in note
+    assert table[-1] == (f"Headline: the sparse model with the exact sparse head, our addition to the paper's "
+                         f"architecture, at its fastest (onnxruntime int8, 13.9 ms), is {headline_ratio} faster than "
+                         "the fastest dense deployment (openvino int8, 86.0 ms), each ms the row's median over 3 bench "
+                         "runs. The paper's architecture (sparse backbone + dense head) against the same dense row: "
+                         f"{spread('dense openvino int8', 'sparse torch fp32')} at its fastest (torch fp32, 40.0 ms). "
+                         "Against the fastest fp32 dense row (openvino fp32, 409.0 ms) the same sparse row is "
+                         f"{spread('dense openvino fp32', 'sparse+sparse_head onnxruntime int8')}, but that sets "
+                         "sparse int8 against dense fp32; fp32 on both sides it is "
+                         f"{spread('dense openvino fp32', 'sparse+sparse_head onnxruntime fp32')} (the first row).")
+    section = deploy_section(res)
+    eager = next(ln for ln in section if ln.startswith("| dense | torch | fp32 |"))
+    assert "| 470.0 | 1.00x |" in eager
+    assert any("(reuse allocator), the median of 3 runs, each a process of its own (`--runs 3`)" in ln
+               for ln in section)

@@ -10,17 +10,18 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_detector import write_test_config
+import yaml
 
 import detector.pretrained as pretrained
 from detector.bench.repeat import format_repeated, repeated
 from detector.bench.result import BenchResult
 from detector.checkpoint import Checkpoint, load_checkpoint, load_model, pack_pretrained, save_checkpoint
-from detector.config import load_experiment
+from detector.config import CONFIG_DIR, load_experiment
 from detector.models import build_model
 from mpchair.core.config import to_dict
 from reproduction.cli import main
 from reproduction.committed import folder_conflict, install, read_committed
+from reproduction.committed import main as committed_main
 from reproduction.record import save_record
 from reproduction.report import targets_section, write_report
 from reproduction.runner import Runner
@@ -31,14 +32,16 @@ from reproduction.steps import Plan, run_train
 
 @pytest.fixture(scope="module")
 def packed(tmp_path_factory) -> dict:
-    """A folder of packed weights like detector/pretrained, with ``dense`` and ``sparse`` (slim seeded random models
-    saved as a training's checkpoint, packed in bf16 by the same code as tools/pack_pretrained.py)."""
+    """A folder of packed weights like detector/pretrained, with ``dense`` and ``sparse`` (seeded random models of
+    the reproduction's CPU configs, the models the install checks the files against, saved as a training's
+    checkpoint with its resolved config, packed in bf16 by the same code as tools/pack_pretrained.py)."""
     tmp = tmp_path_factory.mktemp("committed")
     folder = tmp / "pretrained"
     configs = {}
     for m in ("dense", "sparse"):
-        configs[m] = write_test_config(tmp / f"{m}.yaml", model=dict(backbone=m))
-        cfg = load_experiment(configs[m])
+        cfg = load_experiment(CONFIG_DIR / f"mpchair_{m}_cpu.yaml")
+        configs[m] = tmp / f"{m}.yaml"
+        configs[m].write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))  # as detector train writes it
         torch.manual_seed(1)
         save_checkpoint(tmp / f"{m}.pt", Checkpoint(model=build_model(cfg.model).state_dict(), config=to_dict(cfg)))
         pack_pretrained(tmp / f"{m}.pt", {m: f"mpchair_{m}_cpu"}, folder)
@@ -74,6 +77,44 @@ def test_dry_run_lists_the_committed_weights_and_the_bench_runs(packed, tmp_path
     assert all("--runs" not in c for c in _commands(capsys.readouterr().out))
 
 
+def test_the_dry_run_says_what_the_train_step_installs_also_for_a_restored_record(packed, tmp_path: Path,
+                                                                                   capsys) -> None:
+    """``--weights committed --dry-run`` and the dry run of a record made with committed weights (``--from-record``,
+    which a dry run does not restore) list the install of each ``pretrained:<name>`` into ``runs/<model>/``, as the
+    real run does it, and no ``detector train``."""
+    def train_step(argv: list[str], out: Path) -> list[str]:
+        assert main(["--dry-run", "--steps", "train", "--pretrained", str(packed["folder"]), *argv, "--out",
+                     str(out)]) == 0
+        text = capsys.readouterr().out
+        assert not [c for c in _commands(text) if " train " in c]
+        assert [c.split("-m reproduction.committed ")[1] for c in _commands(text)] == [
+            f"--model {m} --out {out / 'runs' / m} --pretrained {packed['folder']}" for m in ("dense", "sparse")]
+        return [ln for ln in text.splitlines() if "would install" in ln]
+
+    index = pretrained.read_index(packed["folder"])
+    want = [f"[train] {m}: no training; would install pretrained:{m} ({m}.pt, sha256 {index[m].sha256[:12]}) into "
+            f"{tmp_path / 'w' / 'runs' / m}/ (last.pt, config.yaml, done)" for m in ("dense", "sparse")]
+    assert train_step(["--weights", "committed"], tmp_path / "w") == want
+    # a record of a --weights committed run: its runs/<model>/done name the committed weights (no last.pt)
+    made = tmp_path / "made"
+    for m in ("dense", "sparse"):
+        install(made / "runs" / m, m, packed["folder"], tmp_path / "no-study")
+    (made / "results").mkdir()
+    (made / "results" / "density.json").write_text("{}\n")  # the stats step's output
+    save_record(made, tmp_path / "record", "full", SCALES["full"], [])
+    assert not list((tmp_path / "record").rglob("last.pt"))
+    assert train_step(["--from-record", str(tmp_path / "record")], tmp_path / "w") == want
+    assert not (tmp_path / "w" / "runs").exists()  # a dry run restores nothing
+    # ... but lists the steps as the real run, which restores first, runs them (runs/<model>/done and config.yaml,
+    # results/density.json): the record's stats are done
+    assert main(["--dry-run", "--steps", "stats,train", "--pretrained", str(packed["folder"]), "--from-record",
+                 str(tmp_path / "record"), "--out", str(tmp_path / "w")]) == 0
+    text = capsys.readouterr().out
+    assert f"would restore 5 file(s) of the record {tmp_path / 'record'} into {tmp_path / 'w'} first" in text
+    assert "[stats] outputs exist, skipped" in text and not [c for c in _commands(text) if " stats " in c]
+    assert len([c for c in _commands(text) if "-m reproduction.committed" in c]) == 2
+
+
 def test_a_missing_name_or_another_dataset_is_one_line_before_any_step(packed, tmp_path: Path, capsys) -> None:
     only_dense = tmp_path / "only_dense"
     pack_pretrained(packed["tmp"] / "dense.pt", {"dense": "mpchair_dense_cpu"}, only_dense)
@@ -92,6 +133,36 @@ def test_a_missing_name_or_another_dataset_is_one_line_before_any_step(packed, t
         assert len(captured.err.strip().splitlines()) == 1 and not _commands(captured.out)
         assert "the committed weights were trained on the accuracy study's dataset (12 houses x 400 frames" in (
             captured.err)
+
+
+def test_a_file_that_is_not_the_model_its_name_says_is_one_line_and_installs_nothing(packed, tmp_path: Path,
+                                                                                     capsys) -> None:
+    """An index whose names point at the other model's weights (each file's SHA-256 right, so only its contents
+    tell): tools/reproduce.py refuses it before any step and the train step's install refuses it before writing,
+    each in one line naming the file and the name, exit 2, no run folder filled."""
+    swapped = tmp_path / "swapped"
+    pack_pretrained(packed["tmp"] / "dense.pt", {"sparse": "mpchair_sparse_cpu"}, swapped)  # sparse.pt: dense weights
+    pack_pretrained(packed["tmp"] / "sparse.pt", {"dense": "mpchair_dense_cpu"}, swapped)  # dense.pt: sparse weights
+    out = tmp_path / "w"
+    assert main(["--weights", "committed", "--pretrained", str(swapped), "--steps", "train", "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and not _commands(captured.out)
+    assert err.startswith(f"error: {swapped / 'dense.pt'}: pretrained:dense is not the dense model index.json lists "
+                          "it as: its weights do not fit the model mpchair_dense_cpu.yaml builds (")
+    assert "tensor(s) missing" in err and "nothing installed" in err and "--weights train" in err
+    assert not (out / "runs").exists()
+    run = out / "runs" / "sparse"
+    assert committed_main(["--model", "sparse", "--out", str(run), "--pretrained", str(swapped)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(
+        f"error: {swapped / 'sparse.pt'}: pretrained:sparse is not the sparse model index.json lists it as: its "
+        "weights do not fit the model mpchair_sparse_cpu.yaml builds (")
+    assert "tensor(s) of another shape (first backbone." in err
+    assert not run.exists()
+    # the right files install (the same check passes them)
+    assert committed_main(["--model", "sparse", "--out", str(run), "--pretrained", str(packed["folder"])]) == 0
+    assert read_committed(run).name == "sparse"
 
 
 def test_the_train_step_puts_the_committed_weights_where_the_later_steps_read_them(packed, tmp_path: Path,
