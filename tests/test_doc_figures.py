@@ -17,8 +17,8 @@ import pytest
 
 from mpchair.paper import MATTERPORT_CHAIR_AP
 from reproduction.deploy import DeployRow, like_for_like_pairs, read_deploy
-from reproduction.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
-from reproduction.results import EvalOutputs, Open3dMlMetrics
+from reproduction.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note, spread_text
+from reproduction.results import EvalOutputs, Open3dMlMetrics, read_bench_repeated
 from reproduction.stream.report import BEGIN as STREAM_BEGIN
 from reproduction.stream.report import END as STREAM_END
 from reproduction.stream.report import no_record_section
@@ -87,15 +87,26 @@ def results_runtime(d: Docs, alloc: str) -> list[list[str]]:
     return table
 
 
+def ratio_quote(d: Docs, alloc: str, row: str, column: str) -> str:
+    """The ratio ``row`` / ``column`` as results.md quotes it (``reproduction.report.spread_text``): ``14.6x``, the
+    runtime table's cell, from a one-run bench; ``14.6x (median of 3 runs, 13.9-15.2x)``, the median with its
+    min-max over the runs the record's bench JSON holds, from a repeated one."""
+    spread = read_bench_repeated(RECORD / "results" / f"bench_{alloc}.json")
+    return spread_text(number(cell(results_runtime(d, alloc), row, column)), spread, row, column.lower())
+
+
 # --- results.md: the opening note's figures ---------------------------------------------------------------------------
 def check_opening_note(d: Docs) -> list[str]:
     """results.md's opening note quotes its own tables: "D has median M" is the stats summary's median, "the backbone
     ratio (Rx default / Sx reuse allocator)" each runtime table's dense / sparse Backbone, "the total-time ratio (Tx)"
-    the default table's dense / sparse Total, "with the reference's three-conv head it is Hx" the reference-head
+    the default table's dense / sparse Total (each the median of a repeated bench's runs with their min-max, "Rx
+    (median of 3 runs, A-Bx)", as :func:`ratio_quote`), "with the reference's three-conv head it is Hx" the reference-head
     table's."""
     text = d["results"]
     got = quoted(r"density D has median ([\d.]+) against the paper's 0\.0075.*?the backbone ratio "
-                 r"\(([\d.]+)x default / ([\d.]+)x reuse allocator\).*?the total-time ratio \(([\d.]+)x\).*?"
+                 r"\(([\d.]+x(?: \(median of \d+ runs, [\d.]+-[\d.]+x\))?) default / ([\d.]+x(?: \(median of \d+ runs, "
+                 r"[\d.]+-[\d.]+x\))?) reuse allocator\).*?the total-time ratio \(([\d.]+x(?: \(median of \d+ runs, "
+                 r"[\d.]+-[\d.]+x\))?)\).*?"
                  r"with the reference's three-conv head it is ([\d.]+)x", text)
     if got is None:
         return ["results.md: no opening note with 'density D has median ... the backbone ratio (Rx default / ...'"]
@@ -104,12 +115,12 @@ def check_opening_note(d: Docs) -> list[str]:
     if f"{float(median):.5f}" != got[0]:
         problems.append(f"opening note: median {got[0]}, stats summary {median}")
     for alloc, quoted_ratio in (("default", got[1]), ("reuse", got[2])):
-        ratio = f"{number(cell(results_runtime(d, alloc), 'dense / sparse', 'Backbone')):.1f}"
+        ratio = ratio_quote(d, alloc, "dense / sparse", "Backbone")
         if ratio != quoted_ratio:
-            problems.append(f"opening note: backbone ratio {quoted_ratio}x, {alloc} table {ratio}x")
-    total = f"{number(cell(results_runtime(d, 'default'), 'dense / sparse', 'Total')):.1f}"
+            problems.append(f"opening note: backbone ratio {quoted_ratio}, {alloc} table {ratio}")
+    total = ratio_quote(d, "default", "dense / sparse", "Total")
     if total != got[3]:
-        problems.append(f"opening note: total-time ratio {got[3]}x, default table {total}x")
+        problems.append(f"opening note: total-time ratio {got[3]}, default table {total}")
     ref_section = section(text, "Total time with the reference's head layout")
     (ref,) = [t for t in tables(ref_section) if "Total, reference head (ms)" in t[0]]
     head = f"{number(cell(ref, 'dense / sparse', 'Total, reference head (ms)')):.1f}"
@@ -142,19 +153,19 @@ def check_half_found(d: Docs) -> list[str]:
 # --- sparse.md: the ratios on trained weights are results.md's --------------------------------------------------------
 def check_sparse_md_ratios(d: Docs) -> list[str]:
     """sparse.md's "backbone A× (default allocator) and B× (reuse), end to end with the exact sparse head C× and D×"
-    are results.md's dense / sparse Backbone and dense / sparse+sparse_head Total cells."""
+    are results.md's dense / sparse Backbone and dense / sparse+sparse_head Total ratios (a repeated bench's: the
+    median over its runs, :func:`ratio_quote`)."""
     got = quoted(r"backbone ([\d.]+)× \(default allocator\) and ([\d.]+)× \(reuse\), end to end with the exact sparse "
                  r"head ([\d.]+)× and ([\d.]+)×", d["sparse"])
     if got is None:
         return ["sparse.md: no 'backbone A× (default allocator) and B× (reuse), end to end ...' sentence"]
     problems = []
     for i, alloc in enumerate(("default", "reuse")):
-        table = results_runtime(d, alloc)
         for value, row, column in ((got[i], "dense / sparse", "Backbone"),
                                    (got[2 + i], "dense / sparse+sparse_head", "Total")):
-            if f"{number(cell(table, row, column)):.1f}" != value:
-                problems.append(f"sparse.md: {alloc} {row} {column} {value}× is not results.md's "
-                                f"{cell(table, row, column)}")
+            want = ratio_quote(d, alloc, row, column)
+            if want.split("x", 1)[0] != value:
+                problems.append(f"sparse.md: {alloc} {row} {column} {value}× is not results.md's {want}")
     return problems
 
 
@@ -197,7 +208,10 @@ def check_open3d_ml_notes(d: Docs) -> list[str]:
     dense_3d = ev.open3d_ml["dense"].get("3d")
     with_gap = EvalOutputs(kitti={}, open3d_ml={"dense": ev.open3d_ml["dense"],
                                                 "sparse": Open3dMlMetrics({"3d": dense_3d + gap})})
-    for line in (recall_blind_note(ev), paper_gap_verdict(with_gap)):
+    import json
+
+    house_split = json.loads((RECORD / "record.json").read_text())["scale_sizes"].get("split_mode") == "house"
+    for line in (recall_blind_note(ev), paper_gap_verdict(with_gap, house_split=house_split)):
         if line not in d["results"]:
             problems.append(f"results.md lacks the report's {line!r}")
     o3d = {m: ev.open3d_ml[m] for m in ("dense", "sparse")}
@@ -390,19 +404,30 @@ def check_record_examples(d: Docs) -> list[str]:
 
 def check_run_times(d: Docs) -> list[str]:
     """README's and benchmarks.md's "its steps up to the record took M min, training dense D / sparse S min, the first
-    N lines of commands.log": M the sum of those lines' seconds, D / S results.md's training times."""
+    N lines of commands.log": M the sum of those lines' seconds, D / S results.md's training times; a record that
+    trained nothing (results.md: "were not trained by this run", ``--weights committed``) is quoted "took M min, no
+    training", and a run that trained is not."""
     lines = (RECORD / "commands.log").read_text().splitlines()
-    (dense, sparse), problems = quoted(r"training took dense ([\d.]+) min, sparse ([\d.]+) min", d["results"]), []
+    trained = quoted(r"training took dense ([\d.]+) min, sparse ([\d.]+) min", d["results"])
+    untrained = "were not trained by this run" in flat(d["results"])
+    problems = [] if (trained is None) == untrained else [
+        "results.md: neither (or both) 'training took dense D min, sparse S min' and 'were not trained by this run'"]
     for name in ("readme", "benchmarks"):
-        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, training dense ([\d.]+) / "
-                     r"sparse ([\d.]+) min,? \(?the first (\d+) lines of `docs/results-data/commands.log`", d[name])
+        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, (?:training dense ([\d.]+) / "
+                     r"sparse ([\d.]+) min|(no training)),? \(?the first (\d+) lines of `docs/results-data/commands.log`",
+                     d[name])
         if got is None:
-            problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' sentence")
+            problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' (or "
+                            "'no training') sentence")
             continue
-        minutes = sum(float(ln.split()[0]) for ln in lines[: int(got[3])]) / 60
-        if not same(got[0], minutes) or (got[1], got[2]) != (dense, sparse):
-            problems.append(f"{name}: {got[0]} min, training {got[1]} / {got[2]}; the record gives {minutes:.1f}, "
-                            f"{dense} / {sparse}")
+        minutes = sum(float(ln.split()[0]) for ln in lines[: int(got[4])]) / 60
+        if not same(got[0], minutes):
+            problems.append(f"{name}: {got[0]} min; the record's first {got[4]} commands took {minutes:.1f}")
+        if got[3] is not None and not untrained:
+            problems.append(f"{name}: says no training; results.md gives training times {trained}")
+        if got[3] is None and (trained is None or (got[1], got[2]) != trained):
+            problems.append(f"{name}: training {got[1]} / {got[2]} min; results.md gives "
+                            f"{trained or 'no training (were not trained by this run)'}")
     return problems
 
 
