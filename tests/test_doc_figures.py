@@ -100,8 +100,8 @@ def check_opening_note(d: Docs) -> list[str]:
     """results.md's opening note quotes its own tables: "D has median M" is the stats summary's median, "the backbone
     ratio (Rx default / Sx reuse allocator)" each runtime table's dense / sparse Backbone, "the total-time ratio (Tx)"
     the default table's dense / sparse Total (each the median of a repeated bench's runs with their min-max, "Rx
-    (median of 3 runs, A-Bx)", as :func:`ratio_quote`), "with the reference's three-conv head it is Hx" the reference-head
-    table's."""
+    (median of 3 runs, A-Bx)", as :func:`ratio_quote`), "with the reference's three-conv head it is Hx" the
+    reference-head table's."""
     text = d["results"]
     got = quoted(r"density D has median ([\d.]+) against the paper's 0\.0075.*?the backbone ratio "
                  r"\(([\d.]+x(?: \(median of \d+ runs, [\d.]+-[\d.]+x\))?) default / ([\d.]+x(?: \(median of \d+ runs, "
@@ -413,8 +413,9 @@ def check_run_times(d: Docs) -> list[str]:
     problems = [] if (trained is None) == untrained else [
         "results.md: neither (or both) 'training took dense D min, sparse S min' and 'were not trained by this run'"]
     for name in ("readme", "benchmarks"):
-        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, (?:training dense ([\d.]+) / "
-                     r"sparse ([\d.]+) min|(no training)),? \(?the first (\d+) lines of `docs/results-data/commands.log`",
+        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, "
+                     r"(?:training dense ([\d.]+) / sparse ([\d.]+) min|(no training)),? "
+                     r"\(?the first (\d+) lines of `docs/results-data/commands.log`",
                      d[name])
         if got is None:
             problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' (or "
@@ -489,7 +490,8 @@ CHECKS = [
     (check_opening_note, _swap("results", "default / 25.1x (median of 3 runs, 24.9-26.1x) reuse",
                                      "default / 26.9x (median of 3 runs, 24.9-26.1x) reuse")),
     (check_opening_note, _swap("results", "24.6-25.8x) default", "24.6-27.4x) default")),
-    (check_opening_note, _swap("results", "the total-time ratio (14.3x (median", "the total-time ratio (14.6x (median")),
+    (check_opening_note, _swap("results", "the total-time ratio (14.3x (median",
+                               "the total-time ratio (14.6x (median")),
     (check_opening_note, _swap("results", "three-conv head it is 5.0x", "three-conv head it is 4.8x")),
     (check_half_found, _swap("results", "R40 50 on the KITTI level", "R40 10 on the KITTI level")),
     (check_half_found, _swap("evaluation", "KITTI Overall gives R40 50 there", "KITTI Overall gives R40 10 there")),
