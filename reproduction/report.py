@@ -211,27 +211,24 @@ def recall_blind_note(ev: EvalOutputs) -> str:
                    "(a box's 3D IoU never exceeds its BEV IoU)." if above else ".")
 
 
-def paper_gap_verdict(ev: EvalOutputs, house_split: bool = False) -> str:
+def paper_gap_verdict(ev: EvalOutputs) -> str:
     """Whether the paper's sparse - dense 3D gap is reproduced on the paper's own metric (within 1 point of it); ""
-    without both models' Open3D-ML mAP. ``house_split``: the run's val split holds houses no model trained on."""
+    without both models' Open3D-ML mAP."""
     d, sp = (ev.open3d_ml[m].get("3d") if m in ev.open3d_ml else None for m in MODELS)
     if d is None or sp is None:
         return ""
     gap, paper = sp - d, PAPER_AP.sparse_3d_delta
-    where = ("on the val houses (held out from training)" if house_split
-             else "on validation frames of the training houses")
     verdict = ("close to it" if abs(gap - paper) <= 1.0 else "apart from it") + (
-        f", but one seed per model {where}, with no interval, cannot tell a "
+        ", but one seed per model on validation frames of the training houses, with no interval, cannot tell a "
         "real difference from training noise (retraining one config moved its AP by 1.4): inconclusive")
     return (f"On the paper's metric (Open3D-ML mAP, recall-blind: see the detection section) this run's sparse - dense "
             f"3D gap is {gap:+.2f} against the paper's {paper}: {verdict}; the Overall R40 rows are another metric. "
             "The accuracy study (section Accuracy) measures the gap with an interval on held-out houses.")
 
 
-def targets_section(res: Path, house_split: bool = False) -> list[str]:
+def targets_section(res: Path) -> list[str]:
     """The reproduction's targets (the paper's numbers and the goals set for this CPU-sized run) next to what this
-    run measured (from the eval and bench JSON outputs under ``res``); no lines when neither exists. ``house_split``:
-    the run's splits are by house (:func:`paper_gap_verdict`)."""
+    run measured (from the eval and bench JSON outputs under ``res``); no lines when neither exists."""
     ev = read_eval_outputs(res)
     rows = _ap_targets(ev)
     for alloc in ALLOCATORS:
@@ -241,7 +238,7 @@ def targets_section(res: Path, house_split: bool = False) -> list[str]:
     rows += reference_head_targets(res)
     if not rows:
         return []
-    verdict = paper_gap_verdict(ev, house_split)
+    verdict = paper_gap_verdict(ev)
     caveat = [verdict, ""] if verdict else []
     return ["## Targets and this run", "",
             "The paper reports one AP per metric for Matterport-Chair, with no difficulty split (its reference marks "
@@ -745,7 +742,7 @@ def write_report(path: Path, out: Path, res: Path, scale: str, sc: Scale, notes:
         _opening(out, scale, sc, trained, log, [n for n in (why_it_differs(out, res, trained), *(notes or [])) if n]),
         "",
         *status_section(scale, out, trained, sc),
-        *targets_section(res, sc.split_mode == "house"),
+        *targets_section(res),
         *differences_section(out, trained, res),
         *detection_section(res),
         *_density_section(res, figure),

@@ -17,8 +17,8 @@ import pytest
 
 from mpchair.paper import MATTERPORT_CHAIR_AP
 from reproduction.deploy import DeployRow, like_for_like_pairs, read_deploy
-from reproduction.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note, spread_text
-from reproduction.results import EvalOutputs, Open3dMlMetrics, read_bench_repeated
+from reproduction.report import half_found_r40, half_found_text, paper_gap_verdict, recall_blind_note
+from reproduction.results import EvalOutputs, Open3dMlMetrics
 from reproduction.stream.report import BEGIN as STREAM_BEGIN
 from reproduction.stream.report import END as STREAM_END
 from reproduction.stream.report import no_record_section
@@ -87,26 +87,15 @@ def results_runtime(d: Docs, alloc: str) -> list[list[str]]:
     return table
 
 
-def ratio_quote(d: Docs, alloc: str, row: str, column: str) -> str:
-    """The ratio ``row`` / ``column`` as results.md quotes it (``reproduction.report.spread_text``): ``14.6x``, the
-    runtime table's cell, from a one-run bench; ``14.6x (median of 3 runs, 13.9-15.2x)``, the median with its
-    min-max over the runs the record's bench JSON holds, from a repeated one."""
-    spread = read_bench_repeated(RECORD / "results" / f"bench_{alloc}.json")
-    return spread_text(number(cell(results_runtime(d, alloc), row, column)), spread, row, column.lower())
-
-
 # --- results.md: the opening note's figures ---------------------------------------------------------------------------
 def check_opening_note(d: Docs) -> list[str]:
     """results.md's opening note quotes its own tables: "D has median M" is the stats summary's median, "the backbone
     ratio (Rx default / Sx reuse allocator)" each runtime table's dense / sparse Backbone, "the total-time ratio (Tx)"
-    the default table's dense / sparse Total (each the median of a repeated bench's runs with their min-max, "Rx
-    (median of 3 runs, A-Bx)", as :func:`ratio_quote`), "with the reference's three-conv head it is Hx" the
-    reference-head table's."""
+    the default table's dense / sparse Total, "with the reference's three-conv head it is Hx" the reference-head
+    table's."""
     text = d["results"]
     got = quoted(r"density D has median ([\d.]+) against the paper's 0\.0075.*?the backbone ratio "
-                 r"\(([\d.]+x(?: \(median of \d+ runs, [\d.]+-[\d.]+x\))?) default / ([\d.]+x(?: \(median of \d+ runs, "
-                 r"[\d.]+-[\d.]+x\))?) reuse allocator\).*?the total-time ratio \(([\d.]+x(?: \(median of \d+ runs, "
-                 r"[\d.]+-[\d.]+x\))?)\).*?"
+                 r"\(([\d.]+)x default / ([\d.]+)x reuse allocator\).*?the total-time ratio \(([\d.]+)x\).*?"
                  r"with the reference's three-conv head it is ([\d.]+)x", text)
     if got is None:
         return ["results.md: no opening note with 'density D has median ... the backbone ratio (Rx default / ...'"]
@@ -115,12 +104,12 @@ def check_opening_note(d: Docs) -> list[str]:
     if f"{float(median):.5f}" != got[0]:
         problems.append(f"opening note: median {got[0]}, stats summary {median}")
     for alloc, quoted_ratio in (("default", got[1]), ("reuse", got[2])):
-        ratio = ratio_quote(d, alloc, "dense / sparse", "Backbone")
+        ratio = f"{number(cell(results_runtime(d, alloc), 'dense / sparse', 'Backbone')):.1f}"
         if ratio != quoted_ratio:
-            problems.append(f"opening note: backbone ratio {quoted_ratio}, {alloc} table {ratio}")
-    total = ratio_quote(d, "default", "dense / sparse", "Total")
+            problems.append(f"opening note: backbone ratio {quoted_ratio}x, {alloc} table {ratio}x")
+    total = f"{number(cell(results_runtime(d, 'default'), 'dense / sparse', 'Total')):.1f}"
     if total != got[3]:
-        problems.append(f"opening note: total-time ratio {got[3]}, default table {total}")
+        problems.append(f"opening note: total-time ratio {got[3]}x, default table {total}x")
     ref_section = section(text, "Total time with the reference's head layout")
     (ref,) = [t for t in tables(ref_section) if "Total, reference head (ms)" in t[0]]
     head = f"{number(cell(ref, 'dense / sparse', 'Total, reference head (ms)')):.1f}"
@@ -153,19 +142,19 @@ def check_half_found(d: Docs) -> list[str]:
 # --- sparse.md: the ratios on trained weights are results.md's --------------------------------------------------------
 def check_sparse_md_ratios(d: Docs) -> list[str]:
     """sparse.md's "backbone A× (default allocator) and B× (reuse), end to end with the exact sparse head C× and D×"
-    are results.md's dense / sparse Backbone and dense / sparse+sparse_head Total ratios (a repeated bench's: the
-    median over its runs, :func:`ratio_quote`)."""
+    are results.md's dense / sparse Backbone and dense / sparse+sparse_head Total cells."""
     got = quoted(r"backbone ([\d.]+)× \(default allocator\) and ([\d.]+)× \(reuse\), end to end with the exact sparse "
                  r"head ([\d.]+)× and ([\d.]+)×", d["sparse"])
     if got is None:
         return ["sparse.md: no 'backbone A× (default allocator) and B× (reuse), end to end ...' sentence"]
     problems = []
     for i, alloc in enumerate(("default", "reuse")):
+        table = results_runtime(d, alloc)
         for value, row, column in ((got[i], "dense / sparse", "Backbone"),
                                    (got[2 + i], "dense / sparse+sparse_head", "Total")):
-            want = ratio_quote(d, alloc, row, column)
-            if want.split("x", 1)[0] != value:
-                problems.append(f"sparse.md: {alloc} {row} {column} {value}× is not results.md's {want}")
+            if f"{number(cell(table, row, column)):.1f}" != value:
+                problems.append(f"sparse.md: {alloc} {row} {column} {value}× is not results.md's "
+                                f"{cell(table, row, column)}")
     return problems
 
 
@@ -208,10 +197,7 @@ def check_open3d_ml_notes(d: Docs) -> list[str]:
     dense_3d = ev.open3d_ml["dense"].get("3d")
     with_gap = EvalOutputs(kitti={}, open3d_ml={"dense": ev.open3d_ml["dense"],
                                                 "sparse": Open3dMlMetrics({"3d": dense_3d + gap})})
-    import json
-
-    house_split = json.loads((RECORD / "record.json").read_text())["scale_sizes"].get("split_mode") == "house"
-    for line in (recall_blind_note(ev), paper_gap_verdict(with_gap, house_split=house_split)):
+    for line in (recall_blind_note(ev), paper_gap_verdict(with_gap)):
         if line not in d["results"]:
             problems.append(f"results.md lacks the report's {line!r}")
     o3d = {m: ev.open3d_ml[m] for m in ("dense", "sparse")}
@@ -404,31 +390,19 @@ def check_record_examples(d: Docs) -> list[str]:
 
 def check_run_times(d: Docs) -> list[str]:
     """README's and benchmarks.md's "its steps up to the record took M min, training dense D / sparse S min, the first
-    N lines of commands.log": M the sum of those lines' seconds, D / S results.md's training times; a record that
-    trained nothing (results.md: "were not trained by this run", ``--weights committed``) is quoted "took M min, no
-    training", and a run that trained is not."""
+    N lines of commands.log": M the sum of those lines' seconds, D / S results.md's training times."""
     lines = (RECORD / "commands.log").read_text().splitlines()
-    trained = quoted(r"training took dense ([\d.]+) min, sparse ([\d.]+) min", d["results"])
-    untrained = "were not trained by this run" in flat(d["results"])
-    problems = [] if (trained is None) == untrained else [
-        "results.md: neither (or both) 'training took dense D min, sparse S min' and 'were not trained by this run'"]
+    (dense, sparse), problems = quoted(r"training took dense ([\d.]+) min, sparse ([\d.]+) min", d["results"]), []
     for name in ("readme", "benchmarks"):
-        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, "
-                     r"(?:training dense ([\d.]+) / sparse ([\d.]+) min|(no training)),? "
-                     r"\(?the first (\d+) lines of `docs/results-data/commands.log`",
-                     d[name])
+        got = quoted(r"its steps up to the record took ([\d.]+) min(?: of wall time)?, training dense ([\d.]+) / "
+                     r"sparse ([\d.]+) min,? \(?the first (\d+) lines of `docs/results-data/commands.log`", d[name])
         if got is None:
-            problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' (or "
-                            "'no training') sentence")
+            problems.append(f"{name}: no 'its steps up to the record took M min, training dense D / sparse S' sentence")
             continue
-        minutes = sum(float(ln.split()[0]) for ln in lines[: int(got[4])]) / 60
-        if not same(got[0], minutes):
-            problems.append(f"{name}: {got[0]} min; the record's first {got[4]} commands took {minutes:.1f}")
-        if got[3] is not None and not untrained:
-            problems.append(f"{name}: says no training; results.md gives training times {trained}")
-        if got[3] is None and (trained is None or (got[1], got[2]) != trained):
-            problems.append(f"{name}: training {got[1]} / {got[2]} min; results.md gives "
-                            f"{trained or 'no training (were not trained by this run)'}")
+        minutes = sum(float(ln.split()[0]) for ln in lines[: int(got[3])]) / 60
+        if not same(got[0], minutes) or (got[1], got[2]) != (dense, sparse):
+            problems.append(f"{name}: {got[0]} min, training {got[1]} / {got[2]}; the record gives {minutes:.1f}, "
+                            f"{dense} / {sparse}")
     return problems
 
 
@@ -485,34 +459,31 @@ def _swap(name: str, old: str, new: str) -> Callable[[Docs], dict[str, str]]:
 
 
 CHECKS = [
-    (check_opening_note, _swap("results", "density D has median 0.00779", "density D has median 0.00788")),
-    (check_opening_note, _swap("results", "the backbone ratio (25.6x (median", "the backbone ratio (27.4x (median")),
-    (check_opening_note, _swap("results", "default / 25.1x (median of 3 runs, 24.9-26.1x) reuse",
-                                     "default / 26.9x (median of 3 runs, 24.9-26.1x) reuse")),
-    (check_opening_note, _swap("results", "24.6-25.8x) default", "24.6-27.4x) default")),
-    (check_opening_note, _swap("results", "the total-time ratio (14.3x (median",
-                               "the total-time ratio (14.6x (median")),
-    (check_opening_note, _swap("results", "three-conv head it is 5.0x", "three-conv head it is 4.8x")),
+    (check_opening_note, _swap("results", "density D has median 0.00788", "density D has median 0.00565")),
+    (check_opening_note, _swap("results", "the backbone ratio (27.4x default", "the backbone ratio (16.4x default")),
+    (check_opening_note, _swap("results", "27.4x default / 26.9x reuse", "27.4x default / 16.4x reuse")),
+    (check_opening_note, _swap("results", "the total-time ratio (14.6x)", "the total-time ratio (7.9x)")),
+    (check_opening_note, _swap("results", "three-conv head it is 4.8x", "three-conv head it is 5.3x")),
     (check_half_found, _swap("results", "R40 50 on the KITTI level", "R40 10 on the KITTI level")),
     (check_half_found, _swap("evaluation", "KITTI Overall gives R40 50 there", "KITTI Overall gives R40 10 there")),
-    (check_sparse_md_ratios, _swap("sparse", "backbone 25.6×\n(default", "backbone 27.4×\n(default")),
-    (check_sparse_md_ratios, _swap("sparse", "head 20.7× and 21.1×", "head 22.8× and 23.0×")),
-    (check_backbone_against_open3d_ml, _swap("benchmarks", "neck 1.20-1.93x faster", "neck 1.15-1.88x faster")),
-    (check_open3d_ml_notes, _swap("readme", "(Open3D-ML mAP, recall-blind: [docs", "(Open3D-ML mAP: [docs")),
-    (check_open3d_ml_notes, _swap("results", "| dense | 56.31 | 53.32 | 57.24 | 53.22 | 78.41 | 79.74 |",
-                                  "| dense | 56.31 | 53.32 | 57.24 | 53.22 | 78.41 | 79.84 |")),
-    (check_open3d_ml_notes, _swap("readme", "an interval that holds the paper's -4.61 and excludes zero",
-                                  "so the paper's -4.61 gap is reproduced")),
-    (check_differences, _swap("results", "median 0.00779 (`mpchair stats`)", "median 0.00788 (`mpchair stats`)")),
-    (check_differences, _swap("results", "Open3D-ML's three convs take 17.8x", "Open3D-ML's three convs take 16.4x")),
+    (check_sparse_md_ratios, _swap("sparse", "backbone 27.4×\n(default", "backbone 16.4×\n(default")),
+    (check_sparse_md_ratios, _swap("sparse", "head 22.8× and 23.0×", "head 14.3× and 15.9×")),
+    (check_backbone_against_open3d_ml, _swap("benchmarks", "neck 1.15-1.88x faster", "neck 1.16-2.14x faster")),
+    (check_open3d_ml_notes, _swap("readme", "that mAP is recall-blind (", "that mAP is the paper's (")),
+    (check_open3d_ml_notes, _swap("results", "| dense | 55.45 | 53.75 | 56.59 | 55.94 | 77.28 | 77.68 |",
+                                  "| dense | 55.45 | 53.75 | 56.59 | 55.94 | 77.28 | 77.78 |")),
+    (check_open3d_ml_notes, _swap("readme", "Whether the paper's -4.61 gap holds is\n**inconclusive** from these runs",
+                                  "The paper's -4.61 gap is\nreproduced on it")),
+    (check_differences, _swap("results", "median 0.00788 (`mpchair stats`)", "median 0.00565 (`mpchair stats`)")),
+    (check_differences, _swap("results", "Open3D-ML's three convs take 16.4x", "Open3D-ML's three convs take 9.2x")),
     (check_differences, _swap("results", "## Targets and this run", "## Targets (issue) and this run")),
     (check_readme_machines, _swap("readme", "yet: `tools/device_check.sh` is the", "yet: a script is the")),
     (check_readme_machines, _swap("readme", "no robot CPU and no GPU run yet", "a robot CPU or a GPU")),
     (check_readme_machines, _swap("readme", "**AMD EPYC with AVX512-BF16 / VNNI**", "**AMD EPYC**")),
     # issue 48's stale figures, each as the docs quoted it
-    (check_deployed_ratios, _swap("benchmarks", "is 11.75x faster than the fastest dense", "is 12.69x faster than the "
+    (check_deployed_ratios, _swap("benchmarks", "is 12.69x faster than the fastest dense", "is 22.4x faster than the "
                                   "fastest dense")),
-    (check_deployed_ratios, _swap("benchmarks", "31.27x faster than the fastest fp32", "33.36x faster than the fastest "
+    (check_deployed_ratios, _swap("benchmarks", "33.36x faster than the fastest fp32", "63.6x faster than the fastest "
                                   "fp32")),
     (check_deployed_ratios, _swap("deployment", "The fastest rows were the ones", "**Headline: fastest sparse (exact "
                                   "head, ONNX Runtime int8, 10.2 ms) vs fastest dense (OpenVINO int8, 227 ms):\n22.4x; "
@@ -520,26 +491,25 @@ CHECKS = [
                                   "the ones")),
     (check_deployed_ratios, _swap("deployment", "the same fastest rows.", "headline 25.6x against the fastest dense "
                                   "(OpenVINO int8), 66.9x against the fastest fp32 dense (OpenVINO fp32).")),
-    (check_deployed_ratios, _swap("deployment", "OpenVINO fp32, 321.1 ms: 18.82x", "OpenVINO fp32, 261.1 ms: 20.25x")),
-    (check_deployed_ratios, _swap("readme", "is 11.75x faster than the fastest dense one (OpenVINO int8",
-                                  "is 12.69x faster than the fastest dense one (OpenVINO int8")),
-    (check_deployed_ratios, _swap("benchmarks", "(OpenVINO fp32), the latter a sparse int8 / dense fp32 pair: fp32",
-                                  "(OpenVINO fp32): fp32")),
-    (check_deployed_ratios, _swap("readme", "is **11.75x faster** than", "is **12.7x faster** than")),
-    (check_deployed_ratios, _swap("readme", "**5.58x** at its fastest", "**5.7x** at its fastest")),
-    (check_deployed_ratios, _swap("readme", "**The paper's architecture** (sparse backbone\n+ dense head) against the "
+    (check_deployed_ratios, _swap("deployment", "OpenVINO fp32, 261.1 ms: 20.25x", "OpenVINO fp32, 646 ms: 33-44x")),
+    (check_deployed_ratios, _swap("readme", "33.4x faster than the fastest fp32 dense one (OpenVINO, 261.1 ms), but\n"
+                                  "that sets sparse int8 against dense fp32:", "about 33x faster than the fastest fp32 "
+                                  "dense one (OpenVINO, 261.1 ms);")),
+    (check_deployed_ratios, _swap("readme", "is **12.7x faster** than", "is **22.4x faster** than")),
+    (check_deployed_ratios, _swap("readme", "**5.7x** at its fastest", "**12.7x** at its fastest")),
+    (check_deployed_ratios, _swap("readme", "**The paper's architecture** (sparse backbone + dense head) against the "
                                   "same dense row", "The dense row")),
-    (check_deployed_ap, _swap("deployment", "dense ONNX Runtime int8 53.05", "dense ONNX Runtime int8 53.85")),
-    (check_deployed_ap, _swap("deployment", "against\n  eager fp32 53.32", "against\n  eager fp32 53.75")),
+    (check_deployed_ap, _swap("deployment", "dense ONNX Runtime int8 53.85", "dense ONNX Runtime int8 51.32")),
+    (check_deployed_ap, _swap("deployment", "against eager fp32\n  53.75", "against eager fp32\n  51.73")),
     (check_deployed_ap, _swap("deployment", "is within 3 ground-truth boxes", "is within 5 points")),
-    (check_deployed_ap, _swap("sparse", "sparse 50.40 3D / 54.03 BEV", "sparse 51.28 3D / 53.06 BEV")),
-    (check_deployed_ap, _swap("sparse", "dense 53.26 / 55.26", "dense 53.78 / 55.44")),
-    (check_record_examples, _swap("evaluation", "dense 3D 79.74 above BEV 78.41", "dense 3D 77.68 above BEV 77.28")),
+    (check_deployed_ap, _swap("sparse", "sparse 51.28 3D / 53.06 BEV", "sparse 51.44 3D / 52.95 BEV")),
+    (check_deployed_ap, _swap("sparse", "dense 53.78 / 55.44", "dense 51.62 / 53.56")),
+    (check_record_examples, _swap("evaluation", "dense 3D 77.68 above BEV 77.28", "dense 3D 78.54 above BEV 77.93")),
     (check_record_examples, _swap("sparse", "measured 475.9 ms", "measured 458-502 ms")),
     (check_record_examples, _swap("sparse", "and 436.9 ms with the reuse", "and 522 ms with the reuse")),
-    (check_run_times, _swap("benchmarks", "took 69.5 min, no training",
-                            "took 69.5 min, training dense 19.0 / sparse 15.8 min")),
-    (check_run_times, _swap("readme", "record took 69.5 min, no training", "record took 76.7 min, no training")),
+    (check_run_times, _swap("benchmarks", "took 76.7 min, training dense 19.0 / sparse 15.8 min",
+                            "took 113 min, training dense 30.8 / sparse 29.2 min")),
+    (check_run_times, _swap("readme", "took 76.7 min of wall time", "took 113 min of wall time")),
     (check_one_offs, _swap("deployment", "a one-off measurement filed with", "a measurement filed with")),
     (check_one_offs, _swap("sparse", "A one-off: the tool printed these tables", "The tool printed these tables")),
     (check_one_offs, _swap("readme", "in a one-off `tools/bench_train_step.py`", "in a `tools/bench_train_step.py`")),
